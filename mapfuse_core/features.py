@@ -1,0 +1,223 @@
+"""Map features and the measurement models shared by both backends (method.md §2).
+
+Two feature kinds, each a length-3 float array:
+
+* **Line** (SPmap, Castellanos): a frame ``(x, y, θ)`` lying on the line with its x
+  axis along the line.  Only the lateral offset and the angle are real degrees of
+  freedom; ``x`` along the line (kept at the observed segment's midpoint) only helps
+  association and never enters a residual.  Angles of lines are compared modulo π.
+  Covariances are of the absolute ``(x, y, θ)`` parameters in the frame the line is
+  expressed in; the along-line variance is a pseudo-variance (see extraction).
+* **Circle** ``(x, y, r)``: centre and radius; a change of frame moves the centre
+  like a point and leaves ``r`` alone.
+
+Every function returns its value together with its Jacobians.  The EKF and the
+factor graph both call :func:`observe` and :func:`pairing_residual`, so the two
+backends linearise exactly the same models.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+
+import numpy as np
+
+from mapfuse_core.se2 import (
+    FloatArray,
+    compose_jacobians,
+    relative,
+    transform_point_jacobians,
+    wrap_angle,
+    wrap_angle_half,
+)
+
+__all__ = [
+    "B_LINE",
+    "FeatureKind",
+    "canonical_line",
+    "circle_pairing",
+    "express_circle_in",
+    "express_in",
+    "express_line_in",
+    "line_from_normal",
+    "line_pairing",
+    "line_to_normal",
+    "normal_to_line",
+    "observe",
+    "pairing_residual",
+    "residual_dim",
+    "transform_circle",
+    "transform_feature",
+    "transform_line",
+]
+
+
+class FeatureKind(IntEnum):
+    """Feature type code, stored as an integer in measurement logs."""
+
+    LINE = 0
+    CIRCLE = 1
+
+
+#: Binding matrix of an SPmap line: keeps the lateral offset and the angle.
+B_LINE: FloatArray = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def residual_dim(kind: FeatureKind) -> int:
+    """Dimension of the pairing residual: 2 for a line, 3 for a circle."""
+    return 2 if kind == FeatureKind.LINE else 3
+
+
+# --------------------------------------------------------------------------- lines
+
+
+def line_to_normal(line: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """SPmap line → normal form ``(ρ, α)`` with ``ρ ≥ 0``, and ``∂(ρ, α)/∂(x, y, θ)`` (2×3).
+
+    Points ``p`` of the line satisfy ``p · (cos α, sin α) = ρ``.  Undefined (raises) for
+    a line through the origin only in the sense that α is then the θ+π/2 branch.
+    """
+    x, y, th = float(line[0]), float(line[1]), float(line[2])
+    s, c = math.sin(th), math.cos(th)
+    rho_signed = -x * s + y * c
+    sign = 1.0 if rho_signed >= 0.0 else -1.0
+    rho = sign * rho_signed
+    alpha = float(wrap_angle(th + sign * math.pi / 2.0))
+    J = np.array([[-sign * s, sign * c, sign * (-x * c - y * s)], [0.0, 0.0, 1.0]])
+    return np.array([rho, alpha]), J
+
+
+def normal_to_line(rho: float, alpha: float) -> FloatArray:
+    """Normal form → SPmap line at the foot of the normal, y axis towards the origin."""
+    return line_from_normal(rho, alpha, 0.0)[0]
+
+
+def line_from_normal(rho: float, alpha: float, t: float) -> tuple[FloatArray, FloatArray]:
+    """SPmap line from ``(ρ, α)`` with its origin ``t`` metres along the line from the foot.
+
+    The frame's x axis points along ``α + π/2`` so that its y axis points from the line
+    towards the origin of the frame the line is given in (the sensor, for an
+    observation).  Returns the line and ``∂(x, y, θ)/∂(ρ, α, t)`` (3×3).
+    """
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    line = np.array([rho * ca - t * sa, rho * sa + t * ca, float(wrap_angle(alpha + math.pi / 2))])
+    J = np.array(
+        [
+            [ca, -rho * sa - t * ca, -sa],
+            [sa, rho * ca - t * sa, ca],
+            [0.0, 1.0, 0.0],
+        ]
+    )
+    return line, J
+
+
+def canonical_line(line: FloatArray) -> FloatArray:
+    """Same line with θ flipped by π if needed so that its y axis points to the origin.
+
+    The along-line coordinate is unchanged; only the direction convention is fixed,
+    which matters for plotting and association, not for residuals (angles modulo π).
+    """
+    x, y, th = float(line[0]), float(line[1]), float(line[2])
+    lateral_of_origin = math.sin(th) * x - math.cos(th) * y
+    if lateral_of_origin < 0.0:
+        th = float(wrap_angle(th + math.pi))
+    return np.array([x, y, th])
+
+
+def transform_line(T: FloatArray, line: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Line given in frame ``T`` → the frame ``T`` is given in: ``T ⊕ L`` with Jacobians."""
+    return compose_jacobians(T, line)
+
+
+def express_line_in(T: FloatArray, line: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Line given in the parent of ``T`` → frame ``T``: ``⊖T ⊕ L`` with Jacobians."""
+    return relative(T, line)
+
+
+def line_pairing(l1: FloatArray, l2: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """SPmap pairing ``B_line · (⊖L1 ⊕ L2)``, angle modulo π; with Jacobians (2×3 each).
+
+    Zero when both frames lie on the same infinite line, whatever their along-line
+    positions and directions.  The first entry is the lateral offset of ``L2``'s
+    origin from line ``L1`` (metres), the second the angle between them in
+    ``(−π/2, π/2]``.
+    """
+    v, Ja, Jb = relative(l1, l2)
+    r = np.array([v[1], float(wrap_angle_half(v[2]))])
+    return r, B_LINE @ Ja, B_LINE @ Jb
+
+
+# --------------------------------------------------------------------------- circles
+
+
+def transform_circle(
+    T: FloatArray, circle: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Circle given in frame ``T`` → the frame ``T`` is given in, with Jacobians (3×3)."""
+    p, Jt2, Jp = transform_point_jacobians(T, circle[:2])
+    value = np.array([p[0], p[1], circle[2]])
+    JT = np.zeros((3, 3))
+    JT[:2, :] = Jt2
+    JC = np.zeros((3, 3))
+    JC[:2, :2] = Jp
+    JC[2, 2] = 1.0
+    return value, JT, JC
+
+
+def express_circle_in(
+    T: FloatArray, circle: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Circle given in the parent of ``T`` → frame ``T``, with Jacobians (3×3)."""
+    c, s = math.cos(T[2]), math.sin(T[2])
+    dx, dy = circle[0] - T[0], circle[1] - T[1]
+    lx = c * dx + s * dy
+    ly = -s * dx + c * dy
+    value = np.array([lx, ly, circle[2]])
+    JT = np.array([[-c, -s, ly], [s, -c, -lx], [0.0, 0.0, 0.0]])
+    JC = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return value, JT, JC
+
+
+def circle_pairing(c1: FloatArray, c2: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Circle pairing ``(x2 − x1, y2 − y1, r2 − r1)`` with Jacobians (3×3 each)."""
+    eye = np.eye(3)
+    return np.asarray(c2 - c1, dtype=np.float64), -eye, eye.copy()
+
+
+# --------------------------------------------------------------------------- dispatch
+
+
+def transform_feature(
+    kind: FeatureKind, T: FloatArray, f: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Feature given in frame ``T`` → parent frame (``T ⊕ f``), by kind."""
+    return transform_line(T, f) if kind == FeatureKind.LINE else transform_circle(T, f)
+
+
+def express_in(
+    kind: FeatureKind, T: FloatArray, f: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Feature given in the parent of ``T`` → frame ``T`` (``⊖T ⊕ f``), by kind."""
+    return express_line_in(T, f) if kind == FeatureKind.LINE else express_circle_in(T, f)
+
+
+def pairing_residual(
+    kind: FeatureKind, f1: FloatArray, f2: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Pairing residual of two features of ``kind`` given in one frame, by kind."""
+    return line_pairing(f1, f2) if kind == FeatureKind.LINE else circle_pairing(f1, f2)
+
+
+def observe(
+    kind: FeatureKind, z: FloatArray, x_W_R: FloatArray, f_W: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Observation residual of measurement ``z`` (in the sensor frame ``R``).
+
+    ``residual = pairing(z, ⊖x_W_R ⊕ f_W)``: zero when the feature ``f_W`` (in ``W``)
+    seen from pose ``x_W_R`` coincides with the measurement.  Returns the residual
+    (2 for a line, 3 for a circle) and its Jacobians w.r.t. ``x_W_R`` and ``f_W``.
+    """
+    pred, Jp_T, Jp_f = express_in(kind, x_W_R, f_W)
+    r, _, Jr_pred = pairing_residual(kind, z, pred)
+    return r, Jr_pred @ Jp_T, Jr_pred @ Jp_f
