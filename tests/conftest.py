@@ -1,0 +1,23 @@
+"""Shared pytest configuration: hypothesis profile and the real-data directory."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from hypothesis import settings
+
+# Deterministic hypothesis runs: a failing example must reproduce on every machine.
+settings.register_profile("mapfuse", derandomize=True, max_examples=200, deadline=None)
+settings.load_profile("mapfuse")
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """Directory of the shared real datasets (``MAPFUSE_DATA``), or skip."""
+    raw = os.environ.get("MAPFUSE_DATA", "")
+    path = Path(raw) if raw else Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    if not path.is_dir():
+        pytest.skip(f"real-data directory not found ({path}); set MAPFUSE_DATA to run this test")
+    return path
