@@ -1,0 +1,42 @@
+# Two entry points on a fresh machine: `make demo` and `make test`.
+# Both create .venv and install the project with its dev tools first.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+DATA   ?= ../shared/data
+OUT    ?= out/loop600
+# Two workers match the 2-core CI machine.
+PYTEST_WORKERS ?= 2
+
+.PHONY: venv demo test lint typecheck unit bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $@
+
+venv: $(VENV)/.installed
+
+demo: venv
+	$(VENV)/bin/mapfuse simulate loop600 --seed 0 --out $(OUT)
+	@echo "Demo output: $(OUT)/log.npz and $(OUT)/world.png"
+
+lint: venv
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+typecheck: venv
+	$(VENV)/bin/mypy mapfuse_core ekf_reference mapfuse_graph
+
+unit: venv
+	MAPFUSE_DATA=$(DATA) $(PY) -m pytest -n $(PYTEST_WORKERS) -q
+
+test: lint typecheck unit
+
+bench: venv
+	$(PY) benchmarks/bench_simulate.py
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache .hypothesis

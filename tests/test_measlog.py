@@ -1,0 +1,155 @@
+"""Measurement log: round trip, bit-identical files, clear errors for bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfuse_core.measlog import (
+    FORMAT_VERSION,
+    KnownMapArrays,
+    MeasurementLog,
+    MeasurementLogError,
+    load_log,
+    save_log,
+)
+
+
+def small_log(n: int = 5, seed: int = 3) -> MeasurementLog:
+    rng = np.random.default_rng(seed)
+    steps = np.array([0, 0, 2, 3, 3, 3], dtype=np.int64)
+    m = steps.size
+    cov = np.diag([0.01, 0.02, 0.003])
+    return MeasurementLog(
+        scenario="unit",
+        seed=seed,
+        timestamps=np.arange(n) * 0.125,
+        odometry=np.vstack([np.zeros(3), rng.normal(size=(n - 1, 3)) * 0.1]),
+        odometry_cov=np.stack([np.zeros((3, 3))] + [cov] * (n - 1)),
+        feat_step=steps,
+        feat_kind=np.array([0, 1, 1, 0, 1, 0], dtype=np.int8),
+        feat_params=np.abs(rng.normal(size=(m, 3))) + 0.1,
+        feat_cov=np.stack([cov] * m),
+        feat_true_id=np.array([1, 2, -1, 4, 5, 1], dtype=np.int64),
+        feat_n_points=np.full(m, 12, dtype=np.int64),
+        feat_extent=np.array([[-1.0, 1.0], [np.nan, np.nan]] * 3),
+        known_map=KnownMapArrays(
+            ids=np.array([1, 2], dtype=np.int64),
+            kinds=np.array([0, 1], dtype=np.int8),
+            params=np.array([[0.0, 1.0, 0.2], [3.0, 4.0, 0.5]]),
+            covs=np.stack([cov, cov]),
+        ),
+        true_poses=rng.normal(size=(n, 3)),
+        rejected={"too_few_points": 4, "radius_out_of_range": 1},
+    )
+
+
+def test_round_trip_preserves_every_array(tmp_path: Path) -> None:
+    log = small_log()
+    back = load_log(save_log(log, tmp_path / "log.npz"))
+    for f in dataclasses.fields(MeasurementLog):
+        if f.name.startswith("_"):
+            continue
+        a, b = getattr(log, f.name), getattr(back, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=f.name)
+            assert a.dtype == b.dtype, f.name
+        elif isinstance(a, KnownMapArrays):
+            for g in ("ids", "kinds", "params", "covs"):
+                np.testing.assert_array_equal(getattr(a, g), getattr(b, g))
+        else:
+            assert a == b, f.name
+
+
+def test_same_content_gives_identical_bytes(tmp_path: Path) -> None:
+    a = save_log(small_log(), tmp_path / "a.npz").read_bytes()
+    b = save_log(small_log(), tmp_path / "b.npz").read_bytes()
+    assert a == b
+
+
+def test_no_pickled_objects_and_named_true_poses(tmp_path: Path) -> None:
+    path = save_log(small_log(), tmp_path / "log.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        assert npz["true_poses"].shape == (5, 3)
+        assert all(npz[k].dtype != object for k in npz.files)
+
+
+def test_feature_slice() -> None:
+    log = small_log()
+    assert log.feature_slice(0) == slice(0, 2)
+    assert log.feature_slice(1) == slice(2, 2)
+    assert log.feature_slice(3) == slice(3, 6)
+    with pytest.raises(IndexError, match="outside"):
+        log.feature_slice(5)
+
+
+def test_nan_is_rejected_with_its_location() -> None:
+    log = small_log()
+    params = log.feat_params.copy()
+    params[2, 1] = np.nan
+    with pytest.raises(MeasurementLogError, match=r"feat_params.*non-finite.*\(2, 1\)"):
+        dataclasses.replace(log, feat_params=params)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("feat_kind", np.array([0, 1, 7, 0, 1, 0], dtype=np.int8), "not a feature kind"),
+        ("feat_step", np.array([0, 0, 2, 3, 3, 9], dtype=np.int64), "outside"),
+        ("feat_step", np.array([0, 2, 0, 3, 3, 3], dtype=np.int64), "non-decreasing"),
+        ("odometry", np.zeros((4, 3)), "odometry.*shape"),
+        ("timestamps", np.array([0.0, 1.0, 0.5, 2.0, 3.0]), "decrease"),
+    ],
+)
+def test_inconsistent_arrays_are_named(field: str, value: np.ndarray, message: str) -> None:
+    with pytest.raises(MeasurementLogError, match=message):
+        dataclasses.replace(small_log(), **{field: value})
+
+
+def test_asymmetric_or_negative_covariance() -> None:
+    log = small_log()
+    cov = log.feat_cov.copy()
+    cov[1, 0, 1] = 0.5
+    with pytest.raises(MeasurementLogError, match=r"feat_cov'\[1\] is not symmetric"):
+        dataclasses.replace(log, feat_cov=cov)
+    cov = log.feat_cov.copy()
+    cov[4, 2, 2] = -1.0
+    with pytest.raises(MeasurementLogError, match="negative variance"):
+        dataclasses.replace(log, feat_cov=cov)
+
+
+def test_other_version_is_refused(tmp_path: Path) -> None:
+    path = save_log(small_log(), tmp_path / "log.npz")
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["format_version"] = np.array(FORMAT_VERSION + 1)
+    np.savez(tmp_path / "future.npz", **arrays)  # type: ignore[arg-type]
+    with pytest.raises(MeasurementLogError, match=f"version {FORMAT_VERSION + 1}"):
+        load_log(tmp_path / "future.npz")
+
+
+def test_damaged_and_foreign_files(tmp_path: Path) -> None:
+    path = save_log(small_log(), tmp_path / "log.npz")
+    data = path.read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(MeasurementLogError, match=r"cut\.npz.*not a readable"):
+        load_log(tmp_path / "cut.npz")
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(MeasurementLogError, match="not a mapfuse measurement log"):
+        load_log(tmp_path / "other.npz")
+    with pytest.raises(MeasurementLogError, match="no such"):
+        load_log(tmp_path / "missing.npz")
+
+
+def test_missing_array_is_named(tmp_path: Path) -> None:
+    path = save_log(small_log(), tmp_path / "log.npz")
+    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(tmp_path / "m.npz", "w") as zout:
+        for item in zin.infolist():
+            if item.filename != "odometry_cov.npy":
+                zout.writestr(item, zin.read(item.filename))
+    with pytest.raises(MeasurementLogError, match="missing array 'odometry_cov'"):
+        load_log(tmp_path / "m.npz")
