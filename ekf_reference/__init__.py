@@ -1,1 +1,26 @@
-"""placeholder"""
+"""The paper's EKF pipeline: robotcentric multi-map SLAM with known-map fusion.
+
+Depends on :mod:`mapfuse_core` only; never imports gtsam.
+"""
+
+from ekf_reference.config import EKFConfig
+from ekf_reference.pipeline import run_ekf
+from ekf_reference.report import ekf_metrics
+from ekf_reference.result import (
+    AnchorResult,
+    EKFResult,
+    MapResult,
+    load_associations,
+    save_associations,
+)
+
+__all__ = [
+    "AnchorResult",
+    "EKFConfig",
+    "EKFResult",
+    "MapResult",
+    "ekf_metrics",
+    "load_associations",
+    "run_ekf",
+    "save_associations",
+]

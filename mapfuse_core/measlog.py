@@ -56,6 +56,9 @@ class KnownMapArrays:
     """(M, 3) SPmap line ``(x, y, θ)`` or circle ``(x, y, r)`` in the map frame."""
     covs: FloatArray
     """(M, 3, 3) covariances of :attr:`params` (zeros for the true world)."""
+    extents: FloatArray | None = None
+    """(M, 2) along-line interval of each line's wall relative to its reference point
+    (NaN for circles); ``None`` when unknown.  Lets association tell collinear walls apart."""
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -166,6 +169,8 @@ def _check_map(prefix: str, m: KnownMapArrays) -> None:
     _check_array(f"{prefix}_covs", m.covs, (n, 3, 3))
     _check_kinds(f"{prefix}_kinds", m.kinds)
     _check_covs(f"{prefix}_covs", m.covs)
+    if m.extents is not None:
+        _check_array(f"{prefix}_extents", m.extents, (n, 2), finite=False)
     if len(np.unique(m.ids)) != n:
         raise MeasurementLogError(f"'{prefix}_ids' has duplicate ids")
 
@@ -254,6 +259,8 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
         if m is not None:
             for f in _MAP_FIELDS:
                 out[f"{prefix}_{f}"] = np.asarray(getattr(m, f))
+            if m.extents is not None:
+                out[f"{prefix}_extents"] = np.asarray(m.extents)
     if log.true_poses is not None:
         out["true_poses"] = np.asarray(log.true_poses)
     return out
@@ -314,7 +321,10 @@ def load_log(path: str | Path) -> MeasurementLog:
         )
 
     def map_of(prefix: str) -> KnownMapArrays:
-        return KnownMapArrays(*(_get(arrays, path, f"{prefix}_{f}") for f in _MAP_FIELDS))
+        ext = f"{prefix}_extents"
+        ids, kinds, params, covs = (_get(arrays, path, f"{prefix}_{f}") for f in _MAP_FIELDS)
+        extents = _get(arrays, path, ext) if ext in arrays else None
+        return KnownMapArrays(ids, kinds, params, covs, extents)
 
     reasons = _get(arrays, path, "rejected_reasons")
     counts = _get(arrays, path, "rejected_counts")

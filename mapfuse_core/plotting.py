@@ -6,6 +6,7 @@ matplotlib is imported only here, so the numeric core does not need it.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,6 +25,8 @@ if TYPE_CHECKING:
 __all__ = [
     "draw_circle",
     "draw_line_feature",
+    "errors_figure",
+    "plot_errors_with_bounds",
     "plot_known_map",
     "plot_scan",
     "plot_trajectory",
@@ -37,7 +40,7 @@ def draw_circle(ax: Axes, c: FloatArray, **kw: object) -> None:
     from matplotlib.patches import Circle
 
     kw.setdefault("fill", False)
-    ax.add_patch(Circle((float(c[0]), float(c[1])), float(c[2]), **kw))  # type: ignore[arg-type]
+    ax.add_patch(Circle((float(c[0]), float(c[1])), float(c[2]), **kw))
 
 
 def draw_line_feature(
@@ -165,4 +168,36 @@ def world_figure(
         ax.set_ylabel("y [m]")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)
+    return fig
+
+
+def plot_errors_with_bounds(
+    axes: Sequence[Axes],
+    t: FloatArray,
+    dx: FloatArray,
+    covs: FloatArray,
+    label: str = "error",
+    color: str = "tab:blue",
+) -> None:
+    """x, y, θ errors against time with ±2σ bounds (the paper's Fig. 6), one axis each."""
+    names = ("x error [m]", "y error [m]", "θ error [rad]")
+    for i, ax in enumerate(axes[:3]):
+        sig = 2.0 * np.sqrt(np.maximum(covs[:, i, i], 0.0))
+        ax.plot(t, dx[:, i], color=color, lw=1.0, label=label)
+        ax.plot(t, sig, color="k", lw=0.8, label="±2σ" if i == 0 else None)
+        ax.plot(t, -sig, color="k", lw=0.8)
+        ax.set_ylabel(names[i])
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[0].legend(loc="upper right", fontsize=8)
+
+
+def errors_figure(t: FloatArray, dx: FloatArray, covs: FloatArray, title: str) -> Figure:
+    """Three stacked panels of :func:`plot_errors_with_bounds`."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 7), layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    plot_errors_with_bounds(list(axes), t, dx, covs)
+    fig.suptitle(title)
     return fig

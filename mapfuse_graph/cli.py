@@ -68,6 +68,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from mapfuse_graph.runner import prepare_log, run_backend, write_outputs
+
+    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    run = run_backend(
+        log, args.backend, fusion=args.fusion, progress=_Progress(args.backend, not args.quiet)
+    )
+    paths = write_outputs(run, args.out)
+    print(json.dumps({"metrics": run.metrics, "outputs": paths}, indent=2))
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="mapfuse",
@@ -89,6 +101,30 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--plot-step", type=int, default=None, help="step whose scan world.png shows")
     sim.add_argument("--quiet", action="store_true", help="no progress output")
     sim.set_defaults(func=_cmd_simulate)
+
+    run = sub.add_parser(
+        "run",
+        help="run an estimator on a scenario or a log",
+        description="Run BACKEND on SCENARIO (built-in name, TOML path, or a log.npz) and "
+        "write OUT/metrics.json, OUT/trajectory.tum and OUT/errors.png.",
+    )
+    run.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    run.add_argument("--backend", default="ekf", choices=["ekf"], help="estimator")
+    fusion = run.add_mutually_exclusive_group()
+    fusion.add_argument(
+        "--fusion",
+        dest="fusion",
+        action="store_true",
+        default=True,
+        help="fuse the known map (default)",
+    )
+    fusion.add_argument(
+        "--no-fusion", dest="fusion", action="store_false", help="SLAM without map fusion"
+    )
+    run.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    run.add_argument("--out", required=True, help="output directory")
+    run.add_argument("--quiet", action="store_true", help="no progress output")
+    run.set_defaults(func=_cmd_run)
     return p
 
 

@@ -1,0 +1,287 @@
+"""Data association inside one EKF map: individual compatibility, NN and JCBB.
+
+A *query* is either a measurement (a feature in the vehicle frame with its
+covariance) or a feature element of the map itself (for the hard pairing
+constraints of map joining and of the known-map fusion).  A *target* is a feature
+element expressed in the vehicle frame, or a known-map feature seen through the
+anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the shared models of
+:mod:`mapfuse_core.features`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from mapfuse_core.features import pairing_residual, transform_feature
+from mapfuse_core.se2 import FloatArray, wrap_angle_half
+
+__all__ = [
+    "Candidate",
+    "Query",
+    "evaluate",
+    "jcbb",
+    "joint_compatible",
+    "line_gap",
+    "nearest_neighbour",
+    "predict_targets",
+]
+
+
+@dataclass(frozen=True)
+class Query:
+    """Something to associate: a measurement (``element`` = −1) or a map element."""
+
+    kind: ElementKind
+    """LINE or CIRCLE."""
+    params: FloatArray
+    """(3,) parameters in the vehicle frame ``R``."""
+    cov: FloatArray
+    """(3, 3) measurement covariance (ignored for a map element: its own is in the map)."""
+    extent: tuple[float, float]
+    """Along-line extent of a line (NaN for circles)."""
+    element: int = -1
+    """Index of the map element this query is, or −1 for a measurement."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An individually compatible (query, target) pair and its linearisation."""
+
+    target: int
+    """Index of the target element (a FEATURE or a KNOWN feature)."""
+    residual: FloatArray
+    """Pairing residual (2 for lines, 3 for circles)."""
+    indices: list[int]
+    """Map elements the residual depends on."""
+    H: FloatArray
+    """∂residual/∂(those elements), (m, 3·len(indices))."""
+    R: FloatArray
+    """Covariance of the residual due to the measurement (zeros for a map element)."""
+    d2: float
+    """Mahalanobis distance ``rᵀ S⁻¹ r``."""
+
+
+def line_gap(
+    q_line: FloatArray,
+    q_extent: tuple[float, float],
+    t_line: FloatArray,
+    t_extent: tuple[float, float],
+) -> float:
+    """Gap (m) between two collinear-ish segments along the target line; 0 if they overlap."""
+    if not all(math.isfinite(v) for v in (*q_extent, *t_extent)):
+        return 0.0
+    uq = np.array([math.cos(q_line[2]), math.sin(q_line[2])])
+    ut = np.array([math.cos(t_line[2]), math.sin(t_line[2])])
+    s = [float((q_line[:2] + t * uq - t_line[:2]) @ ut) for t in q_extent]
+    lo, hi = min(s), max(s)
+    return max(lo - t_extent[1], t_extent[0] - hi, 0.0)
+
+
+def predict_targets(
+    state: GaussianMap, kind: ElementKind, features: Callable[[Element], bool], known: bool = True
+) -> tuple[list[int], FloatArray]:
+    """Targets of ``kind`` and their parameters in the working frame.
+
+    Feature elements pass when ``features(element)`` is true; known-map features are
+    included (seen through the anchor) when ``known`` and the map has an anchor.
+    """
+    targets: list[int] = []
+    preds: list[FloatArray] = []
+    anchor = state.find(Role.ANCHOR) if known and state.has(Role.ANCHOR) else -1
+    fk = kind.feature_kind()
+    for i, e in enumerate(state.elements):
+        if e.kind != kind:
+            continue
+        if e.role == Role.FEATURE and features(e):
+            targets.append(i)
+            preds.append(state.mean[i])
+        elif e.role == Role.KNOWN and anchor >= 0:
+            targets.append(i)
+            preds.append(transform_feature(fk, state.mean[anchor], state.mean[i])[0])
+    return targets, np.array(preds, dtype=float).reshape(-1, 3)
+
+
+def _target_jacobian(state: GaussianMap, t: int) -> tuple[FloatArray, list[int], list[FloatArray]]:
+    e = state.elements[t]
+    if e.role == Role.KNOWN:
+        a = state.find(Role.ANCHOR)
+        pred, Ja, Je = transform_feature(e.kind.feature_kind(), state.mean[a], state.mean[t])
+        return pred, [a, t], [Ja, Je]
+    return state.mean[t], [t], [np.eye(3)]
+
+
+def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
+    """Residual, Jacobian and Mahalanobis distance of pairing query ``q`` with target ``t``."""
+    pred, tidx, tJ = _target_jacobian(state, t)
+    fk = q.kind.feature_kind()
+    r, Jq, Jp = pairing_residual(fk, q.params, pred)
+    if q.element >= 0:
+        indices = [q.element, *tidx]
+        blocks = [Jq] + [Jp @ J for J in tJ]
+        R = np.zeros((r.size, r.size))
+    else:
+        indices = tidx
+        blocks = [Jp @ J for J in tJ]
+        R = Jq @ q.cov @ Jq.T
+    H = np.hstack(blocks)
+    idx = state.dofs(indices)
+    S = H @ state.cov[np.ix_(idx, idx)] @ H.T + R
+    try:
+        d2 = float(r @ np.linalg.solve(S, r))
+    except np.linalg.LinAlgError:
+        d2 = math.inf
+    return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2)
+
+
+def _prefilter(
+    q: Query,
+    preds: FloatArray,
+    targets: list[int],
+    state: GaussianMap,
+    max_dist: float,
+    max_ang: float,
+    max_gap: float,
+) -> list[int]:
+    if not targets:
+        return []
+    if q.kind == ElementKind.CIRCLE:
+        d = np.hypot(preds[:, 0] - q.params[0], preds[:, 1] - q.params[1])
+        return [t for t, ok in zip(targets, d < max_dist, strict=True) if ok]
+    c, s = math.cos(q.params[2]), math.sin(q.params[2])
+    lateral = -s * (preds[:, 0] - q.params[0]) + c * (preds[:, 1] - q.params[1])
+    dang = np.abs(wrap_angle_half(preds[:, 2] - q.params[2]))
+    ok = (np.abs(lateral) < max_dist) & (dang < max_ang)
+    out = []
+    for t, pred, good in zip(targets, preds, ok, strict=True):
+        if good and line_gap(q.params, q.extent, pred, state.elements[t].extent) <= max_gap:
+            out.append(t)
+    return out
+
+
+def individual_candidates(
+    state: GaussianMap,
+    q: Query,
+    targets: list[int],
+    preds: FloatArray,
+    gate_prob: float,
+    max_dist: float,
+    max_ang: float,
+    max_gap: float,
+) -> list[Candidate]:
+    """Individually compatible candidates of ``q``, best (smallest d²) first."""
+    dof = 2 if q.kind == ElementKind.LINE else 3
+    gate = float(chi2.ppf(gate_prob, dof))
+    out = []
+    for t in _prefilter(q, preds, targets, state, max_dist, max_ang, max_gap):
+        if t == q.element:
+            continue
+        c = evaluate(state, q, t)
+        if c.d2 <= gate:
+            out.append(c)
+    out.sort(key=lambda c: c.d2)
+    return out
+
+
+def nearest_neighbour(cands: list[list[Candidate]]) -> list[Candidate | None]:
+    """Greedy NN: the globally best pairs first, each target used once."""
+    flat = sorted(
+        ((c.d2, qi, c) for qi, cs in enumerate(cands) for c in cs), key=lambda x: (x[0], x[1])
+    )
+    chosen: list[Candidate | None] = [None] * len(cands)
+    used: set[int] = set()
+    for _, qi, c in flat:
+        if chosen[qi] is None and c.target not in used:
+            chosen[qi] = c
+            used.add(c.target)
+    return chosen
+
+
+def joint_compatible(state: GaussianMap, chosen: list[Candidate], gate_prob: float) -> bool:
+    """Joint χ² test of a set of pairings (correlations through the map included)."""
+    if not chosen:
+        return True
+    r, H, R, idx = stack(state, chosen)
+    S = H @ state.cov[np.ix_(idx, idx)] @ H.T + R
+    try:
+        d2 = float(r @ np.linalg.solve(S, r))
+    except np.linalg.LinAlgError:
+        return False
+    return d2 <= float(chi2.ppf(gate_prob, r.size))
+
+
+def jcbb(
+    state: GaussianMap, cands: list[list[Candidate]], gate_prob: float, max_nodes: int = 20000
+) -> list[Candidate | None]:
+    """Joint compatibility branch and bound (Neira & Tardós): most jointly compatible pairs.
+
+    Ties in the number of pairings are broken by the smaller joint d².  The search
+    stops after ``max_nodes`` nodes and returns the best found (documented bound).
+    """
+    n = len(cands)
+    best: list[Candidate | None] = [None] * n
+    best_count = 0
+    nodes = 0
+
+    def rec(i: int, current: list[Candidate | None], used: set[int], count: int) -> None:
+        nonlocal best, best_count, nodes
+        nodes += 1
+        if nodes > max_nodes:
+            return
+        if i == n:
+            if count > best_count:
+                best, best_count = list(current), count
+            return
+        remaining = sum(1 for cs in cands[i:] if cs)
+        if count + remaining <= best_count:
+            return
+        for c in cands[i]:
+            if c.target in used:
+                continue
+            trial = [x for x in current if x is not None] + [c]
+            if joint_compatible(state, trial, gate_prob):
+                current[i] = c
+                used.add(c.target)
+                rec(i + 1, current, used, count + 1)
+                used.discard(c.target)
+                current[i] = None
+        rec(i + 1, current, used, count)
+
+    rec(0, [None] * n, set(), 0)
+    return best
+
+
+def stack(
+    state: GaussianMap, chosen: list[Candidate]
+) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
+    """Stack pairings into one residual, Jacobian over the union of elements, and R."""
+    elems = sorted({i for c in chosen for i in c.indices})
+    pos = {e: k for k, e in enumerate(elems)}
+    m = sum(c.residual.size for c in chosen)
+    H = np.zeros((m, 3 * len(elems)))
+    R = np.zeros((m, m))
+    r = np.zeros(m)
+    row = 0
+    for c in chosen:
+        k = c.residual.size
+        r[row : row + k] = c.residual
+        R[row : row + k, row : row + k] = c.R
+        for j, e in enumerate(c.indices):
+            H[row : row + k, 3 * pos[e] : 3 * pos[e] + 3] = c.H[:, 3 * j : 3 * j + 3]
+        row += k
+    return r, H, R, state.dofs(elems)
+
+
+def apply(state: GaussianMap, chosen: list[Candidate]) -> None:
+    """One batched EKF update with all chosen pairings."""
+    if not chosen:
+        return
+    r, H, R, idx = stack(state, chosen)
+    elems = sorted({i for c in chosen for i in c.indices})
+    state.update(elems, r, H, R)
+    del idx

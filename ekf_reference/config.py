@@ -1,0 +1,57 @@
+"""Configuration of the EKF reference pipeline (every *(choice)* of method.md)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mapfuse_core.ccda import CCDAParams
+
+__all__ = ["EKFConfig"]
+
+
+@dataclass(frozen=True)
+class EKFConfig:
+    """Parameters of :func:`ekf_reference.run_ekf`."""
+
+    fusion: bool = True
+    """Fuse the known map (the paper's method); ``False`` is "SLAM without map fusion"."""
+    local_map_steps: int = 40
+    """*(choice)* Steps per local map before it is joined.  40 steps (10 m of travel in
+    loop600) was measured as the best trade-off between per-step cost (larger maps)
+    and join cost/linearisation (more joins): see ``benchmarks/bench_ekf.py``."""
+    gate_prob: float = 0.999
+    """χ² gate probability of individual compatibility (observation ↔ map feature)."""
+    association: Literal["nn", "jcbb"] = "nn"
+    """Nearest neighbour with individual compatibility, or joint compatibility (JCBB)."""
+    line_overlap_gap_m: float = 4.0
+    """Two collinear line observations are one wall only if their extents overlap or the
+    gap between them is below this (m): SPmap's along-line coordinate at work."""
+    prefilter_m: float = 3.0
+    """Cheap pre-gate before χ² tests: centre distance (circles) and lateral offset
+    (lines) in metres.  Far larger than any 99.9 % gate at the loop600 noise."""
+    prefilter_rad: float = 0.3
+    """Cheap pre-gate on line angle differences (rad, modulo π)."""
+    anchor_prior_sigma: tuple[float, float, float] = (100.0, 100.0, math.pi)
+    """*(choice)* Prior σ of the anchor when CCDA accepts a match.  The anchor is then
+    constrained by the CCDA pairings themselves (hard constraints through the known
+    features), so the information of the matched features is counted once.  The
+    paper instead inserts CCDA's own covariance, which counts it twice."""
+    ccda: CCDAParams = field(default_factory=CCDAParams)
+    """CCDA matching parameters."""
+    min_obs_for_matching: int = 2
+    """Global features seen fewer times than this are left out of CCDA (spurious ones)."""
+
+    def __post_init__(self) -> None:
+        if self.local_map_steps < 1:
+            raise ValueError(f"local_map_steps must be >= 1, got {self.local_map_steps}")
+        if not 0.0 < self.gate_prob < 1.0:
+            raise ValueError(f"gate_prob must be in (0, 1), got {self.gate_prob}")
+        if self.association not in ("nn", "jcbb"):
+            raise ValueError(f"association must be 'nn' or 'jcbb', got {self.association!r}")
+        for name in ("line_overlap_gap_m", "prefilter_m", "prefilter_rad"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0")
+        if any(not s > 0.0 for s in self.anchor_prior_sigma):
+            raise ValueError("anchor_prior_sigma must be positive")

@@ -1,0 +1,274 @@
+"""Robotcentric local maps, their joining into the global map, and known-map fusion.
+
+Frames (method.md §1): ``R`` the vehicle, ``Wlocal`` the base of the current local
+map, ``Wglobal`` the vehicle at step 0, ``Wknown`` the known map.
+
+* Local map (paper eq. 1, 17): ``[x^R_Wlocal, (x^R_Wknown, x^Wknown_E…), x^R_F…]``.
+  Prediction moves every element expressed in ``R``; known features stay in
+  ``Wknown``.
+* Global map (eq. 2, 14): ``[x^Wlocal_Wglobal, (x^Wlocal_Wknown, x^Wknown_E…), x^Wlocal_G…]``.
+
+*(choice)* Known-map information is counted once.  The paper stacks the known map
+and the translation vector into every local map as if independent of the global
+map, then fuses them back (eq. 22); that counts the same information again at every
+join.  Here the anchor and the known features are *shared* between the global map
+and the local map started from it (conditionally independent local maps, Piniés and
+Tardós 2008): a local map starts with the global marginal of the shared elements,
+and at the join the global-only elements are corrected through their correlation
+with the shared ones.  The structure of Algorithm 1 (translation vector in every
+local map, constrained local update at every step, translation-vector update at
+every join) is unchanged; only the bookkeeping is exact.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ekf_reference.association import (
+    Candidate,
+    Query,
+    individual_candidates,
+    jcbb,
+    nearest_neighbour,
+)
+from ekf_reference.config import EKFConfig
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from mapfuse_core.features import transform_feature
+from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian, relative, wrap_angle
+
+__all__ = [
+    "CIContext",
+    "bind_line_cov",
+    "new_global_map",
+    "new_local_map",
+    "predict",
+    "vehicle_in_global",
+]
+
+
+def bind_line_cov(line: FloatArray, cov: FloatArray) -> FloatArray:
+    """Covariance of an SPmap line with its along-line component projected out."""
+    c, s = math.cos(line[2]), math.sin(line[2])
+    P = np.array([[1 - c * c, -c * s, 0.0], [-c * s, 1 - s * s, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = P @ cov @ P.T
+    return out
+
+
+@dataclass
+class CIContext:
+    """What a fused local map remembers of the global map it was started from."""
+
+    shared_global: list[int]
+    """Global-map indices of the shared elements: the anchor, then the known features."""
+    shared_local: list[int]
+    """Local-map indices of the same elements, in the same order."""
+    mu_s: FloatArray
+    """(k, 3) global mean of the shared elements when the local map started."""
+    A: FloatArray
+    """``P_gs P_ss⁺`` over all global dofs (3n × 3k): how global elements follow the shared."""
+
+
+def new_global_map() -> GaussianMap:
+    """The global map before the first join: ``x^Wglobal_Wglobal = 0`` exactly."""
+    g = GaussianMap()
+    g.add(
+        Element(ElementKind.POSE, Role.BASE, moving=False, track=-1), np.zeros(3), np.zeros((3, 3))
+    )
+    return g
+
+
+def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | None]:
+    """A local map based at the current vehicle pose, with the shared known-map part."""
+    loc = GaussianMap()
+    loc.add(
+        Element(ElementKind.POSE, Role.BASE, moving=True, track=-1), np.zeros(3), np.zeros((3, 3))
+    )
+    if not global_map.has(Role.ANCHOR):
+        return loc, None
+    shared = [global_map.find(Role.ANCHOR), *global_map.indices(Role.KNOWN)]
+    Pss = global_map.marginal(shared)
+    first = len(loc)
+    for gi in shared:
+        e = global_map.elements[gi]
+        loc.add(
+            Element(e.kind, e.role, moving=e.role == Role.ANCHOR, track=e.track, extent=e.extent),
+            global_map.mean[gi],
+            np.zeros((3, 3)),
+        )
+    idx = loc.dofs(range(first, len(loc)))
+    loc.cov[np.ix_(idx, idx)] = Pss
+    s_dofs = global_map.dofs(shared)
+    A = global_map.cov[:, s_dofs] @ np.linalg.pinv(Pss, rcond=1e-10, hermitian=True)
+    ctx = CIContext(
+        shared_global=shared,
+        shared_local=list(range(first, len(loc))),
+        mu_s=global_map.mean[shared].copy(),
+        A=A,
+    )
+    return loc, ctx
+
+
+def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
+    """Move every element expressed in ``R`` by the odometry increment ``u`` (cov ``Q``)."""
+    moving = np.array([e.moving for e in loc.elements], dtype=bool)
+    if not moving.any():
+        return
+    c, s = math.cos(u[2]), math.sin(u[2])
+    m = loc.mean
+    dx, dy = m[:, 0] - u[0], m[:, 1] - u[1]
+    lx = c * dx + s * dy
+    ly = -s * dx + c * dy
+    is_circle = np.array([e.kind == ElementKind.CIRCLE for e in loc.elements], dtype=bool)
+    n = len(loc)
+    Ju = np.zeros((n, 3, 3))
+    Ju[:, 0, 0], Ju[:, 0, 1], Ju[:, 0, 2] = -c, -s, ly
+    Ju[:, 1, 0], Ju[:, 1, 1], Ju[:, 1, 2] = s, -c, -lx
+    Ju[:, 2, 2] = np.where(is_circle, 0.0, -1.0)
+    Jx = np.zeros((n, 3, 3))
+    Jx[:] = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    new = m.copy()
+    new[moving, 0] = lx[moving]
+    new[moving, 1] = ly[moving]
+    rot = moving & ~is_circle
+    new[rot, 2] = wrap_angle(m[rot, 2] - u[2])
+    loc.apply_linear(Jx, moving)
+    G = np.where(moving[:, None, None], Ju, 0.0).reshape(3 * n, 3)
+    loc.cov = loc.cov + G @ Q @ G.T
+    loc.mean = new
+    loc.bind_lines()
+    loc.symmetrise()
+
+
+def vehicle_in_global(
+    global_map: GaussianMap, loc: GaussianMap, ctx: CIContext | None
+) -> tuple[FloatArray, FloatArray]:
+    """Filtered ``x^Wglobal_R`` and its covariance at the current step.
+
+    ``x^Wglobal_R = ⊖(x^R_Wlocal ⊕ x^Wlocal_Wglobal)``.  With a fused local map the
+    global base is first corrected by what the local map has learnt about the shared
+    elements, and its correlation with ``x^R_Wlocal`` is carried through them.
+    """
+    gb = global_map.find(Role.BASE)
+    lb = loc.find(Role.BASE)
+    b = global_map.mean[gb].copy()
+    Pbb = global_map.block(gb).copy()
+    Pb_l = np.zeros((3, 3))
+    if ctx is not None:
+        s_L, Js, idx_L = shared_in_global_frame(loc, ctx)
+        d = (s_L - ctx.mu_s).reshape(-1)
+        d = _wrap_diff(d, [global_map.elements[i].kind for i in ctx.shared_global])
+        A_b = ctx.A[3 * gb : 3 * gb + 3]
+        s_dofs = global_map.dofs(ctx.shared_global)
+        P_L = loc.cov[np.ix_(loc.dofs(idx_L), loc.dofs(idx_L))]
+        Pss_L = Js @ P_L @ Js.T
+        b = b + A_b @ d
+        b[2] = float(wrap_angle(b[2]))
+        Pbb = Pbb - A_b @ global_map.cov[s_dofs, 3 * gb : 3 * gb + 3] + A_b @ Pss_L @ A_b.T
+        col = loc.dofs([lb])
+        Ps_lb = Js @ loc.cov[np.ix_(loc.dofs(idx_L), col)]
+        Pb_l = A_b @ Ps_lb
+    y, J1, J2 = compose_jacobians(loc.mean[lb], b)
+    P_joint = np.block([[loc.block(lb), Pb_l.T], [Pb_l, Pbb]])
+    Jy = np.hstack([J1, J2])
+    Py = Jy @ P_joint @ Jy.T
+    x, Ji = inverse_jacobian(y)
+    P = Ji @ Py @ Ji.T
+    return x, 0.5 * (P + P.T)
+
+
+def _wrap_diff(d: FloatArray, kinds: Sequence[ElementKind]) -> FloatArray:
+    out = d.copy()
+    for k, kind in enumerate(kinds):
+        if kind != ElementKind.CIRCLE:
+            out[3 * k + 2] = float(wrap_angle(out[3 * k + 2]))
+    return out
+
+
+def shared_in_global_frame(
+    loc: GaussianMap, ctx: CIContext
+) -> tuple[FloatArray, FloatArray, list[int]]:
+    """Shared elements of a local map as the global map holds them.
+
+    The anchor is ``x^R_Wknown`` locally and ``x^Wlocal_Wknown = ⊖x^R_Wlocal ⊕ x^R_Wknown``
+    globally; known features are identical.  Returns their values (k, 3), the Jacobian
+    w.r.t. the local elements ``[base, shared…]`` and those local indices.
+    """
+    lb = loc.find(Role.BASE)
+    idx = [lb, *ctx.shared_local]
+    k = len(ctx.shared_local)
+    J = np.zeros((3 * k, 3 * (k + 1)))
+    vals = loc.mean[ctx.shared_local].copy()
+    a = ctx.shared_local[0]
+    v, Jb, Ja = relative(loc.mean[lb], loc.mean[a])
+    vals[0] = v
+    J[0:3, 0:3] = Jb
+    J[0:3, 3:6] = Ja
+    J[3:, 6:] = np.eye(3 * (k - 1))
+    return vals, J, idx
+
+
+def associate(
+    state: GaussianMap,
+    queries: list[Query],
+    targets_for: dict[ElementKind, tuple[list[int], FloatArray]],
+    config: EKFConfig,
+) -> list[Candidate | None]:
+    """Associate queries to targets (NN or JCBB over individually compatible candidates)."""
+    cands = []
+    for q in queries:
+        targets, preds = targets_for[q.kind]
+        cands.append(
+            individual_candidates(
+                state,
+                q,
+                targets,
+                preds,
+                config.gate_prob,
+                config.prefilter_m,
+                config.prefilter_rad,
+                config.line_overlap_gap_m,
+            )
+        )
+    if config.association == "jcbb":
+        return jcbb(state, cands, config.gate_prob)
+    return nearest_neighbour(cands)
+
+
+def merge_extent(
+    target: FloatArray, t_extent: tuple[float, float], q: FloatArray, q_extent: tuple[float, float]
+) -> tuple[float, float]:
+    """Union of a line's extent with another collinear segment's, in the line's frame."""
+    if not all(math.isfinite(v) for v in q_extent):
+        return t_extent
+    u = np.array([math.cos(target[2]), math.sin(target[2])])
+    uq = np.array([math.cos(q[2]), math.sin(q[2])])
+    s = [float((q[:2] + t * uq - target[:2]) @ u) for t in q_extent]
+    if not all(math.isfinite(v) for v in t_extent):
+        return (min(s), max(s))
+    return (min(t_extent[0], *s), max(t_extent[1], *s))
+
+
+def compose_into(state: GaussianMap, base: int, frame_elements: list[int]) -> None:
+    """Re-express ``frame_elements`` (given in the frame ``state[base]`` is given in)
+    through ``state[base]``: ``x ← base ⊕ x``.  Exact mean, first-order covariance."""
+    n = len(state)
+    J = np.eye(3 * n)
+    xb = state.mean[base].copy()
+    for i in frame_elements:
+        e = state.elements[i]
+        fk = e.kind.feature_kind()
+        new, Jb, Jx = transform_feature(fk, xb, state.mean[i])
+        state.mean[i] = new
+        J[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = Jx
+        J[3 * i : 3 * i + 3, 3 * base : 3 * base + 3] = Jb
+    rows = state.dofs(frame_elements)
+    # Only the transformed rows change: P ← J P Jᵀ restricted to them.
+    JP = J[rows] @ state.cov
+    state.cov[rows, :] = JP
+    state.cov[:, rows] = JP.T
+    state.cov[np.ix_(rows, rows)] = JP @ J[rows].T
+    state.symmetrise()

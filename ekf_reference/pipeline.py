@@ -1,0 +1,422 @@
+"""The paper's Algorithm 1 over a measurement log: local maps, joins, CCDA, fusion."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ekf_reference.association import Query, apply, evaluate, predict_targets
+from ekf_reference.config import EKFConfig
+from ekf_reference.maps import (
+    CIContext,
+    _wrap_diff,
+    associate,
+    bind_line_cov,
+    compose_into,
+    merge_extent,
+    new_global_map,
+    new_local_map,
+    predict,
+    shared_in_global_frame,
+    vehicle_in_global,
+)
+from ekf_reference.result import AnchorResult, EKFResult, MapResult
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from mapfuse_core.ccda import ccda_match
+from mapfuse_core.features import transform_feature
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian
+
+__all__ = ["run_ekf"]
+
+
+class _Tracks:
+    """Union-find over feature tracks, so every observation ends with one landmark."""
+
+    def __init__(self) -> None:
+        self.parent: list[int] = []
+        self.known: dict[int, int] = {}
+
+    def new(self) -> int:
+        self.parent.append(len(self.parent))
+        return len(self.parent) - 1
+
+    def root(self, t: int) -> int:
+        while self.parent[t] != t:
+            self.parent[t] = self.parent[self.parent[t]]
+            t = self.parent[t]
+        return t
+
+    def merge(self, child: int, into: int) -> None:
+        a, b = self.root(child), self.root(into)
+        if a != b:
+            self.parent[a] = b
+            if a in self.known and b not in self.known:
+                self.known[b] = self.known[a]
+
+    def mark_known(self, t: int, known_id: int) -> None:
+        self.known[self.root(t)] = known_id
+
+
+class _Run:
+    def __init__(self, log: MeasurementLog, config: EKFConfig) -> None:
+        self.log = log
+        self.config = config
+        self.tracks = _Tracks()
+        self.obs_track = np.full(log.n_features, -1, dtype=np.int64)
+        self.obs_known = np.full(log.n_features, -1, dtype=np.int64)
+        self.global_map = new_global_map()
+        self.local, self.ctx = new_local_map(self.global_map)
+        self.anchor: AnchorResult | None = None
+        self.ccda_attempts = 0
+        self.anchor_step = -1
+        self.anchor_pairings: list[tuple[int, int]] = []
+
+    # ------------------------------------------------------------------ per step
+
+    def observe(self, k: int) -> None:
+        log, loc = self.log, self.local
+        sl = log.feature_slice(k)
+        if sl.stop == sl.start:
+            return
+        queries = []
+        for j in range(sl.start, sl.stop):
+            kind = ElementKind.of_feature(int(log.feat_kind[j]))
+            ext = log.feat_extent[j]
+            queries.append(
+                Query(
+                    kind=kind,
+                    params=log.feat_params[j],
+                    cov=log.feat_cov[j],
+                    extent=(float(ext[0]), float(ext[1])),
+                )
+            )
+        targets = {
+            kind: predict_targets(loc, kind, lambda e: e.moving)
+            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
+        }
+        chosen = associate(loc, queries, targets, self.config)
+        for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
+            if c is None:
+                continue
+            e = loc.elements[c.target]
+            self.obs_track[j] = e.track
+            e.n_obs += 1
+            if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
+                e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
+        apply(loc, [c for c in chosen if c is not None])
+        loc.bind_lines()
+        for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
+            if c is not None:
+                continue
+            t = self.tracks.new()
+            self.obs_track[j] = t
+            cov = bind_line_cov(q.params, q.cov) if q.kind == ElementKind.LINE else q.cov
+            loc.add(
+                Element(
+                    q.kind,
+                    Role.FEATURE,
+                    moving=True,
+                    track=t,
+                    extent=q.extent,
+                    true_id=int(log.feat_true_id[j]),
+                    n_obs=1,
+                    in_local=True,
+                ),
+                q.params,
+                cov,
+            )
+        if loc.has(Role.ANCHOR):
+            self.constrain_to_known(loc, lambda e: e.moving)
+
+    def constrain_to_known(self, state: GaussianMap, which: Callable[[Element], bool]) -> None:
+        """Pair map features with known features (hard constraints) and absorb them."""
+        queries = [
+            Query(e.kind, state.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            for i, e in enumerate(state.elements)
+            if e.role == Role.FEATURE and which(e)
+        ]
+        if not queries:
+            return
+        targets = {
+            kind: predict_targets(state, kind, lambda e: False)
+            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
+        }
+        chosen = associate(state, queries, targets, self.config)
+        pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
+        if not pairs:
+            return
+        apply(state, [c for _, c in pairs])
+        for q, c in pairs:
+            self.tracks.merge(state.elements[q.element].track, state.elements[c.target].track)
+        state.remove([q.element for q, _ in pairs])
+        state.bind_lines()
+
+    # ------------------------------------------------------------------ join
+
+    def join(self, k: int) -> None:
+        g, loc, ctx = self.global_map, self.local, self.ctx
+        joint = self._stack(g, loc, ctx)
+        n_g = len(g) if ctx is None else len(g) - len(ctx.shared_global)
+        lb = n_g + loc.find(Role.BASE)
+        frame_elems = [i for i in range(n_g) if joint.elements[i].role != Role.KNOWN]
+        if ctx is not None:
+            frame_elems.append(n_g + ctx.shared_local[0])  # x^Wlocal_Wknown after CI
+        compose_into(joint, lb, frame_elems)
+        joint.remove([lb])
+        for e in joint.elements:
+            e.moving = False
+        joint.bind_lines()
+        # Pair the local map's features with the global ones (and the known ones).
+        queries = [
+            Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            for i, e in enumerate(joint.elements)
+            if e.role == Role.FEATURE and e.in_local
+        ]
+        targets = {
+            kind: predict_targets(joint, kind, lambda e: not e.in_local)
+            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
+        }
+        chosen = associate(joint, queries, targets, self.config)
+        pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
+        apply(joint, [c for _, c in pairs])
+        for q, c in pairs:
+            f, t = joint.elements[q.element], joint.elements[c.target]
+            self.tracks.merge(f.track, t.track)
+            t.n_obs += f.n_obs
+            if t.role == Role.FEATURE and t.kind == ElementKind.LINE:
+                t.extent = merge_extent(
+                    joint.mean[c.target], t.extent, joint.mean[q.element], f.extent
+                )
+        joint.remove([q.element for q, _ in pairs])
+        for e in joint.elements:
+            e.in_local = False
+        joint.bind_lines()
+        self.global_map = joint
+        if self.config.fusion and not joint.has(Role.ANCHOR):
+            self.try_ccda(k)
+        self.local, self.ctx = new_local_map(self.global_map)
+
+    def _stack(self, g: GaussianMap, loc: GaussianMap, ctx: CIContext | None) -> GaussianMap:
+        """Joint Gaussian of the global-only elements and the local map.
+
+        Without fusion the two are independent.  With fusion the shared elements come
+        from the local map (the newest information) and the global-only elements are
+        corrected through ``A = P_gs P_ss⁺`` (conditional independence given the shared).
+        """
+        joint = GaussianMap()
+        if ctx is None:
+            joint.mean = np.vstack([g.mean, loc.mean])
+            n1, n2 = 3 * len(g), 3 * len(loc)
+            joint.cov = np.zeros((n1 + n2, n1 + n2))
+            joint.cov[:n1, :n1] = g.cov
+            joint.cov[n1:, n1:] = loc.cov
+            joint.elements = g.elements + loc.elements
+            return joint
+        # Local map with the anchor expressed as the global map holds it (x^Wlocal_Wknown).
+        s_L, Js, idx_L = shared_in_global_frame(loc, ctx)
+        T = np.eye(3 * len(loc))
+        a = ctx.shared_local[0]
+        rows = loc.dofs([a])
+        T[rows] = 0.0
+        T[np.ix_(rows, loc.dofs(idx_L))] = Js[0:3]
+        loc_mean = loc.mean.copy()
+        loc_mean[a] = s_L[0]
+        loc_cov = T @ loc.cov @ T.T
+        g_only = [i for i in range(len(g)) if i not in set(ctx.shared_global)]
+        gd = g.dofs(g_only)
+        A = ctx.A[gd]
+        sd_L = loc.dofs(ctx.shared_local)
+        d = _wrap_diff(
+            (s_L - ctx.mu_s).reshape(-1), [g.elements[i].kind for i in ctx.shared_global]
+        )
+        s_dofs_g = g.dofs(ctx.shared_global)
+        mean_g = g.mean[g_only] + (A @ d).reshape(-1, 3)
+        P_gg = (
+            g.cov[np.ix_(gd, gd)]
+            - A @ g.cov[np.ix_(s_dofs_g, gd)]
+            + A @ loc_cov[np.ix_(sd_L, sd_L)] @ A.T
+        )
+        P_gl = A @ loc_cov[sd_L, :]
+        joint.cov = np.block([[P_gg, P_gl], [P_gl.T, loc_cov]])
+        joint.mean = np.vstack([mean_g, loc_mean])
+        joint.elements = [g.elements[i] for i in g_only] + loc.elements
+        joint.elements[len(g_only) + a].moving = False
+        joint.symmetrise()
+        joint.wrap()
+        return joint
+
+    # ------------------------------------------------------------------ CCDA
+
+    def try_ccda(self, k: int) -> None:
+        g = self.global_map
+        feats = [
+            i
+            for i, e in enumerate(g.elements)
+            if e.role == Role.FEATURE and e.n_obs >= self.config.min_obs_for_matching
+        ]
+        known = self.log.known_map
+        if not feats or len(known) == 0:
+            return
+        self.ccda_attempts += 1
+        map_a = KnownMapArrays(
+            ids=np.array(feats, dtype=np.int64),
+            kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
+            params=g.mean[feats].copy(),
+            covs=np.stack([g.block(i) for i in feats]),
+        )
+        res = ccda_match(map_a, known, self.config.ccda)
+        if not res.accepted:
+            return
+        # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
+        sig = np.array(self.config.anchor_prior_sigma)
+        g.add(
+            Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1),
+            res.x_A_B,
+            np.diag(sig**2),
+        )
+        known_index: dict[int, int] = {}
+        for j in range(len(known)):
+            kind = ElementKind.of_feature(int(known.kinds[j]))
+            kid = int(known.ids[j])
+            cov = known.covs[j]
+            if kind == ElementKind.LINE:
+                cov = bind_line_cov(known.params[j], cov)
+            extent = (math.nan, math.nan)
+            if known.extents is not None and kind == ElementKind.LINE:
+                extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
+            track = self.tracks.new()
+            self.tracks.mark_known(track, kid)
+            known_index[j] = g.add(
+                Element(kind, Role.KNOWN, moving=False, track=track, extent=extent, true_id=kid),
+                known.params[j],
+                cov,
+            )
+        cands = []
+        pairings = []
+        for ia, jb in res.pairings:
+            gi = feats[ia]
+            e = g.elements[gi]
+            q = Query(e.kind, g.mean[gi], np.zeros((3, 3)), e.extent, element=gi)
+            cands.append(evaluate(g, q, known_index[jb]))
+            pairings.append((e.true_id, int(known.ids[jb])))
+            self.tracks.merge(e.track, g.elements[known_index[jb]].track)
+        apply(g, cands)
+        g.remove([feats[ia] for ia, _ in res.pairings])
+        g.bind_lines()
+        self.anchor_step = k
+        self.anchor_pairings = pairings
+
+
+def run_ekf(
+    log: MeasurementLog,
+    config: EKFConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> EKFResult:
+    """Run the EKF reference over ``log`` and return its frozen result."""
+    config = config or EKFConfig()
+    run = _Run(log, config)
+    n = log.n_steps
+    poses = np.zeros((n, 3))
+    covs = np.zeros((n, 3, 3))
+    times = np.zeros(n)
+    poses_known = np.full((n, 3), np.nan)
+    covs_known = np.full((n, 3, 3), np.nan)
+    for k in range(n):
+        t0 = time.perf_counter()
+        if k > 0:
+            predict(run.local, log.odometry[k], log.odometry_cov[k])
+        run.observe(k)
+        poses[k], covs[k] = vehicle_in_global(run.global_map, run.local, run.ctx)
+        if run.local.has(Role.ANCHOR):
+            a = run.local.find(Role.ANCHOR)
+            x, J = inverse_jacobian(run.local.mean[a])
+            poses_known[k] = x
+            covs_known[k] = J @ run.local.block(a) @ J.T
+        if (k + 1) % config.local_map_steps == 0 or k == n - 1:
+            run.join(k)
+        times[k] = time.perf_counter() - t0
+        if progress is not None:
+            progress(k + 1, n)
+    return _result(log, config, run, poses, covs, poses_known, covs_known, times)
+
+
+def _result(
+    log: MeasurementLog,
+    config: EKFConfig,
+    run: _Run,
+    poses: FloatArray,
+    covs: FloatArray,
+    poses_known: FloatArray,
+    covs_known: FloatArray,
+    times: FloatArray,
+) -> EKFResult:
+    g = run.global_map
+    anchor = None
+    if g.has(Role.ANCHOR):
+        a = g.find(Role.ANCHOR)
+        gb = g.find(Role.BASE)
+        # x^Wknown_Wglobal = ⊖x^Wlocal_Wknown ⊕ x^Wlocal_Wglobal
+        inv, Ji = inverse_jacobian(g.mean[a])
+        est, J1, J2 = compose_jacobians(inv, g.mean[gb])
+        Jfull = np.hstack([J1 @ Ji, J2])
+        P = g.marginal([a, gb])
+        anchor = AnchorResult(
+            x_Wknown_Wglobal=est,
+            cov=Jfull @ P @ Jfull.T,
+            accepted_at_step=int(run.anchor_step),
+            pairings=tuple(run.anchor_pairings),
+        )
+    feats = [i for i, e in enumerate(g.elements) if e.role in (Role.FEATURE, Role.KNOWN)]
+    gb = g.find(Role.BASE)
+    # Final map in Wglobal: x^Wglobal_F = ⊖x^Wlocal_Wglobal ⊕ x^Wlocal_F (known ones via anchor).
+    map_params = np.zeros((len(feats), 3))
+    map_covs = np.zeros((len(feats), 3, 3))
+    inv_b, Jinv = inverse_jacobian(g.mean[gb])
+    for r, i in enumerate(feats):
+        e = g.elements[i]
+        fk = e.kind.feature_kind()
+        if e.role == Role.KNOWN:
+            a = g.find(Role.ANCHOR)
+            f_wl, Ja, Je = transform_feature(fk, g.mean[a], g.mean[i])
+            val, J1, J2 = transform_feature(fk, inv_b, f_wl)
+            J = np.hstack([J1 @ Jinv, J2 @ Ja, J2 @ Je])
+            P = g.marginal([gb, a, i])
+        else:
+            val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
+            J = np.hstack([J1 @ Jinv, J2])
+            P = g.marginal([gb, i])
+        map_params[r] = val
+        map_covs[r] = J @ P @ J.T
+    roots = np.array([run.tracks.root(int(t)) if t >= 0 else -1 for t in run.obs_track])
+    obs_known = np.array(
+        [run.tracks.known.get(int(r), -1) if r >= 0 else -1 for r in roots], dtype=np.int64
+    )
+    return EKFResult(
+        scenario=log.scenario,
+        seed=log.seed,
+        config=config,
+        poses=poses,
+        covs=covs,
+        poses_in_known=poses_known,
+        covs_in_known=covs_known,
+        step_time_s=times,
+        anchor=anchor,
+        global_map=MapResult(
+            kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
+            params=map_params,
+            covs=map_covs,
+            known_ids=np.array(
+                [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
+                dtype=np.int64,
+            ),
+            true_ids=np.array([g.elements[i].true_id for i in feats], dtype=np.int64),
+            n_obs=np.array([g.elements[i].n_obs for i in feats], dtype=np.int64),
+        ),
+        obs_landmark=roots.astype(np.int64),
+        obs_known_id=obs_known,
+        ccda_attempts=run.ccda_attempts,
+    )

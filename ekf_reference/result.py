@@ -1,0 +1,102 @@
+"""Frozen result of an EKF run: what metrics, plots and the graph backend consume."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ekf_reference.config import EKFConfig
+from mapfuse_core.se2 import FloatArray
+
+__all__ = ["AnchorResult", "EKFResult", "MapResult", "load_associations", "save_associations"]
+
+
+@dataclass(frozen=True)
+class AnchorResult:
+    """The estimated pose of the SLAM frame in the known map (paper: [−28.968, −10.980, 1.0472])."""
+
+    x_Wknown_Wglobal: FloatArray
+    """(3,) pose of ``Wglobal`` (the vehicle at step 0) in ``Wknown``, at the end of the run."""
+    cov: FloatArray
+    """(3, 3) its covariance."""
+    accepted_at_step: int
+    """Step after whose join CCDA accepted the match."""
+    pairings: tuple[tuple[int, int], ...]
+    """CCDA pairings as (true world id of the estimated feature or −1, known-map id)."""
+
+
+@dataclass(frozen=True)
+class MapResult:
+    """The final global map in ``Wglobal``."""
+
+    kinds: np.ndarray
+    """(F,) int8 feature kinds (0 line, 1 circle)."""
+    params: FloatArray
+    """(F, 3) parameters in ``Wglobal``."""
+    covs: FloatArray
+    """(F, 3, 3) marginal covariances."""
+    known_ids: np.ndarray
+    """(F,) known-map id of features merged with the known map, −1 otherwise."""
+    true_ids: np.ndarray
+    """(F,) world id of the first observation (simulation; −1 unknown)."""
+    n_obs: np.ndarray
+    """(F,) number of observations fused."""
+
+
+@dataclass(frozen=True)
+class EKFResult:
+    """Per-step vehicle estimates, final map, anchor and association decisions."""
+
+    scenario: str
+    """Scenario name of the log."""
+    seed: int
+    """Seed of the log."""
+    config: EKFConfig
+    """Configuration used."""
+    poses: FloatArray
+    """(N, 3) filtered vehicle pose ``x^Wglobal_R`` at each step."""
+    covs: FloatArray
+    """(N, 3, 3) its covariance (absolute ``(x, y, θ)`` perturbation)."""
+    poses_in_known: FloatArray
+    """(N, 3) vehicle pose in ``Wknown`` from the local map's anchor (NaN before fusion)."""
+    covs_in_known: FloatArray
+    """(N, 3, 3) its covariance (NaN before fusion)."""
+    step_time_s: FloatArray
+    """(N,) wall time of each step, joins and CCDA included."""
+    anchor: AnchorResult | None
+    """The anchor, or ``None`` if CCDA never accepted a match (or fusion is off)."""
+    global_map: MapResult
+    """The final global map."""
+    obs_landmark: np.ndarray
+    """(M,) landmark (track) id of every logged observation after all merges."""
+    obs_known_id: np.ndarray
+    """(M,) known-map id the observation's landmark was merged with, −1 otherwise."""
+    ccda_attempts: int
+    """How many CCDA matchings were run."""
+
+
+def save_associations(result: EKFResult, path: str | Path) -> Path:
+    """Save the association decisions so another backend can consume exactly the same."""
+    path = Path(path)
+    np.savez(
+        path,
+        format_name=np.array("mapfuse.associations"),
+        format_version=np.array(1),
+        obs_landmark=result.obs_landmark,
+        obs_known_id=result.obs_known_id,
+    )
+    return path
+
+
+def load_associations(path: str | Path, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Load decisions saved by :func:`save_associations`, checking they fit a log of ``n_obs``."""
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as z:
+        if str(z.get("format_name", "")) != "mapfuse.associations":
+            raise ValueError(f"{path}: not a mapfuse associations file")
+        lm, kn = z["obs_landmark"], z["obs_known_id"]
+    if lm.shape != (n_obs,) or kn.shape != (n_obs,):
+        raise ValueError(f"{path}: holds {lm.shape[0]} decisions, the log has {n_obs} observations")
+    return lm.astype(np.int64), kn.astype(np.int64)

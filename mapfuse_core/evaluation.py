@@ -1,0 +1,206 @@
+"""Evaluation shared by every backend: errors, NEES, the ``metrics.json`` schema, TUM files.
+
+All backends report the vehicle pose ``x^Wglobal_R`` (``Wglobal`` = the vehicle at
+step 0) with a covariance of the absolute ``(x, y, θ)`` perturbation, so one
+function computes every metric from the same truth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from mapfuse_core.se2 import FloatArray, compose, inverse, wrap_angle
+
+__all__ = [
+    "CHI2_3_95",
+    "PoseErrors",
+    "anchor_metrics",
+    "anchor_truth",
+    "build_metrics",
+    "nees_series",
+    "path_length",
+    "pose_errors",
+    "pose_metrics",
+    "runtime_metrics",
+    "summary_stats",
+    "truth_in_global",
+    "write_tum",
+]
+
+CHI2_3_95 = float(chi2.ppf(0.95, 3))
+
+
+def path_length(poses: FloatArray) -> float:
+    """Length in metres of the polyline through the positions of ``poses`` (N, 3)."""
+    if poses.shape[0] < 2:
+        return 0.0
+    d = np.diff(poses[:, :2], axis=0)
+    return float(np.sum(np.hypot(d[:, 0], d[:, 1])))
+
+
+def truth_in_global(true_poses: FloatArray) -> FloatArray:
+    """True poses re-expressed in ``Wglobal``: ``⊖x_W_R0 ⊕ x_W_Rk``."""
+    inv0 = inverse(true_poses[0])
+    return np.array([compose(inv0, p) for p in true_poses])
+
+
+def anchor_truth(true_poses: FloatArray) -> FloatArray:
+    """True ``x^Wknown_Wglobal``: the first true pose (simulation: ``Wknown = W``)."""
+    return np.asarray(true_poses[0], dtype=float).copy()
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """Per-step errors of estimated poses against truth."""
+
+    dx: FloatArray
+    """(N, 3) estimate − truth, angle wrapped."""
+    position: FloatArray
+    """(N,) Euclidean position error (m)."""
+    heading: FloatArray
+    """(N,) absolute heading error (rad)."""
+
+
+def pose_errors(est: FloatArray, truth: FloatArray) -> PoseErrors:
+    """Errors of ``est`` against ``truth`` (both (N, 3) in one frame)."""
+    if est.shape != truth.shape:
+        raise ValueError(f"estimate shape {est.shape} differs from truth shape {truth.shape}")
+    d = est - truth
+    d[:, 2] = wrap_angle(d[:, 2])
+    return PoseErrors(dx=d, position=np.hypot(d[:, 0], d[:, 1]), heading=np.abs(d[:, 2]))
+
+
+def nees_series(dx: FloatArray, covs: FloatArray) -> FloatArray:
+    """NEES ``eᵀ P⁻¹ e`` per step; NaN where the covariance is singular (e.g. step 0)."""
+    out = np.full(dx.shape[0], np.nan)
+    for k in range(dx.shape[0]):
+        P = covs[k]
+        if not np.all(np.isfinite(P)):
+            continue
+        w = np.linalg.eigvalsh(P)
+        if w.min() <= 1e-14 * max(w.max(), 1e-300):
+            continue
+        out[k] = float(dx[k] @ np.linalg.solve(P, dx[k]))
+    return out
+
+
+def summary_stats(x: FloatArray) -> dict[str, float]:
+    """rmse, mean, median, max and final of a non-negative series."""
+    return {
+        "rmse": float(np.sqrt(np.mean(np.square(x)))),
+        "mean": float(np.mean(x)),
+        "median": float(np.median(x)),
+        "max": float(np.max(x)),
+        "final": float(x[-1]),
+    }
+
+
+def pose_metrics(est: FloatArray, covs: FloatArray, truth: FloatArray) -> dict[str, Any]:
+    """The pose part of ``metrics.json``: position/heading errors and NEES."""
+    err = pose_errors(est, truth)
+    nees = nees_series(err.dx, covs)
+    valid = nees[np.isfinite(nees)]
+    return {
+        "position_error_m": summary_stats(err.position),
+        "heading_error_rad": {
+            "rmse": float(np.sqrt(np.mean(np.square(err.heading)))),
+            "max": float(np.max(err.heading)),
+        },
+        "nees": {
+            "mean": float(np.mean(valid)) if valid.size else math.nan,
+            "fraction_within_chi2_95": float(np.mean(valid <= CHI2_3_95))
+            if valid.size
+            else math.nan,
+            "bound": CHI2_3_95,
+            "steps": int(valid.size),
+        },
+    }
+
+
+def runtime_metrics(step_time_s: FloatArray) -> dict[str, float]:
+    """The ``runtime_s`` block: total and per-step percentiles."""
+    return {
+        "total": float(np.sum(step_time_s)),
+        "per_step_p50": float(np.percentile(step_time_s, 50)),
+        "per_step_p99": float(np.percentile(step_time_s, 99)),
+    }
+
+
+def write_tum(path: str | Path, timestamps: FloatArray, poses: FloatArray) -> Path:
+    """TUM trajectory (``t x y z qx qy qz qw``), readable by evo; z = 0, yaw about z."""
+    path = Path(path)
+    half = 0.5 * poses[:, 2]
+    rows = np.column_stack(
+        [
+            timestamps,
+            poses[:, 0],
+            poses[:, 1],
+            np.zeros(len(poses)),
+            np.zeros(len(poses)),
+            np.zeros(len(poses)),
+            np.sin(half),
+            np.cos(half),
+        ]
+    )
+    np.savetxt(path, rows, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
+    return path
+
+
+def anchor_metrics(
+    estimate: FloatArray,
+    truth: FloatArray | None,
+    accepted_at_step: int,
+    pairings: list[tuple[int, int]] | tuple[tuple[int, int], ...],
+) -> dict[str, Any]:
+    """The ``anchor`` block: estimate of ``x^Wknown_Wglobal`` against truth."""
+    out: dict[str, Any] = {
+        "estimate": [float(v) for v in estimate],
+        "truth": None if truth is None else [float(v) for v in truth],
+        "position_error_m": None,
+        "heading_error_rad": None,
+        "accepted_at_step": int(accepted_at_step),
+        "pairings": len(pairings),
+        "correct_pairings": sum(1 for t, k in pairings if t == k and t >= 0),
+    }
+    if truth is not None:
+        out["position_error_m"] = float(math.hypot(*(estimate[:2] - truth[:2])))
+        out["heading_error_rad"] = float(abs(wrap_angle(estimate[2] - truth[2])))
+    return out
+
+
+def build_metrics(
+    *,
+    scenario: str,
+    seed: int,
+    backend: str,
+    fusion: bool,
+    poses: FloatArray,
+    covs: FloatArray,
+    true_poses: FloatArray | None,
+    step_time_s: FloatArray,
+    anchor: dict[str, Any] | None,
+    map_features: int,
+    matched_known: int,
+) -> dict[str, Any]:
+    """One ``metrics.json`` object (schema in the README), identical for every backend."""
+    out: dict[str, Any] = {
+        "scenario": scenario,
+        "seed": int(seed),
+        "backend": backend,
+        "fusion": bool(fusion),
+        "steps": int(poses.shape[0]),
+    }
+    if true_poses is not None:
+        out.update(pose_metrics(poses, covs, truth_in_global(true_poses)))
+    else:
+        out.update({"position_error_m": None, "heading_error_rad": None, "nees": None})
+    out["anchor"] = anchor
+    out["map"] = {"features": int(map_features), "matched_known": int(matched_known)}
+    out["runtime_s"] = runtime_metrics(step_time_s)
+    return out
