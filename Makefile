@@ -37,6 +37,7 @@ test: lint typecheck unit
 
 bench: venv
 	$(PY) benchmarks/bench_simulate.py
+	$(PY) benchmarks/bench_ekf.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache .hypothesis

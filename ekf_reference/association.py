@@ -10,6 +10,7 @@ anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the shared models of
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -65,6 +66,12 @@ class Candidate:
     """Covariance of the residual due to the measurement (zeros for a map element)."""
     d2: float
     """Mahalanobis distance ``rᵀ S⁻¹ r``."""
+
+
+@functools.lru_cache(maxsize=64)
+def chi2_gate(prob: float, dof: int) -> float:
+    """χ² quantile, cached: it is asked for once per observation."""
+    return float(chi2.ppf(prob, dof))
 
 
 def line_gap(
@@ -130,13 +137,42 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
         blocks = [Jp @ J for J in tJ]
         R = Jq @ q.cov @ Jq.T
     H = np.hstack(blocks)
-    idx = state.dofs(indices)
-    S = H @ state.cov[np.ix_(idx, idx)] @ H.T + R
-    try:
-        d2 = float(r @ np.linalg.solve(S, r))
-    except np.linalg.LinAlgError:
-        d2 = math.inf
+    S = R + _project(state, indices, H)
+    d2 = _mahalanobis(r, S)
     return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2)
+
+
+def _project(state: GaussianMap, indices: list[int], H: FloatArray) -> FloatArray:
+    """``H P_II Hᵀ`` from covariance blocks (slices, not fancy indexing: this is hot)."""
+    k = len(indices)
+    if k == 1:
+        i = 3 * indices[0]
+        out: FloatArray = H @ state.cov[i : i + 3, i : i + 3] @ H.T
+        return out
+    P = np.empty((3 * k, 3 * k))
+    for a, i in enumerate(indices):
+        for b, j in enumerate(indices):
+            P[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] = state.cov[3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
+    out = H @ P @ H.T
+    return out
+
+
+def _mahalanobis(r: FloatArray, S: FloatArray) -> float:
+    """``rᵀ S⁻¹ r`` for a 2×2 or 3×3 ``S``; inf when ``S`` is not positive definite."""
+    if r.size == 2:
+        det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+        if not det > 0.0 or not S[0, 0] > 0.0:
+            return math.inf
+        return float(
+            (S[1, 1] * r[0] * r[0] - (S[0, 1] + S[1, 0]) * r[0] * r[1] + S[0, 0] * r[1] * r[1])
+            / det
+        )
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return math.inf
+    y = np.linalg.solve(L, r)
+    return float(y @ y)
 
 
 def _prefilter(
@@ -175,8 +211,7 @@ def individual_candidates(
     max_gap: float,
 ) -> list[Candidate]:
     """Individually compatible candidates of ``q``, best (smallest d²) first."""
-    dof = 2 if q.kind == ElementKind.LINE else 3
-    gate = float(chi2.ppf(gate_prob, dof))
+    gate = chi2_gate(gate_prob, 2 if q.kind == ElementKind.LINE else 3)
     out = []
     for t in _prefilter(q, preds, targets, state, max_dist, max_ang, max_gap):
         if t == q.element:
@@ -212,7 +247,7 @@ def joint_compatible(state: GaussianMap, chosen: list[Candidate], gate_prob: flo
         d2 = float(r @ np.linalg.solve(S, r))
     except np.linalg.LinAlgError:
         return False
-    return d2 <= float(chi2.ppf(gate_prob, r.size))
+    return d2 <= chi2_gate(gate_prob, r.size)
 
 
 def jcbb(

@@ -255,20 +255,27 @@ def merge_extent(
 def compose_into(state: GaussianMap, base: int, frame_elements: list[int]) -> None:
     """Re-express ``frame_elements`` (given in the frame ``state[base]`` is given in)
     through ``state[base]``: ``x ← base ⊕ x``.  Exact mean, first-order covariance."""
+    if not frame_elements:
+        return
     n = len(state)
-    J = np.eye(3 * n)
     xb = state.mean[base].copy()
-    for i in frame_elements:
-        e = state.elements[i]
-        fk = e.kind.feature_kind()
-        new, Jb, Jx = transform_feature(fk, xb, state.mean[i])
-        state.mean[i] = new
-        J[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = Jx
-        J[3 * i : 3 * i + 3, 3 * base : 3 * base + 3] = Jb
-    rows = state.dofs(frame_elements)
-    # Only the transformed rows change: P ← J P Jᵀ restricted to them.
-    JP = J[rows] @ state.cov
-    state.cov[rows, :] = JP
-    state.cov[:, rows] = JP.T
-    state.cov[np.ix_(rows, rows)] = JP @ J[rows].T
+    sel = np.asarray(frame_elements, dtype=np.int64)
+    Jx = np.zeros((sel.size, 3, 3))
+    Jb = np.zeros((sel.size, 3, 3))
+    for r, i in enumerate(frame_elements):
+        fk = state.elements[i].kind.feature_kind()
+        state.mean[i], Jb[r], Jx[r] = transform_feature(fk, xb, state.mean[i])
+    # Rows of the transformed elements become Jx_i P_i + Jb_i P_base; others stay.
+    P4 = state.cov.reshape(n, 3, n, 3)
+    rows = np.einsum("iab,ibjc->iajc", Jx, P4[sel]) + np.einsum(
+        "iab,bjc->iajc", Jb, P4[base]
+    )
+    new = P4.copy()
+    new[sel] = rows
+    # Columns likewise; the (sel, sel) block then gets both transforms.
+    cols = np.einsum("iajc,jdc->iajd", new[:, :, sel], Jx) + np.einsum(
+        "iac,jdc->iajd", new[:, :, base], Jb
+    )
+    new[:, :, sel] = cols
+    state.cov = new.reshape(3 * n, 3 * n)
     state.symmetrise()

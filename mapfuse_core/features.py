@@ -29,7 +29,7 @@ from mapfuse_core.se2 import (
     relative,
     transform_point_jacobians,
     wrap_angle,
-    wrap_angle_half,
+    wrap_scalar_half,
 )
 
 __all__ = [
@@ -144,7 +144,7 @@ def line_pairing(l1: FloatArray, l2: FloatArray) -> tuple[FloatArray, FloatArray
     ``(−π/2, π/2]``.
     """
     v, Ja, Jb = relative(l1, l2)
-    r = np.array([v[1], float(wrap_angle_half(v[2]))])
+    r = np.array([v[1], wrap_scalar_half(float(v[2]))])
     return r, B_LINE @ Ja, B_LINE @ Jb
 
 

@@ -33,6 +33,8 @@ __all__ = [
     "transform_point_jacobians",
     "wrap_angle",
     "wrap_angle_half",
+    "wrap_scalar",
+    "wrap_scalar_half",
 ]
 
 
@@ -52,6 +54,22 @@ def wrap_angle_half(a: ArrayLike) -> FloatArray:
     arr = np.asarray(a, dtype=np.float64)
     w = np.mod(arr + math.pi / 2.0, math.pi) - math.pi / 2.0
     return np.where(w <= -math.pi / 2.0, w + math.pi, w)
+
+
+def wrap_scalar(a: float) -> float:
+    """:func:`wrap_angle` for one float, without numpy overhead (hot paths)."""
+    w = math.fmod(a + math.pi, 2.0 * math.pi)
+    if w <= 0.0:
+        w += 2.0 * math.pi
+    return w - math.pi
+
+
+def wrap_scalar_half(a: float) -> float:
+    """:func:`wrap_angle_half` for one float."""
+    w = math.fmod(a + math.pi / 2.0, math.pi)
+    if w <= 0.0:
+        w += math.pi
+    return w - math.pi / 2.0
 
 
 def as_pose(p: ArrayLike, name: str = "pose") -> FloatArray:
@@ -77,7 +95,7 @@ def compose(a: FloatArray, b: FloatArray) -> FloatArray:
         [
             a[0] + c * b[0] - s * b[1],
             a[1] + s * b[0] + c * b[1],
-            float(wrap_angle(a[2] + b[2])),
+            wrap_scalar(float(a[2] + b[2])),
         ]
     )
 
@@ -103,7 +121,7 @@ def inverse(a: FloatArray) -> FloatArray:
         [
             -c * a[0] - s * a[1],
             s * a[0] - c * a[1],
-            float(wrap_angle(-a[2])),
+            wrap_scalar(-float(a[2])),
         ]
     )
 
@@ -131,7 +149,7 @@ def relative(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, Floa
     dx, dy = b[0] - a[0], b[1] - a[1]
     lx = c * dx + s * dy
     ly = -s * dx + c * dy
-    value = np.array([lx, ly, float(wrap_angle(b[2] - a[2]))])
+    value = np.array([lx, ly, wrap_scalar(float(b[2] - a[2]))])
     Ja = np.array([[-c, -s, ly], [s, -c, -lx], [0.0, 0.0, -1.0]])
     Jb = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
     return value, Ja, Jb

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from hypothesis import given
+from hypothesis import strategies as st
 
 from mapfuse_core import se2
 from tests.jacobians import ATOL, RTOL, numerical_jacobian, poses
@@ -110,3 +111,11 @@ def test_as_pose_rejects_bad_input() -> None:
         se2.as_pose([1.0, 2.0])
     with pytest.raises(ValueError, match="non-finite"):
         se2.as_pose([1.0, float("nan"), 0.0], name="start")
+
+
+@given(st.floats(min_value=-50.0, max_value=50.0, allow_nan=False))
+def test_scalar_wraps_match_vectorised(a: float) -> None:
+    assert se2.wrap_scalar(a) == pytest.approx(float(se2.wrap_angle(a)), abs=1e-12)
+    assert se2.wrap_scalar_half(a) == pytest.approx(float(se2.wrap_angle_half(a)), abs=1e-12)
+    for edge in (math.pi, -math.pi, 3 * math.pi):
+        assert se2.wrap_scalar(edge) == pytest.approx(math.pi)

@@ -1,0 +1,61 @@
+"""Wall time and accuracy of the EKF reference on loop600 (prints JSON).
+
+Target (issue 3): EKF with fusion on loop600 ≤ 10 s on the 2-core project machine.
+``--sweep`` also times other local-map sizes (how the default was chosen).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from ekf_reference import EKFConfig, ekf_metrics, run_ekf
+from mapfuse_core.scenario import load_scenario
+from mapfuse_core.simulate import simulate
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scenario", default="loop600")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sweep", action="store_true", help="also try other local-map sizes")
+    args = ap.parse_args()
+    log = simulate(load_scenario(args.scenario), seed=args.seed).log
+    sizes = [20, 40, 80, 160] if args.sweep else [EKFConfig().local_map_steps]
+    rows = []
+    for fusion in (True, False):
+        for size in sizes:
+            t0 = time.perf_counter()
+            res = run_ekf(log, EKFConfig(fusion=fusion, local_map_steps=size))
+            wall = time.perf_counter() - t0
+            m = ekf_metrics(res, log)
+            rows.append(
+                {
+                    "fusion": fusion,
+                    "local_map_steps": size,
+                    "wall_time_s": round(wall, 3),
+                    "per_step_p99_ms": round(1e3 * m["runtime_s"]["per_step_p99"], 2),
+                    "position_rmse_m": round(m["position_error_m"]["rmse"], 4),
+                    "position_max_m": round(m["position_error_m"]["max"], 4),
+                    "nees_mean": round(m["nees"]["mean"], 3),
+                    "nees_within": round(m["nees"]["fraction_within_chi2_95"], 4),
+                    "anchor": m["anchor"],
+                }
+            )
+    print(
+        json.dumps(
+            {
+                "benchmark": "ekf",
+                "scenario": args.scenario,
+                "seed": args.seed,
+                "target_s": 10.0,
+                "runs": rows,
+            },
+            indent=1,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
