@@ -20,7 +20,7 @@ from scipy.stats import chi2
 
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.features import pairing_residual, transform_feature
-from mapfuse_core.se2 import FloatArray, wrap_angle_half
+from mapfuse_core.se2 import FloatArray, wrap_angle, wrap_angle_half
 
 __all__ = [
     "Candidate",
@@ -98,20 +98,28 @@ def predict_targets(
     Feature elements pass when ``features(element)`` is true; known-map features are
     included (seen through the anchor) when ``known`` and the map has an anchor.
     """
-    targets: list[int] = []
-    preds: list[FloatArray] = []
     anchor = state.find(Role.ANCHOR) if known and state.has(Role.ANCHOR) else -1
-    fk = kind.feature_kind()
-    for i, e in enumerate(state.elements):
-        if e.kind != kind:
-            continue
-        if e.role == Role.FEATURE and features(e):
-            targets.append(i)
-            preds.append(state.mean[i])
-        elif e.role == Role.KNOWN and anchor >= 0:
-            targets.append(i)
-            preds.append(transform_feature(fk, state.mean[anchor], state.mean[i])[0])
-    return targets, np.array(preds, dtype=float).reshape(-1, 3)
+    kinds = np.fromiter((e.kind for e in state.elements), dtype=np.int64, count=len(state))
+    roles = np.fromiter((e.role for e in state.elements), dtype=np.int64, count=len(state))
+    of_kind = kinds == kind
+    feat = [
+        i
+        for i in np.nonzero(of_kind & (roles == Role.FEATURE))[0].tolist()
+        if features(state.elements[i])
+    ]
+    kn = np.nonzero(of_kind & (roles == Role.KNOWN))[0] if anchor >= 0 else np.zeros(0, int)
+    preds = np.empty((len(feat) + kn.size, 3))
+    preds[: len(feat)] = state.mean[feat]
+    if kn.size:
+        # x^R_Wknown ⊕ E for every known feature at once (same model as transform_feature).
+        a = state.mean[anchor]
+        c, s = math.cos(a[2]), math.sin(a[2])
+        E = state.mean[kn]
+        out = preds[len(feat) :]
+        out[:, 0] = a[0] + c * E[:, 0] - s * E[:, 1]
+        out[:, 1] = a[1] + s * E[:, 0] + c * E[:, 1]
+        out[:, 2] = E[:, 2] if kind == ElementKind.CIRCLE else wrap_angle(E[:, 2] + a[2])
+    return feat + kn.tolist(), preds
 
 
 def _target_jacobian(state: GaussianMap, t: int) -> tuple[FloatArray, list[int], list[FloatArray]]:
@@ -152,7 +160,9 @@ def _project(state: GaussianMap, indices: list[int], H: FloatArray) -> FloatArra
     P = np.empty((3 * k, 3 * k))
     for a, i in enumerate(indices):
         for b, j in enumerate(indices):
-            P[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] = state.cov[3 * i : 3 * i + 3, 3 * j : 3 * j + 3]
+            P[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] = state.cov[
+                3 * i : 3 * i + 3, 3 * j : 3 * j + 3
+            ]
     out = H @ P @ H.T
     return out
 

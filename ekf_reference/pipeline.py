@@ -107,8 +107,8 @@ class _Run:
             e.n_obs += 1
             if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
                 e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
+        # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
         apply(loc, [c for c in chosen if c is not None])
-        loc.bind_lines()
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is not None:
                 continue
@@ -153,7 +153,6 @@ class _Run:
         for q, c in pairs:
             self.tracks.merge(state.elements[q.element].track, state.elements[c.target].track)
         state.remove([q.element for q, _ in pairs])
-        state.bind_lines()
 
     # ------------------------------------------------------------------ join
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from ekf_reference.pipeline import _Run
 from ekf_reference.maps import predict
+from ekf_reference.pipeline import _Run
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.features import FeatureKind, observe, transform_feature
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError

@@ -1,0 +1,24 @@
+"""Cached loop600 logs and EKF results for the slow acceptance tests (one per process)."""
+
+from __future__ import annotations
+
+import functools
+
+from ekf_reference import EKFConfig, EKFResult, run_ekf
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.scenario import load_scenario
+from mapfuse_core.simulate import simulate
+
+SEEDS = (0, 1, 2, 3, 4)
+
+
+@functools.lru_cache(maxsize=5)
+def loop600_log(seed: int) -> MeasurementLog:
+    """The loop600 measurement log of ``seed``."""
+    return simulate(load_scenario("loop600"), seed=seed).log
+
+
+@functools.lru_cache(maxsize=10)
+def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
+    """The EKF reference on the loop600 log of ``seed``."""
+    return run_ekf(loop600_log(seed), EKFConfig(fusion=fusion))
