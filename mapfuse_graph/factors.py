@@ -1,0 +1,538 @@
+"""GTSAM factors of the mapfuse measurement models (method.md §7).
+
+Every residual is computed by :mod:`mapfuse_core.features` (the EKF's own model),
+never re-derived here; this module only chooses the landmark variables, chains the
+Jacobians and converts them to GTSAM's tangent conventions.
+
+Variables
+---------
+* **Pose** ``gtsam.Pose2`` ``(x, y, θ)``.  GTSAM retracts a Pose2 in its body frame,
+  ``X ⊕ Exp(δ)``, whose derivative at ``δ = 0`` is ``blockdiag(R(θ), 1)``: a Jacobian
+  with respect to the raw ``(x, y, θ)`` becomes ``J_abs · blockdiag(R(θ), 1)``
+  (:func:`to_body`).
+* **Line landmark** a 2-vector ``(ρ, α)``, the *signed* normal form: the points ``p``
+  with ``p · (cos α, sin α) = ρ``.  ``ρ`` may be negative, so a line through the
+  origin of its frame is a regular point of the parametrisation (the ``ρ ≥ 0`` form
+  flips ``α`` by π there).  It has exactly the two real degrees of freedom of a
+  line: no along-line coordinate, hence no gauge freedom and no need for the biased
+  huge-σ ``BetweenFactorPose2`` trick.  Retraction is plain addition; ``α`` is never
+  wrapped in the variable (residual angles are wrapped modulo π by the pairing).
+  SPmap ``(x, y, θ)`` ↔ ``(ρ, α)``: ``α = θ − π/2``, ``ρ = x sin θ − y cos θ``
+  (:func:`line_to_rho_alpha`); back with :func:`mapfuse_core.features.line_from_normal`.
+* **Circle landmark** a 3-vector ``(x, y, r)``, retraction by addition.
+* **Known feature** the same representations, in ``Wknown``.
+* **Anchor** ``gtsam.Pose2`` ``A = x^Wglobal_Wknown``.
+
+All vector variables are stored as dynamic ``gtsam`` Vectors (``Values.insert`` of a
+numpy array) and read with ``Values.atVector``.
+
+Factors
+-------
+* :func:`line_factor` (pose, line): ``observe(LINE, z, X, L)`` with the landmark's
+  SPmap origin placed at the foot of the observed segment's midpoint on the
+  landmark line (see :func:`line_observation_error`).
+* :func:`circle_factor` (pose, circle): ``observe(CIRCLE, z, X, C)``.
+* :func:`line_tie_factor`, :func:`circle_tie_factor` (anchor, landmark, known): the
+  graph form of the paper's eq. 20, ``pairing(L, A ⊕ K) = 0``.
+
+The measurement noise is the observation covariance propagated to the residual at
+the zero-residual point, ``Jz Σz Jzᵀ`` with ``Jz = ∂pairing(z, f)/∂z`` at ``f = z``
+(:func:`residual_noise_cov`): for a line that is the 2×2 (lateral, angle) block of
+``Σz`` in the observed line's own frame, so the along-line pseudo-variance never
+enters.
+
+Jacobian shape guard
+--------------------
+A wrongly shaped Jacobian handed to GTSAM segfaults or silently corrupts the
+system.  With ``MAPFUSE_CHECK_JACOBIANS=1`` in the environment, or after
+:func:`set_jacobian_checks` ``(True)``, every callback checks the residual and each
+Jacobian before giving them to GTSAM and raises :class:`JacobianShapeError` instead.
+The tests turn it on; it costs about 2 µs per factor call.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+
+import gtsam
+import numpy as np
+
+from mapfuse_core.features import (
+    FeatureKind,
+    line_from_normal,
+    observe,
+    pairing_residual,
+    transform_circle,
+    transform_feature,
+    transform_line,
+)
+from mapfuse_core.se2 import FloatArray, wrap_scalar
+
+__all__ = [
+    "JacobianShapeError",
+    "circle_factor",
+    "circle_observation_error",
+    "circle_tie_error",
+    "circle_tie_factor",
+    "custom_factor",
+    "jacobian_checks_enabled",
+    "landmark_from_observation",
+    "line_factor",
+    "line_observation_error",
+    "line_observation_residual",
+    "line_tie_error",
+    "line_tie_factor",
+    "line_to_rho_alpha",
+    "make_noise",
+    "observation_factor",
+    "observation_noise",
+    "pose_of",
+    "residual_noise_cov",
+    "rho_alpha_along",
+    "set_jacobian_checks",
+    "to_body",
+    "to_spmap_feature",
+]
+
+_ENV_FLAG = "MAPFUSE_CHECK_JACOBIANS"
+
+
+class JacobianShapeError(ValueError):
+    """A factor callback produced a residual or Jacobian GTSAM cannot take."""
+
+
+class _Checks:
+    """Mutable switch of the shape guard (a module-level bool cannot be rebound by tests)."""
+
+    enabled: bool = os.environ.get(_ENV_FLAG, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def set_jacobian_checks(enabled: bool) -> None:
+    """Turn the residual/Jacobian shape guard of every callback on or off."""
+    _Checks.enabled = bool(enabled)
+
+
+def jacobian_checks_enabled() -> bool:
+    """Whether the shape guard is on."""
+    return _Checks.enabled
+
+
+def _check(name: str, r: object, Js: Sequence[object], dims: Sequence[int]) -> None:
+    if not (isinstance(r, np.ndarray) and r.ndim == 1 and r.dtype == np.float64):
+        raise JacobianShapeError(f"{name}: residual must be a 1-D float64 array, got {r!r}")
+    m = r.shape[0]
+    if not np.all(np.isfinite(r)):
+        raise JacobianShapeError(f"{name}: non-finite residual {r.tolist()}")
+    if len(Js) != len(dims):
+        raise JacobianShapeError(f"{name}: {len(Js)} Jacobians for {len(dims)} keys")
+    for i, (J, d) in enumerate(zip(Js, dims, strict=True)):
+        if not isinstance(J, np.ndarray) or J.shape != (m, d):
+            shape = J.shape if isinstance(J, np.ndarray) else type(J).__name__
+            raise JacobianShapeError(
+                f"{name}: Jacobian {i} has shape {shape}, expected ({m}, {d}) "
+                f"(residual dimension × tangent dimension of key {i})"
+            )
+        if not np.all(np.isfinite(J)):
+            raise JacobianShapeError(f"{name}: Jacobian {i} has a non-finite entry")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def to_body(J_abs: FloatArray, theta: float) -> FloatArray:
+    """Jacobian w.r.t. raw ``(x, y, θ)`` → w.r.t. GTSAM's body-frame Pose2 tangent.
+
+    ``∂/∂δ = J_abs · blockdiag(R(θ), 1)`` because ``X ⊕ Exp(δ)`` moves the position by
+    ``R(θ) δ_xy`` and the heading by ``δ_θ`` to first order.
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    out: FloatArray = J_abs @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return out
+
+
+def pose_of(p: gtsam.Pose2) -> FloatArray:
+    """A ``gtsam.Pose2`` as the ``(x, y, θ)`` array mapfuse uses."""
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def line_to_rho_alpha(line: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """SPmap line ``(x, y, θ)`` → signed normal form ``(ρ, α)`` and ``∂(ρ, α)/∂(x, y, θ)``.
+
+    ``α = θ − π/2`` (wrapped) and ``ρ = x sin θ − y cos θ``, the exact inverse of
+    ``line_from_normal(ρ, α, t)`` for the ``t`` of the SPmap origin
+    (:func:`rho_alpha_along`).  Unlike :func:`mapfuse_core.features.line_to_normal`
+    the sign of ``ρ`` is kept, so the map is smooth everywhere.
+    """
+    x, y, th = float(line[0]), float(line[1]), float(line[2])
+    s, c = math.sin(th), math.cos(th)
+    value = np.array([x * s - y * c, wrap_scalar(th - math.pi / 2.0)])
+    J = np.array([[s, -c, x * c + y * s], [0.0, 0.0, 1.0]])
+    return value, J
+
+
+def rho_alpha_along(ra: FloatArray, point: FloatArray) -> float:
+    """Along-line coordinate ``t`` of the foot of ``point`` on line ``(ρ, α)``."""
+    return float(-point[0] * math.sin(ra[1]) + point[1] * math.cos(ra[1]))
+
+
+def to_spmap_feature(
+    kind: FeatureKind, v: FloatArray, cov: FloatArray, t: float = 0.0
+) -> tuple[FloatArray, FloatArray]:
+    """Graph variable → the feature array mapfuse uses, with its covariance.
+
+    Lines ``(ρ, α)`` become the SPmap frame ``t`` metres along the line from the foot
+    of the normal (covariance through ``∂(x, y, θ)/∂(ρ, α)``, zero along the line);
+    circles are returned unchanged.
+    """
+    if kind == FeatureKind.CIRCLE:
+        return np.asarray(v, dtype=float).copy(), np.asarray(cov, dtype=float).copy()
+    line, J = line_from_normal(float(v[0]), float(v[1]), t)
+    Jra = J[:, :2]
+    return line, Jra @ cov @ Jra.T
+
+
+def landmark_from_observation(kind: FeatureKind, x_W_R: FloatArray, z: FloatArray) -> FloatArray:
+    """Initial landmark variable (in ``W``) from an observation ``z`` taken at ``x_W_R``."""
+    f = transform_feature(kind, x_W_R, z)[0]
+    if kind == FeatureKind.CIRCLE:
+        return f
+    return line_to_rho_alpha(f)[0]
+
+
+# --------------------------------------------------------------------------- error functions
+# Pure functions of arrays returning the residual and its Jacobians w.r.t. the raw
+# parameters: (x, y, θ) for poses, (ρ, α) for lines, (x, y, r) for circles.
+
+
+def line_observation_error(
+    z: FloatArray, x_W_R: FloatArray, ra: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Line observation residual ``observe(LINE, z, X, L(ρ, α, t*))`` and Jacobians (2×3, 2×2).
+
+    ``t*`` puts the landmark's SPmap origin at the foot, on the landmark line, of the
+    observed segment's midpoint ``X ⊕ z_xy``.  The lateral residual is then measured
+    where the observation actually is, so it carries only the observation's lateral
+    noise (no lever arm times its angle noise), which makes the noise model
+    :func:`residual_noise_cov` exact at the solution.  The EKF measures it at the
+    landmark's own reference point; the two differ by (angle error × along-line
+    distance), second order at the solution.  ``t*`` depends on ``X`` and ``α``, and
+    the Jacobians include that dependence.
+    """
+    rho, alpha = float(ra[0]), float(ra[1])
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    c, s = math.cos(x_W_R[2]), math.sin(x_W_R[2])
+    zx, zy = float(z[0]), float(z[1])
+    # p = X ⊕ z_xy (world midpoint of the segment); t* = p · (−sin α, cos α).
+    px = x_W_R[0] + c * zx - s * zy
+    py = x_W_R[1] + s * zx + c * zy
+    t = -px * sa + py * ca
+    f, JF = line_from_normal(rho, alpha, t)
+    r, Jx, Jf = observe(FeatureKind.LINE, z, x_W_R, f)
+    Jrf = Jf @ JF  # w.r.t. (ρ, α, t)
+    dt_dx = np.array([-sa, ca, sa * (s * zx + c * zy) + ca * (c * zx - s * zy)])
+    dt_dalpha = -(px * ca + py * sa)
+    J_x = Jx + np.outer(Jrf[:, 2], dt_dx)
+    J_l = Jrf[:, :2].copy()
+    J_l[:, 1] += Jrf[:, 2] * dt_dalpha
+    return r, J_x, J_l
+
+
+def line_observation_residual(z: FloatArray, x_W_R: FloatArray, ra: FloatArray) -> FloatArray:
+    """:func:`line_observation_error` without the Jacobians (error-only calls)."""
+    alpha = float(ra[1])
+    c, s = math.cos(x_W_R[2]), math.sin(x_W_R[2])
+    px = x_W_R[0] + c * z[0] - s * z[1]
+    py = x_W_R[1] + s * z[0] + c * z[1]
+    f, _ = line_from_normal(float(ra[0]), alpha, -px * math.sin(alpha) + py * math.cos(alpha))
+    return observe(FeatureKind.LINE, z, x_W_R, f)[0]
+
+
+def circle_observation_error(
+    z: FloatArray, x_W_R: FloatArray, c: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Circle observation residual ``observe(CIRCLE, z, X, C)`` and Jacobians (3×3, 3×3)."""
+    return observe(FeatureKind.CIRCLE, z, x_W_R, c)
+
+
+def line_tie_error(
+    A: FloatArray, landmark: FloatArray, known: FloatArray, t_known: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Known-map tie for lines: ``pairing(L, A ⊕ K)`` and Jacobians w.r.t. A, L, K.
+
+    ``A = x^Wglobal_Wknown``; ``L = (ρ, α)`` in ``Wglobal``; ``K = (ρ, α)`` in ``Wknown``
+    whose SPmap origin is held ``t_known`` metres along the line (the known wall's
+    reference point, fixed when the factor is made).  The lateral residual is the
+    offset of that point from ``L``, independent of where ``L``'s own origin is.
+    Returns ``(r, J_A (2×3), J_L (2×2), J_K (2×2))``.
+    """
+    fL, JL = line_from_normal(float(landmark[0]), float(landmark[1]), 0.0)
+    fK, JK = line_from_normal(float(known[0]), float(known[1]), t_known)
+    pred, JA, JpK = transform_line(A, fK)
+    r, J1, J2 = pairing_residual(FeatureKind.LINE, fL, pred)
+    return r, J2 @ JA, J1 @ JL[:, :2], J2 @ JpK @ JK[:, :2]
+
+
+def circle_tie_error(
+    A: FloatArray, landmark: FloatArray, known: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Known-map tie for circles: ``pairing(C, A ⊕ K)`` and Jacobians w.r.t. A, C, K (3×3)."""
+    pred, JA, JK = transform_circle(A, known)
+    r, J1, J2 = pairing_residual(FeatureKind.CIRCLE, landmark, pred)
+    return r, J2 @ JA, J1, J2 @ JK
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def residual_noise_cov(kind: FeatureKind, z: FloatArray, cov: FloatArray) -> FloatArray:
+    """Observation covariance propagated to the pairing residual at the zero-residual point.
+
+    ``Jz Σ Jzᵀ`` with ``Jz = ∂pairing(z, f)/∂z`` at ``f = z``: for a line the 2×2
+    (lateral, angle) block of ``Σ`` in the line's own frame, for a circle ``Σ``.
+    """
+    _, Jz, _ = pairing_residual(kind, z, z)
+    out: FloatArray = Jz @ cov @ Jz.T
+    return 0.5 * (out + out.T)
+
+
+def _robust(spec: str | None, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    if spec is None:
+        return base
+    name, _, arg = spec.partition(":")
+    name = name.strip().lower()
+    try:
+        k = float(arg) if arg else (1.345 if name == "huber" else 2.3849)
+    except ValueError:
+        raise ValueError(f"robust kernel parameter in {spec!r} is not a number") from None
+    if not (math.isfinite(k) and k > 0):
+        raise ValueError(f"robust kernel parameter must be > 0, got {spec!r}")
+    est: gtsam.noiseModel.mEstimator.Base
+    if name == "huber":
+        est = gtsam.noiseModel.mEstimator.Huber.Create(k)
+    elif name == "cauchy":
+        est = gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    else:
+        raise ValueError(f"unknown robust kernel {spec!r}; use 'huber[:k]' or 'cauchy[:k]'")
+    return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def make_noise(
+    cov: FloatArray, robust: str | None = None, check: bool = True
+) -> gtsam.noiseModel.Base:
+    """Gaussian noise model of covariance ``cov`` (checked positive definite), maybe robust.
+
+    ``robust`` is ``None``, ``"huber"``, ``"cauchy"`` or ``"huber:k"`` / ``"cauchy:k"``
+    (k in units of σ; defaults 1.345 and 2.3849, the 95 %-efficiency constants).
+    ``check=False`` skips the positive-definiteness test for input validated earlier
+    (GTSAM itself would abort on a non-positive-definite covariance).
+    """
+    cov = np.asarray(cov, dtype=float)
+    if not check:
+        return _robust(robust, gtsam.noiseModel.Gaussian.Covariance(cov))
+    if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or not np.all(np.isfinite(cov)):
+        raise ValueError(f"noise covariance must be a finite square matrix, got {cov!r}")
+    if np.abs(cov - cov.T).max() > 1e-9 * max(np.abs(cov).max(), 1e-300):
+        raise ValueError(f"noise covariance is not symmetric: {cov.tolist()}")
+    w = np.linalg.eigvalsh(cov)
+    if w.min() <= 1e-14 * max(w.max(), 1e-300) or w.min() <= 0.0:
+        raise ValueError(f"noise covariance is not positive definite (eigenvalues {w.tolist()})")
+    return _robust(robust, gtsam.noiseModel.Gaussian.Covariance(cov))
+
+
+def observation_noise(
+    kind: FeatureKind,
+    z: FloatArray,
+    cov: FloatArray,
+    robust: str | None = None,
+    check: bool = True,
+) -> gtsam.noiseModel.Base:
+    """Noise model of an observation factor: :func:`residual_noise_cov`, maybe robust."""
+    return make_noise(residual_noise_cov(kind, z, cov), robust, check)
+
+
+# --------------------------------------------------------------------------- factors
+
+
+def custom_factor(
+    noise: gtsam.noiseModel.Base,
+    keys: Sequence[int],
+    dims: Sequence[int],
+    error: Callable[[gtsam.Values, Sequence[int]], tuple[FloatArray, Sequence[FloatArray]]],
+    name: str = "factor",
+) -> gtsam.CustomFactor:
+    """A CustomFactor from ``error(values, keys) -> (r, [J_i in each key's tangent])``.
+
+    Generic (slower) wrapper with the shape guard, for factors that are not on the hot
+    path and for testing the guard itself.
+    """
+    dims = tuple(int(d) for d in dims)
+
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        r, Js = error(values, this.keys())
+        if _Checks.enabled:
+            _check(name, r, Js, dims)
+        if H is not None:
+            for i, J in enumerate(Js):
+                H[i] = J
+        return r
+
+    return gtsam.CustomFactor(noise, list(keys), cb)
+
+
+def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = this.keys()
+        p = values.atPose2(keys[0])
+        x = np.array([p.x(), p.y(), p.theta()])
+        if H is None:
+            return line_observation_residual(z, x, values.atVector(keys[1]))
+        r, Jx, Jl = line_observation_error(z, x, values.atVector(keys[1]))
+        if H is not None:
+            Jb = to_body(Jx, x[2])
+            if _Checks.enabled:
+                _check("line factor", r, (Jb, Jl), (3, 2))
+            H[0] = Jb
+            H[1] = Jl
+        return r
+
+    return cb
+
+
+def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = this.keys()
+        p = values.atPose2(keys[0])
+        x = np.array([p.x(), p.y(), p.theta()])
+        r, Jx, Jc = observe(FeatureKind.CIRCLE, z, x, values.atVector(keys[1]))
+        if H is not None:
+            Jb = to_body(Jx, x[2])
+            if _Checks.enabled:
+                _check("circle factor", r, (Jb, Jc), (3, 3))
+            H[0] = Jb
+            H[1] = Jc
+        return r
+
+    return cb
+
+
+def _as_measurement(z: FloatArray, name: str) -> FloatArray:
+    arr = np.array(z, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: measurement must be a finite (3,) array, got {z!r}")
+    return arr
+
+
+def line_factor(
+    pose_key: int, line_key: int, z: FloatArray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """Line observation factor on (Pose2 ``pose_key``, line ``(ρ, α)`` ``line_key``).
+
+    ``z`` is the SPmap line in the sensor frame; ``noise`` a 2-dim model, normally
+    ``observation_noise(LINE, z, cov)``.  Residual: :func:`line_observation_error`.
+    """
+    zz = _as_measurement(z, "line factor")
+    if noise.dim() != 2:
+        raise ValueError(f"line factor needs a 2-dim noise model, got {noise.dim()}")
+    return gtsam.CustomFactor(noise, [pose_key, line_key], _line_cb(zz))
+
+
+def circle_factor(
+    pose_key: int, circle_key: int, z: FloatArray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """Circle observation factor on (Pose2 ``pose_key``, circle ``(x, y, r)`` ``circle_key``)."""
+    zz = _as_measurement(z, "circle factor")
+    if zz[2] <= 0.0:
+        raise ValueError(f"circle factor: radius must be > 0, got {zz[2]}")
+    if noise.dim() != 3:
+        raise ValueError(f"circle factor needs a 3-dim noise model, got {noise.dim()}")
+    return gtsam.CustomFactor(noise, [pose_key, circle_key], _circle_cb(zz))
+
+
+def observation_factor(
+    kind: FeatureKind,
+    pose_key: int,
+    landmark_key: int,
+    z: FloatArray,
+    cov: FloatArray,
+    robust: str | None = None,
+    check: bool = True,
+) -> gtsam.CustomFactor:
+    """Line or circle observation factor with its propagated noise model, by kind."""
+    if kind == FeatureKind.LINE:
+        noise = observation_noise(kind, z, cov, robust, check)
+        return line_factor(pose_key, landmark_key, z, noise)
+    if kind == FeatureKind.CIRCLE:
+        noise = observation_noise(kind, z, cov, robust, check)
+        return circle_factor(pose_key, landmark_key, z, noise)
+    raise ValueError(f"unknown feature kind {kind!r} (0 = line, 1 = circle)")
+
+
+def line_tie_factor(
+    anchor_key: int,
+    landmark_key: int,
+    known_key: int,
+    t_known: float,
+    noise: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """Tie of a line landmark (``Wglobal``) to a known line (``Wknown``) through the anchor.
+
+    Keys: Pose2 ``A = x^Wglobal_Wknown``, landmark ``(ρ, α)``, known ``(ρ, α)``.
+    Residual :func:`line_tie_error` (2-dim).
+    """
+    if not math.isfinite(t_known):
+        raise ValueError(f"line tie factor: t_known must be finite, got {t_known}")
+    if noise.dim() != 2:
+        raise ValueError(f"line tie factor needs a 2-dim noise model, got {noise.dim()}")
+    t_k = float(t_known)
+
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = this.keys()
+        a = values.atPose2(keys[0])
+        A = np.array([a.x(), a.y(), a.theta()])
+        r, JA, JL, JK = line_tie_error(A, values.atVector(keys[1]), values.atVector(keys[2]), t_k)
+        if H is not None:
+            JAb = to_body(JA, A[2])
+            if _Checks.enabled:
+                _check("line tie factor", r, (JAb, JL, JK), (3, 2, 2))
+            H[0] = JAb
+            H[1] = JL
+            H[2] = JK
+        return r
+
+    return gtsam.CustomFactor(noise, [anchor_key, landmark_key, known_key], cb)
+
+
+def circle_tie_factor(
+    anchor_key: int, landmark_key: int, known_key: int, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """Tie of a circle landmark (``Wglobal``) to a known circle (``Wknown``): 3-dim residual."""
+    if noise.dim() != 3:
+        raise ValueError(f"circle tie factor needs a 3-dim noise model, got {noise.dim()}")
+
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = this.keys()
+        a = values.atPose2(keys[0])
+        A = np.array([a.x(), a.y(), a.theta()])
+        r, JA, JC, JK = circle_tie_error(A, values.atVector(keys[1]), values.atVector(keys[2]))
+        if H is not None:
+            JAb = to_body(JA, A[2])
+            if _Checks.enabled:
+                _check("circle tie factor", r, (JAb, JC, JK), (3, 3, 3))
+            H[0] = JAb
+            H[1] = JC
+            H[2] = JK
+        return r
+
+    return gtsam.CustomFactor(noise, [anchor_key, landmark_key, known_key], cb)

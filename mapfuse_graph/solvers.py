@@ -1,0 +1,803 @@
+"""Solvers of the mapfuse factor graph: batch Levenberg–Marquardt and iSAM2.
+
+Both are driven so that no Python factor callback ever receives a ``Values`` that
+Python does not own (``docs/gtsam-notes.md``: GTSAM's own optimizers deep-copy the
+``Values`` on every callback, 100–700 µs each):
+
+* **batch** — Levenberg–Marquardt written here: ``graph.linearize(values)``, add
+  ``√λ·I`` damping rows per variable, eliminate (multifrontal, COLAMD),
+  ``values.retract``, ``graph.error``, adapt λ.  Smoothed marginals from
+  ``gtsam.Marginals`` on the final linearisation.
+* **isam2** — one ``ISAM2.update`` per step while holding a reference to
+  ``isam.getLinearizationPoint()`` for the whole run (callbacks then get that object
+  instead of a copy).  After each update the newest pose's *filtered* estimate and
+  covariance are read (comparable with the EKF's); at the end a few extra updates
+  finish relinearisation and all poses' smoothed marginals are read.
+
+Covariances: GTSAM's Pose2 marginals are in the body tangent (``X ⊕ Exp(δ)``);
+mapfuse reports absolute ``(x, y, θ)`` covariances, ``G P Gᵀ`` with
+``G = blockdiag(R(θ), 1)`` (:func:`body_to_abs_cov`).
+
+Entry point: :func:`run_graph`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import gtsam
+import numpy as np
+
+from mapfuse_core.evaluation import anchor_metrics, anchor_truth, build_metrics
+from mapfuse_core.features import FeatureKind, line_from_normal
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.se2 import FloatArray, inverse_jacobian
+from mapfuse_graph.factors import pose_of
+from mapfuse_graph.graph import (
+    ASSOCIATIONS,
+    GraphBuilder,
+    GraphOptions,
+    anchor_key,
+    landmark_key,
+    pose_key,
+)
+
+if TYPE_CHECKING:
+    from ekf_reference.result import EKFResult
+
+__all__ = [
+    "BACKENDS",
+    "GraphAnchor",
+    "GraphLandmarks",
+    "GraphResult",
+    "ISAM2Options",
+    "LMOptions",
+    "LMReport",
+    "body_to_abs_cov",
+    "graph_metrics",
+    "levenberg_marquardt",
+    "run_graph",
+]
+
+BACKENDS: tuple[str, ...] = ("batch", "isam2")
+Backend = Literal["batch", "isam2"]
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    """Levenberg–Marquardt settings of the batch solver."""
+
+    max_iterations: int = 100
+    """Most outer iterations (linearisations)."""
+    lambda_initial: float = 1e-5
+    """Initial damping λ (added as ``λ·I`` to the Gauss–Newton Hessian)."""
+    lambda_factor: float = 10.0
+    """λ is divided by this after an accepted step and multiplied after a rejected one."""
+    lambda_bounds: tuple[float, float] = (1e-12, 1e10)
+    """λ is kept within these; reaching the upper bound ends the run (no descent left)."""
+    relative_error_tol: float = 1e-9
+    """Stop when an accepted step lowers the error by less than this fraction."""
+    absolute_error_tol: float = 1e-9
+    """Stop when an accepted step lowers the error by less than this."""
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1 or not self.lambda_factor > 1.0:
+            raise ValueError("max_iterations must be >= 1 and lambda_factor > 1")
+        lo, hi = self.lambda_bounds
+        if not 0.0 < lo <= self.lambda_initial <= hi:
+            raise ValueError("need 0 < lambda_bounds[0] <= lambda_initial <= lambda_bounds[1]")
+
+
+_DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
+_DEFAULT_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "x": (0.05, 0.05, 0.005),
+    "l": (0.05, 0.005),
+    "c": (0.05, 0.05, 0.05),
+    "k": (0.05, 0.005),
+    "q": (0.05, 0.05, 0.05),
+    "a": (0.05, 0.05, 0.005),
+}
+
+
+@dataclass(frozen=True)
+class ISAM2Options:
+    """iSAM2 settings."""
+
+    relinearize_threshold: float | dict[str, tuple[float, ...]] = field(
+        default_factory=lambda: dict(_DEFAULT_THRESHOLDS)
+    )
+    """Relinearise a variable when any entry of its linear delta exceeds this: one float
+    for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
+    ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
+    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate within 0.05 σ of the
+    batch optimum on loop600 while relinearising half as many variables as 0.01 for
+    all: a line landmark seen from hundreds of poses costs hundreds of Python
+    callbacks each time it is relinearised."""
+    relinearize_skip: int = 1
+    """Check for relinearisation every this many updates."""
+    factorization: str = "CHOLESKY"
+    """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
+    final_updates: int = 5
+    """Extra empty updates at the end so the final estimate is fully relinearised."""
+    final_marginals: str = "isam2"
+    """Smoothed marginals from iSAM2's own Bayes tree (``"isam2"``: 0.25 s CPU for all
+    loop600 poses; within 2 % of the exact ones because a variable's linearisation
+    point may lag its estimate by up to the relinearisation threshold) or from a
+    fresh linearisation at the final estimate (``"relinearized"``: exact, 1.5 s)."""
+
+    def __post_init__(self) -> None:
+        th = self.relinearize_threshold
+        if isinstance(th, dict):
+            for ch, v in th.items():
+                if ch not in _DIMS or len(v) != _DIMS[ch] or not all(t > 0 for t in v):
+                    raise ValueError(
+                        f"relinearize_threshold[{ch!r}] must be {_DIMS.get(ch, '?')} positive "
+                        f"values for a symbol among {', '.join(_DIMS)}, got {v!r}"
+                    )
+        elif not th > 0:
+            raise ValueError("relinearize_threshold must be > 0")
+        if self.relinearize_skip < 1:
+            raise ValueError("relinearize_skip must be >= 1")
+        if self.factorization not in ("CHOLESKY", "QR"):
+            raise ValueError(f"factorization must be CHOLESKY or QR, got {self.factorization!r}")
+        if self.final_updates < 0:
+            raise ValueError("final_updates must be >= 0")
+        if self.final_marginals not in ("isam2", "relinearized"):
+            raise ValueError(
+                f"final_marginals must be 'isam2' or 'relinearized', got {self.final_marginals!r}"
+            )
+
+
+@dataclass(frozen=True)
+class LMReport:
+    """How a Levenberg–Marquardt run went."""
+
+    iterations: int
+    """Outer iterations (linearisations) done."""
+    initial_error: float
+    """``graph.error`` (½ Σ whitened residual²) at the initial values."""
+    final_error: float
+    """``graph.error`` at the solution."""
+    converged: bool
+    """True if a tolerance was met (not the iteration or λ limit)."""
+    final_lambda: float
+    """λ at the end."""
+
+
+@dataclass(frozen=True)
+class GraphAnchor:
+    """The pose of ``Wglobal`` in the known map, as :class:`ekf_reference.AnchorResult`."""
+
+    x_Wknown_Wglobal: FloatArray
+    """(3,) pose of ``Wglobal`` in ``Wknown`` (inverse of the graph's ``A = x^Wglobal_Wknown``)."""
+    cov: FloatArray
+    """(3, 3) its absolute covariance."""
+    accepted_at_step: int
+    """Step at which the anchor entered the graph."""
+    source: str
+    """Where its initial value came from: ``"ekf"``, ``"fit"`` (truth pairings), ``"ccda"``,
+    ``"given"``."""
+    pairings: tuple[tuple[int, int], ...]
+    """(true world id of the landmark's first observation or −1, known-map id) per tie."""
+
+
+@dataclass(frozen=True)
+class GraphLandmarks:
+    """The estimated landmarks in ``Wglobal``."""
+
+    kinds: np.ndarray
+    """(L,) int8 feature kinds."""
+    params: FloatArray
+    """(L, 3) SPmap lines (origin at the mean foot of their observations) / circles."""
+    covs: FloatArray
+    """(L, 3, 3) covariance of :attr:`params` (lines: zero along the line)."""
+    variables: FloatArray
+    """(L, 3) the graph variables: ``(ρ, α, NaN)`` for lines, ``(x, y, r)`` for circles."""
+    known_ids: np.ndarray
+    """(L,) known-map id each landmark is tied to, −1 if none."""
+    true_ids: np.ndarray
+    """(L,) world id of each landmark's first observation (−1 unknown)."""
+    n_obs: np.ndarray
+    """(L,) observations per landmark."""
+
+
+@dataclass(frozen=True)
+class GraphResult:
+    """Result of :func:`run_graph`."""
+
+    scenario: str
+    """Scenario name of the log."""
+    seed: int
+    """Seed of the log."""
+    backend: str
+    """``"batch"`` or ``"isam2"``."""
+    fusion: bool
+    """Whether the known map was fused."""
+    association: str
+    """Association source used."""
+    poses: FloatArray
+    """(N, 3) final (smoothed) pose ``x^Wglobal_R`` of every step."""
+    covs: FloatArray
+    """(N, 3, 3) smoothed marginal covariances, absolute ``(x, y, θ)`` (NaN if not computed)."""
+    filtered_poses: FloatArray | None
+    """(N, 3) iSAM2 only: estimate of ``X_k`` right after update ``k`` (uses steps 0..k)."""
+    filtered_covs: FloatArray | None
+    """(N, 3, 3) iSAM2 only: its absolute covariance."""
+    step_time_s: FloatArray
+    """(N,) iSAM2: wall time of each step (build + update + filtered estimate and
+    marginal).  Batch: each step's build time plus an equal share of the solve and the
+    marginals, so that the sum is the run's cost (per-step percentiles are meaningless)."""
+    build_time_s: float
+    """Validation and factor construction (batch); included in step times for iSAM2."""
+    solve_time_s: float
+    """Optimisation time: LM for batch; the extra final updates for iSAM2."""
+    marginals_time_s: float
+    """Time spent on the final smoothed marginals."""
+    total_time_s: float
+    """Wall time of the whole :func:`run_graph` call."""
+    total_cpu_s: float
+    """CPU time of this process during the call (robust to other load on the machine)."""
+    anchor: GraphAnchor | None
+    """The anchor, or ``None`` without fusion or if it never entered the graph."""
+    landmarks: GraphLandmarks
+    """Final landmark estimates."""
+    obs_landmark: np.ndarray
+    """(M,) dense landmark index of every logged observation, −1 if not in the graph."""
+    n_factors: int
+    """Factors in the final graph."""
+    n_variables: int
+    """Variables in the final graph."""
+    final_error: float
+    """``graph.error`` at the final estimate."""
+    lm: LMReport | None = None
+    """Batch only: the Levenberg–Marquardt report."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Diagnostics (e.g. iSAM2 relinearisation counts)."""
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def body_to_abs_cov(P_body: FloatArray, theta: float) -> FloatArray:
+    """Pose2 covariance in GTSAM's body tangent → absolute ``(x, y, θ)``: ``G P Gᵀ``."""
+    c, s = math.cos(theta), math.sin(theta)
+    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = G @ P_body @ G.T
+    return 0.5 * (out + out.T)
+
+
+class _ValuesEstimate:
+    """The builder's view of a ``Values`` being assembled (batch initial values)."""
+
+    def __init__(self, values: gtsam.Values) -> None:
+        self.values = values
+
+    def pose(self, k: int) -> FloatArray:
+        return pose_of(self.values.atPose2(pose_key(k)))
+
+    def vector(self, key: int) -> FloatArray:
+        return np.asarray(self.values.atVector(key), dtype=float)
+
+    def anchor(self) -> FloatArray:
+        return pose_of(self.values.atPose2(anchor_key()))
+
+    def pose_cov(self, k: int) -> FloatArray | None:
+        return None
+
+    def cov(self, key: int) -> FloatArray | None:
+        return None
+
+
+class _ISAM2Estimate:
+    """The builder's view of iSAM2's current estimate."""
+
+    def __init__(self, isam: gtsam.ISAM2, filtered_covs: FloatArray) -> None:
+        self.isam = isam
+        self.filtered_covs = filtered_covs
+        self.last_pose: tuple[int, FloatArray] = (-1, np.zeros(3))
+
+    def pose(self, k: int) -> FloatArray:
+        if k == self.last_pose[0]:
+            return self.last_pose[1]
+        return pose_of(self.isam.calculateEstimatePose2(pose_key(k)))
+
+    def vector(self, key: int) -> FloatArray:
+        return np.asarray(self.isam.calculateEstimateVector(key), dtype=float)
+
+    def anchor(self) -> FloatArray:
+        return pose_of(self.isam.calculateEstimatePose2(anchor_key()))
+
+    def pose_cov(self, k: int) -> FloatArray | None:
+        return np.asarray(self.filtered_covs[k])
+
+    def cov(self, key: int) -> FloatArray | None:
+        return np.asarray(self.isam.marginalCovariance(key), dtype=float)
+
+
+def _key_dims(values: gtsam.Values) -> list[tuple[int, int]]:
+    zero = values.zeroVectors()
+    return [(int(k), int(zero.at(k).shape[0])) for k in list(values.keys())]
+
+
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    options: LMOptions | None = None,
+    error_from_linearization: bool = False,
+) -> tuple[gtsam.Values, LMReport]:
+    """Levenberg–Marquardt driven from Python (no per-callback ``Values`` copies).
+
+    Each outer iteration linearises once; inner iterations add ``√λ·I`` rows per
+    variable to a copy of the linear system, solve it (multifrontal, COLAMD ordering
+    computed once), retract and accept the step if the error decreases.
+
+    ``error_from_linearization=True`` takes the error of a candidate from its own
+    linearisation (``½‖b‖²`` of the whitened system, exact for Gaussian noise models,
+    *not* for robust ones) instead of a separate ``graph.error`` pass: an accepted
+    candidate's linearisation is the next iteration's system, so every Python
+    callback runs once per iteration instead of twice.
+    """
+    out, report, _ = _levenberg_marquardt(graph, values, options, error_from_linearization)
+    return out, report
+
+
+def _levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    options: LMOptions | None,
+    error_from_linearization: bool,
+) -> tuple[gtsam.Values, LMReport, gtsam.GaussianFactorGraph | None]:
+    """:func:`levenberg_marquardt`, also returning the linearisation at the result if made."""
+    opts = options or LMOptions()
+    lam_lo, lam_hi = opts.lambda_bounds
+    dims = _key_dims(values)
+    eyes = {d: np.eye(d) for _, d in dims}
+    zeros = {d: np.zeros(d) for _, d in dims}
+    unit = {d: gtsam.noiseModel.Unit.Create(d) for _, d in dims}
+    zero_delta = values.zeroVectors()
+
+    def evaluate(v: gtsam.Values) -> tuple[float, gtsam.GaussianFactorGraph | None]:
+        if error_from_linearization:
+            lin_v = graph.linearize(v)
+            return float(lin_v.error(zero_delta)), lin_v
+        return float(graph.error(v)), None
+
+    err, lin = evaluate(values)
+    err0 = err
+    lam = opts.lambda_initial
+    ordering = None
+    converged = False
+    it = 0
+    while it < opts.max_iterations:
+        it += 1
+        if lin is None:
+            lin = graph.linearize(values)
+        if ordering is None:
+            ordering = gtsam.Ordering.ColamdGaussianFactorGraph(lin)
+        accepted = False
+        while True:
+            damped = lin.clone()
+            sq = math.sqrt(lam)
+            for key, d in dims:
+                damped.add(key, sq * eyes[d], zeros[d], unit[d])
+            try:
+                delta = damped.optimize(ordering)
+                new_values = values.retract(delta)
+                new_err, new_lin = evaluate(new_values)
+            except RuntimeError:
+                new_err, new_lin = math.inf, None
+            if math.isfinite(new_err) and new_err <= err:
+                accepted = True
+                break
+            if lam >= lam_hi:
+                break
+            lam = min(lam * opts.lambda_factor, lam_hi)
+        if not accepted:
+            converged = True  # no descent direction left at any damping: a minimum
+            break
+        decrease = err - new_err
+        values, err, lin = new_values, new_err, new_lin
+        lam = max(lam / opts.lambda_factor, lam_lo)
+        if decrease <= opts.absolute_error_tol or decrease <= opts.relative_error_tol * err:
+            converged = True
+            break
+    return values, LMReport(it, err0, err, converged, lam), lin
+
+
+# --------------------------------------------------------------------------- results
+
+
+def _landmarks(
+    builder: GraphBuilder,
+    values: gtsam.Values,
+    cov_of: Callable[[int], FloatArray] | None,
+    poses: FloatArray,
+) -> GraphLandmarks:
+    log = builder.log
+    lms = builder.landmarks
+    n = len(lms)
+    kinds = builder.landmark_kinds()
+    params = np.zeros((n, 3))
+    covs = np.full((n, 3, 3), np.nan)
+    variables = np.full((n, 3), np.nan)
+    # Mean along-line coordinate of each line's observed midpoints (vectorised).
+    sel = np.nonzero(builder.obs_landmark >= 0)[0]
+    lm_of = builder.obs_landmark[sel]
+    X = poses[log.feat_step[sel]]
+    z = log.feat_params[sel]
+    c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
+    px = X[:, 0] + c * z[:, 0] - s * z[:, 1]
+    py = X[:, 1] + s * z[:, 0] + c * z[:, 1]
+    for i, lmk in enumerate(lms):
+        key = landmark_key(i, lmk.kind)
+        v = np.asarray(values.atVector(key), dtype=float)
+        variables[i, : v.size] = v
+        P = cov_of(key) if cov_of is not None else np.full((v.size, v.size), np.nan)
+        if lmk.kind == FeatureKind.CIRCLE:
+            params[i], covs[i] = v, P
+            continue
+        mine = lm_of == i
+        t = (
+            float(np.mean(-px[mine] * math.sin(v[1]) + py[mine] * math.cos(v[1])))
+            if np.any(mine)
+            else 0.0
+        )
+        f, J = line_from_normal(float(v[0]), float(v[1]), t)
+        params[i] = f
+        covs[i] = J[:, :2] @ P @ J[:, :2].T
+    true_first = log.feat_true_id[builder.landmark_first_obs()] if n else np.zeros(0, np.int64)
+    return GraphLandmarks(
+        kinds=kinds,
+        params=params,
+        covs=covs,
+        variables=variables,
+        known_ids=builder.landmark_known_ids(),
+        true_ids=np.asarray(true_first, dtype=np.int64),
+        n_obs=builder.landmark_n_obs(),
+    )
+
+
+def _anchor(
+    builder: GraphBuilder, values: gtsam.Values, cov_of: Callable[[int], FloatArray] | None
+) -> GraphAnchor | None:
+    if not builder.anchor_added or not values.exists(anchor_key()):
+        return None
+    A = pose_of(values.atPose2(anchor_key()))
+    P = (
+        body_to_abs_cov(cov_of(anchor_key()), A[2])
+        if cov_of is not None
+        else np.full((3, 3), np.nan)
+    )
+    x, J = inverse_jacobian(A)
+    log = builder.log
+    pairings = tuple(
+        (int(log.feat_true_id[builder.landmarks[i].first_obs]), int(builder.known.ids[r]))
+        for i, r in builder.pairings
+    )
+    return GraphAnchor(
+        x_Wknown_Wglobal=x,
+        cov=J @ P @ J.T,
+        accepted_at_step=builder.anchor_step,
+        source=builder.anchor_source,
+        pairings=pairings,
+    )
+
+
+def _poses_from(values: gtsam.Values, n: int) -> FloatArray:
+    return np.array([pose_of(values.atPose2(pose_key(k))) for k in range(n)]).reshape(n, 3)
+
+
+def _pose_covs(poses: FloatArray, cov_of: Callable[[int], FloatArray] | None) -> FloatArray:
+    n = poses.shape[0]
+    if cov_of is None:
+        return np.full((n, 3, 3), np.nan)
+    return np.array([body_to_abs_cov(cov_of(pose_key(k)), poses[k, 2]) for k in range(n)]).reshape(
+        n, 3, 3
+    )
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def _run_batch(
+    builder: GraphBuilder,
+    lm: LMOptions | None,
+    init_poses: FloatArray | None,
+    marginals: bool,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[Any, ...]:
+    n = builder.n_steps
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    est = _ValuesEstimate(values)
+    times = np.zeros(n)
+    t_build = time.perf_counter()
+    for k in range(n):
+        t0 = time.perf_counter()
+        sg = builder.step(k, est, None if init_poses is None else init_poses[k])
+        graph.push_back(sg.factors)
+        values.insert(sg.values)
+        times[k] = time.perf_counter() - t0
+        if progress is not None:
+            progress(k + 1, n)
+    build = time.perf_counter() - t_build
+    t0 = time.perf_counter()
+    exact = builder.options.robust is None
+    values, report, lin = _levenberg_marquardt(graph, values, lm, exact)
+    solve = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cov_of: Callable[[int], FloatArray] | None = None
+    if marginals:
+        # Marginals on the final linearisation, called from Python: no Values copies.
+        m = gtsam.Marginals(lin if lin is not None else graph.linearize(values), values)
+        cov_of = m.marginalCovariance
+    poses = _poses_from(values, n)
+    covs = _pose_covs(poses, cov_of)
+    landmarks = _landmarks(builder, values, cov_of, poses)
+    anchor = _anchor(builder, values, cov_of)
+    marg = time.perf_counter() - t0
+    # Spread the solve over the steps so that the per-step times add up to the run's
+    # cost (metrics.json's runtime total); their percentiles mean nothing for batch.
+    times = times + (solve + marg) / n
+    return (
+        graph,
+        values,
+        poses,
+        covs,
+        None,
+        None,
+        times,
+        build,
+        solve,
+        marg,
+        anchor,
+        landmarks,
+        report,
+        {},
+    )
+
+
+def _run_isam2(
+    builder: GraphBuilder,
+    options: ISAM2Options | None,
+    marginals: bool,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[Any, ...]:
+    opts = options or ISAM2Options()
+    n = builder.n_steps
+    params = gtsam.ISAM2Params()
+    th = opts.relinearize_threshold
+    if isinstance(th, dict):
+        tmap = gtsam.ISAM2ThresholdMap()
+        for ch, v in th.items():
+            tmap.insert((ch, np.asarray(v, dtype=float)))
+        params.setRelinearizeThreshold(tmap)
+    else:
+        params.setRelinearizeThreshold(float(th))
+    params.relinearizeSkip = opts.relinearize_skip
+    params.setFactorization(opts.factorization)
+    isam = gtsam.ISAM2(params)
+    # Held for the whole run: callbacks then receive this object, not a deep copy.
+    linearization_point = isam.getLinearizationPoint()
+    graph = gtsam.NonlinearFactorGraph()
+    f_poses = np.zeros((n, 3))
+    f_covs = np.zeros((n, 3, 3))
+    est = _ISAM2Estimate(isam, f_covs)
+    times = np.zeros(n)
+    relin = 0
+    for k in range(n):
+        t0 = time.perf_counter()
+        sg = builder.step(k, est)
+        res = isam.update(sg.factors, sg.values)
+        relin += int(res.getVariablesRelinearized())
+        graph.push_back(sg.factors)
+        xk = pose_key(k)
+        x = pose_of(isam.calculateEstimatePose2(xk))
+        f_poses[k] = x
+        f_covs[k] = body_to_abs_cov(np.asarray(isam.marginalCovariance(xk)), x[2])
+        est.last_pose = (k, x)
+        times[k] = time.perf_counter() - t0
+        if progress is not None:
+            progress(k + 1, n)
+    t0 = time.perf_counter()
+    for _ in range(opts.final_updates):
+        isam.update()
+    # Full back-substitution: calculateEstimate() stops propagating changes below the
+    # wildfire threshold (1e-3), a millimetre-level difference from the batch optimum.
+    values = isam.calculateBestEstimate()
+    solve = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cov_of: Callable[[int], FloatArray] | None = None
+    if marginals and opts.final_marginals == "isam2":
+        cov_of = isam.marginalCovariance
+    elif marginals:
+        cov_of = gtsam.Marginals(graph.linearize(values), values).marginalCovariance
+    poses = _poses_from(values, n)
+    covs = _pose_covs(poses, cov_of)
+    landmarks = _landmarks(builder, values, cov_of, poses)
+    anchor = _anchor(builder, values, cov_of)
+    marg = time.perf_counter() - t0
+    del linearization_point
+    extra = {"variables_relinearized": relin}
+    return (
+        graph,
+        values,
+        poses,
+        covs,
+        f_poses,
+        f_covs,
+        times,
+        0.0,
+        solve,
+        marg,
+        anchor,
+        landmarks,
+        None,
+        extra,
+    )
+
+
+def run_graph(
+    log: MeasurementLog,
+    backend: str = "isam2",
+    fusion: bool = True,
+    association: str = "ekf",
+    ekf_result: EKFResult | None = None,
+    robust: str | None = None,
+    *,
+    options: GraphOptions | None = None,
+    associations: tuple[np.ndarray, np.ndarray] | None = None,
+    lm: LMOptions | None = None,
+    isam2: ISAM2Options | None = None,
+    steps: int | None = None,
+    init: str = "auto",
+    marginals: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> GraphResult:
+    """Build the factor graph of ``log`` and solve it with ``backend``.
+
+    ``backend``: ``"batch"`` (Levenberg–Marquardt over all steps) or ``"isam2"`` (one
+    update per step; also gives per-step filtered estimates).  ``association``:
+    ``"ekf"`` (needs ``ekf_result``), ``"truth"`` or ``"own"`` (for ``batch``, decided
+    by an iSAM2 pass first); ``associations`` (arrays) overrides it.  ``fusion`` and
+    ``robust`` override the same fields of ``options``.  ``steps`` solves only the first
+    ``steps`` steps.  ``init`` (batch): ``"ekf"`` starts from the EKF's poses,
+    ``"odometry"`` from dead reckoning, ``"auto"`` the EKF's when given.
+    ``marginals=False`` skips the smoothed marginals (covariances NaN).
+    """
+    t_start = time.perf_counter()
+    cpu_start = time.process_time()
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown graph backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if association not in ASSOCIATIONS:
+        raise ValueError(
+            f"association must be one of {', '.join(ASSOCIATIONS)}, got {association!r}"
+        )
+    if init not in ("auto", "ekf", "odometry"):
+        raise ValueError(f"init must be 'auto', 'ekf' or 'odometry', got {init!r}")
+    base = options or GraphOptions()
+    opts = GraphOptions(
+        **{**base.__dict__, "fusion": bool(fusion), "association": association, "robust": robust}
+    )
+    anchor_given: tuple[FloatArray, int, str] | None = None
+    if backend == "batch" and associations is None and association == "own":
+        # Own association is decided against an incremental estimate: run iSAM2 first.
+        pre = GraphBuilder(log, opts, ekf_result, None, steps)
+        _run_isam2(pre, isam2, False, None)
+        associations = _arrays_of(pre)
+        if pre.anchor_added:
+            assert pre.anchor_init is not None
+            anchor_given = (pre.anchor_init, pre.anchor_step, pre.anchor_source)
+    builder = GraphBuilder(log, opts, ekf_result, associations, steps)
+    if anchor_given is not None:
+        builder.anchor_init, builder.anchor_step, builder.anchor_source = anchor_given
+    n = builder.n_steps
+    if backend == "batch":
+        init_poses = None
+        if init == "ekf" and ekf_result is None:
+            raise ValueError("init 'ekf' needs ekf_result")
+        if init in ("auto", "ekf") and ekf_result is not None:
+            init_poses = np.asarray(ekf_result.poses[:n], dtype=float)
+            if not np.all(np.isfinite(init_poses)):
+                raise ValueError("ekf_result.poses has non-finite values")
+        out = _run_batch(builder, lm, init_poses, marginals, progress)
+    else:
+        out = _run_isam2(builder, isam2, marginals, progress)
+    (
+        graph,
+        values,
+        poses,
+        covs,
+        f_poses,
+        f_covs,
+        times,
+        build,
+        solve,
+        marg,
+        anchor,
+        landmarks,
+        report,
+        extra,
+    ) = out
+    return GraphResult(
+        scenario=log.scenario,
+        seed=log.seed,
+        backend=backend,
+        fusion=opts.fusion,
+        association=association if associations is None else "given",
+        poses=poses,
+        covs=covs,
+        filtered_poses=f_poses,
+        filtered_covs=f_covs,
+        step_time_s=times,
+        build_time_s=build,
+        solve_time_s=solve,
+        marginals_time_s=marg,
+        total_time_s=time.perf_counter() - t_start,
+        total_cpu_s=time.process_time() - cpu_start,
+        anchor=anchor,
+        landmarks=landmarks,
+        obs_landmark=builder.obs_landmark.copy(),
+        n_factors=int(graph.size()),
+        n_variables=int(values.size()),
+        final_error=float(graph.error(values)),
+        lm=report,
+        extra=extra,
+    )
+
+
+def _arrays_of(builder: GraphBuilder) -> tuple[np.ndarray, np.ndarray]:
+    """Association decisions of a finished builder as (obs_landmark, obs_known_id)."""
+    lm = builder.obs_landmark.copy()
+    known = builder.landmark_known_ids()
+    kn = np.where(lm >= 0, known[np.clip(lm, 0, None)] if known.size else -1, -1)
+    return lm, np.asarray(kn, dtype=np.int64)
+
+
+def graph_metrics(
+    result: GraphResult, log: MeasurementLog, which: str = "smoothed"
+) -> dict[str, Any]:
+    """``metrics.json`` of a graph run (:func:`mapfuse_core.evaluation.build_metrics`).
+
+    ``which``: ``"smoothed"`` (final estimate, both backends) or ``"filtered"`` (iSAM2's
+    per-step estimate, the one comparable with the EKF's).
+    """
+    if which == "filtered":
+        if result.filtered_poses is None or result.filtered_covs is None:
+            raise ValueError("filtered estimates exist only for the isam2 backend")
+        poses, covs = result.filtered_poses, result.filtered_covs
+    elif which == "smoothed":
+        poses, covs = result.poses, result.covs
+    else:
+        raise ValueError(f"which must be 'smoothed' or 'filtered', got {which!r}")
+    anchor = None
+    if result.anchor is not None:
+        truth = anchor_truth(log.true_poses) if log.true_poses is not None else None
+        anchor = anchor_metrics(
+            result.anchor.x_Wknown_Wglobal,
+            truth,
+            result.anchor.accepted_at_step,
+            result.anchor.pairings,
+        )
+    n = poses.shape[0]
+    true_poses = None if log.true_poses is None else log.true_poses[:n]
+    out = build_metrics(
+        scenario=result.scenario,
+        seed=result.seed,
+        backend=f"graph-{result.backend}",
+        fusion=result.fusion,
+        poses=poses,
+        covs=covs,
+        true_poses=true_poses,
+        step_time_s=result.step_time_s,
+        anchor=anchor,
+        map_features=len(result.landmarks.kinds),
+        matched_known=int(np.sum(result.landmarks.known_ids >= 0)),
+    )
+    out["association"] = result.association
+    out["estimate"] = which
+    return out
