@@ -28,7 +28,7 @@ from mapfuse_core.se2 import (
     compose_jacobians,
     relative,
     transform_point_jacobians,
-    wrap_angle,
+    wrap_scalar,
     wrap_scalar_half,
 )
 
@@ -83,7 +83,7 @@ def line_to_normal(line: FloatArray) -> tuple[FloatArray, FloatArray]:
     rho_signed = -x * s + y * c
     sign = 1.0 if rho_signed >= 0.0 else -1.0
     rho = sign * rho_signed
-    alpha = float(wrap_angle(th + sign * math.pi / 2.0))
+    alpha = wrap_scalar(th + sign * math.pi / 2.0)
     J = np.array([[-sign * s, sign * c, sign * (-x * c - y * s)], [0.0, 0.0, 1.0]])
     return np.array([rho, alpha]), J
 
@@ -101,7 +101,7 @@ def line_from_normal(rho: float, alpha: float, t: float) -> tuple[FloatArray, Fl
     observation).  Returns the line and ``∂(x, y, θ)/∂(ρ, α, t)`` (3×3).
     """
     ca, sa = math.cos(alpha), math.sin(alpha)
-    line = np.array([rho * ca - t * sa, rho * sa + t * ca, float(wrap_angle(alpha + math.pi / 2))])
+    line = np.array([rho * ca - t * sa, rho * sa + t * ca, wrap_scalar(alpha + math.pi / 2)])
     J = np.array(
         [
             [ca, -rho * sa - t * ca, -sa],
@@ -121,7 +121,7 @@ def canonical_line(line: FloatArray) -> FloatArray:
     x, y, th = float(line[0]), float(line[1]), float(line[2])
     lateral_of_origin = math.sin(th) * x - math.cos(th) * y
     if lateral_of_origin < 0.0:
-        th = float(wrap_angle(th + math.pi))
+        th = wrap_scalar(th + math.pi)
     return np.array([x, y, th])
 
 

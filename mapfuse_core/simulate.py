@@ -20,7 +20,7 @@ from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.scenario import Scenario, build_known_map, check_visibility
 from mapfuse_core.se2 import FloatArray
 from mapfuse_core.vehicle import MotionResult, simulate_motion
-from mapfuse_core.world import World
+from mapfuse_core.world import WallSegment, World
 
 __all__ = ["SimulationResult", "simulate", "world_arrays"]
 
@@ -49,12 +49,28 @@ def world_arrays(world: World) -> KnownMapArrays:
         kinds.append(int(FeatureKind.CIRCLE))
         params.append(c.params())
     n = len(ids)
+    extents = np.full((n, 2), np.nan)
+    for r, s in enumerate(world.segments):
+        extents[r] = (-0.5 * s.length, 0.5 * s.length)
     return KnownMapArrays(
         ids=np.array(ids, dtype=np.int64),
         kinds=np.array(kinds, dtype=np.int8),
         params=np.array(params, dtype=float).reshape(n, 3),
         covs=np.zeros((n, 3, 3)),
+        extents=extents,
     )
+
+
+def _known_extents(scenario: Scenario, ids: np.ndarray, kinds: np.ndarray) -> FloatArray:
+    """Along-line extents of the known walls: ±half the surveyed wall length."""
+    walls = {s.id: s for s in scenario.world.segments}
+    walls.update({f.id: f for f in scenario.known_map.removed if isinstance(f, WallSegment)})
+    out = np.full((ids.shape[0], 2), np.nan)
+    for r, (fid, kind) in enumerate(zip(ids, kinds, strict=True)):
+        if int(kind) == int(FeatureKind.LINE):
+            half = 0.5 * walls[int(fid)].length
+            out[r] = (-half, half)
+    return out
 
 
 def simulate(
@@ -124,7 +140,11 @@ def simulate(
         feat_n_points=np.array(n_points, dtype=np.int64),
         feat_extent=np.array(extents, dtype=float).reshape(m, 2),
         known_map=KnownMapArrays(
-            ids=known.ids, kinds=known.kinds, params=known.params, covs=known.covs
+            ids=known.ids,
+            kinds=known.kinds,
+            params=known.params,
+            covs=known.covs,
+            extents=_known_extents(scenario, known.ids, known.kinds),
         ),
         world=world_arrays(scenario.world),
         true_poses=motion.true_poses,
