@@ -73,7 +73,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
     run = run_backend(
-        log, args.backend, fusion=args.fusion, progress=_Progress(args.backend, not args.quiet)
+        log,
+        args.backend,
+        fusion=args.fusion,
+        association=args.association,
+        robust=args.robust,
+        progress=_Progress(args.backend, not args.quiet),
     )
     paths = write_outputs(run, args.out)
     print(json.dumps({"metrics": run.metrics, "outputs": paths}, indent=2))
@@ -109,7 +114,19 @@ def _parser() -> argparse.ArgumentParser:
         "write OUT/metrics.json, OUT/trajectory.tum and OUT/errors.png.",
     )
     run.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
-    run.add_argument("--backend", default="ekf", choices=["ekf"], help="estimator")
+    run.add_argument(
+        "--backend", default="ekf", choices=["ekf", "batch", "isam2"], help="estimator"
+    )
+    run.add_argument(
+        "--association",
+        default="ekf",
+        choices=["ekf", "truth", "own"],
+        help="graph backends: the EKF's saved decisions (default), simulation truth, or "
+        "the graph's own χ²-gated nearest neighbour",
+    )
+    run.add_argument(
+        "--robust", default=None, help="robust kernel on observations: huber[:k] or cauchy[:k]"
+    )
     fusion = run.add_mutually_exclusive_group()
     fusion.add_argument(
         "--fusion",

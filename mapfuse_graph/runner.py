@@ -19,10 +19,12 @@ from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.se2 import FloatArray
 from mapfuse_core.simulate import simulate
+from mapfuse_graph.solvers import GraphResult, graph_metrics, run_graph
 
 __all__ = ["BACKENDS", "RunOutput", "prepare_log", "run_backend", "write_outputs"]
 
-BACKENDS = ("ekf",)
+BACKENDS = ("ekf", "batch", "isam2")
+ASSOCIATIONS = ("ekf", "truth", "own")
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,9 @@ class RunOutput:
     log: MeasurementLog
     """The log the run consumed."""
     ekf: EKFResult | None = None
-    """The full EKF result (EKF backend only)."""
+    """The full EKF result (EKF backend, and graph runs that used its decisions)."""
+    graph: GraphResult | None = None
+    """The full graph result (batch and isam2 backends)."""
 
 
 def prepare_log(
@@ -56,9 +60,22 @@ def run_backend(
     log: MeasurementLog,
     backend: str,
     fusion: bool = True,
+    association: str = "ekf",
+    robust: str | None = None,
+    ekf_result: EKFResult | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> RunOutput:
-    """Run ``backend`` on ``log``."""
+    """Run ``backend`` on ``log``.
+
+    Graph backends with ``association="ekf"`` consume the EKF's saved decisions: the
+    EKF (same ``fusion``) is run first unless ``ekf_result`` is given.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if association not in ASSOCIATIONS:
+        raise ValueError(
+            f"unknown association {association!r}; choose one of {', '.join(ASSOCIATIONS)}"
+        )
     if backend == "ekf":
         res = run_ekf(log, EKFConfig(fusion=fusion), progress=progress)
         return RunOutput(
@@ -69,7 +86,26 @@ def run_backend(
             log=log,
             ekf=res,
         )
-    raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if association == "ekf" and ekf_result is None:
+        ekf_result = run_ekf(log, EKFConfig(fusion=fusion))
+    g = run_graph(
+        log,
+        backend=backend,
+        fusion=fusion,
+        association=association,
+        ekf_result=ekf_result,
+        robust=robust,
+        progress=progress,
+    )
+    return RunOutput(
+        metrics=graph_metrics(g, log),
+        timestamps=log.timestamps[: g.poses.shape[0]],
+        poses=g.poses,
+        covs=g.covs,
+        log=log,
+        ekf=ekf_result,
+        graph=g,
+    )
 
 
 def write_outputs(run: RunOutput, out: str | Path) -> dict[str, str]:
@@ -91,6 +127,6 @@ def write_outputs(run: RunOutput, out: str | Path) -> dict[str, str]:
         fig = errors_figure(run.timestamps, err.dx, run.covs, title)
         paths["errors"] = out / "errors.png"
         fig.savefig(paths["errors"], dpi=110)
-    if run.ekf is not None:
+    if run.ekf is not None and run.graph is None:
         paths["associations"] = save_associations(run.ekf, out / "associations.npz")
     return {k: str(v) for k, v in paths.items()}

@@ -32,7 +32,13 @@ from typing import TYPE_CHECKING, Any, Literal
 import gtsam
 import numpy as np
 
-from mapfuse_core.evaluation import anchor_metrics, anchor_truth, build_metrics
+from mapfuse_core.evaluation import (
+    anchor_metrics,
+    anchor_truth,
+    build_metrics,
+    pose_metrics,
+    truth_in_global,
+)
 from mapfuse_core.features import FeatureKind, line_from_normal
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.se2 import FloatArray, inverse_jacobian
@@ -788,7 +794,7 @@ def graph_metrics(
     out = build_metrics(
         scenario=result.scenario,
         seed=result.seed,
-        backend=f"graph-{result.backend}",
+        backend=result.backend,
         fusion=result.fusion,
         poses=poses,
         covs=covs,
@@ -800,4 +806,9 @@ def graph_metrics(
     )
     out["association"] = result.association
     out["estimate"] = which
+    fp, fc = result.filtered_poses, result.filtered_covs
+    if which == "smoothed" and fp is not None and fc is not None and true_poses is not None:
+        filtered = pose_metrics(fp, fc, truth_in_global(true_poses))
+        out["nees_filtered"] = filtered["nees"]
+        out["position_error_filtered_m"] = filtered["position_error_m"]
     return out
