@@ -266,7 +266,7 @@ def test_metrics_follow_the_shared_schema() -> None:
     log = synthetic_log(steps=40, seed=0)
     res = run_graph(log, "isam2", fusion=True, association="truth")
     m = graph_metrics(res, log)
-    assert m["backend"] == "graph-isam2"
+    assert m["backend"] == "isam2"
     assert m["steps"] == 40
     assert {"position_error_m", "nees", "anchor", "map", "runtime_s"} <= set(m)
     assert m["anchor"]["correct_pairings"] == m["anchor"]["pairings"] > 0
