@@ -100,6 +100,10 @@ class MeasurementLog:
     """(N, 3) true vehicle pose at each step in ``W`` (simulation), or ``None``."""
     rejected: dict[str, int] = field(default_factory=dict)
     """Extraction rejections over the whole run: reason → count."""
+    gps_times: FloatArray | None = None
+    """(G,) times of GPS fixes (real data), on the clock of :attr:`timestamps`."""
+    gps_xy: FloatArray | None = None
+    """(G, 2) GPS positions (East, North) in metres, the frame of the surveyed known map."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -218,6 +222,11 @@ def _validate(log: MeasurementLog) -> None:
         _check_map("world", log.world)
     if log.true_poses is not None:
         _check_array("true_poses", log.true_poses, (n, 3))
+    if (log.gps_times is None) != (log.gps_xy is None):
+        raise MeasurementLogError("'gps_times' and 'gps_xy' must be given together")
+    if log.gps_times is not None and log.gps_xy is not None:
+        _check_array("gps_times", log.gps_times, (None,))
+        _check_array("gps_xy", log.gps_xy, (log.gps_times.shape[0], 2))
     for k, v in log.rejected.items():
         if not isinstance(k, str) or not isinstance(v, int) or v < 0:
             raise MeasurementLogError(f"'rejected' entry {k!r}: {v!r} is not a count")
@@ -229,7 +238,17 @@ _MAP_FIELDS = ("ids", "kinds", "params", "covs")
 _LOG_ARRAYS = tuple(
     f.name
     for f in fields(MeasurementLog)
-    if f.name not in {"scenario", "seed", "known_map", "world", "true_poses", "rejected"}
+    if f.name
+    not in {
+        "scenario",
+        "seed",
+        "known_map",
+        "world",
+        "true_poses",
+        "rejected",
+        "gps_times",
+        "gps_xy",
+    }
     and not f.name.startswith("_")
 )
 _DTYPES = {
@@ -261,8 +280,10 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
                 out[f"{prefix}_{f}"] = np.asarray(getattr(m, f))
             if m.extents is not None:
                 out[f"{prefix}_extents"] = np.asarray(m.extents)
-    if log.true_poses is not None:
-        out["true_poses"] = np.asarray(log.true_poses)
+    for name in ("true_poses", "gps_times", "gps_xy"):
+        value = getattr(log, name)
+        if value is not None:
+            out[name] = np.asarray(value)
     return out
 
 
@@ -337,6 +358,8 @@ def load_log(path: str | Path) -> MeasurementLog:
             known_map=map_of("known"),
             world=map_of("world") if "world_ids" in arrays else None,
             true_poses=_get(arrays, path, "true_poses") if "true_poses" in arrays else None,
+            gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
+            gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
             rejected={str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
             **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},
         )

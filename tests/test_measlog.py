@@ -153,3 +153,14 @@ def test_missing_array_is_named(tmp_path: Path) -> None:
                 zout.writestr(item, zin.read(item.filename))
     with pytest.raises(MeasurementLogError, match="missing array 'odometry_cov'"):
         load_log(tmp_path / "m.npz")
+
+
+def test_gps_reference_round_trip_and_pairing(tmp_path: Path) -> None:
+    log = dataclasses.replace(
+        small_log(), gps_times=np.array([0.1, 0.3]), gps_xy=np.array([[1.0, 2.0], [3.0, 4.0]])
+    )
+    back = load_log(save_log(log, tmp_path / "gps.npz"))
+    assert back.gps_xy is not None
+    np.testing.assert_array_equal(back.gps_xy, log.gps_xy)
+    with pytest.raises(MeasurementLogError, match="together"):
+        dataclasses.replace(small_log(), gps_times=np.array([0.1]))
