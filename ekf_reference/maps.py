@@ -95,7 +95,14 @@ def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | Non
     for gi in shared:
         e = global_map.elements[gi]
         loc.add(
-            Element(e.kind, e.role, moving=e.role == Role.ANCHOR, track=e.track, extent=e.extent),
+            Element(
+                e.kind,
+                e.role,
+                moving=e.role == Role.ANCHOR,
+                track=e.track,
+                extent=e.extent,
+                true_id=e.true_id,
+            ),
             global_map.mean[gi],
             np.zeros((3, 3)),
         )
@@ -134,10 +141,18 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
     rot = moving & ~is_circle
     new[rot, 2] = wrap_angle(m[rot, 2] - u[2])
     _rotate_moving(loc, np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]), moving)
+    # The rotation keeps a bound line bound (its direction turns with it); only the
+    # odometry noise would add along-line variance, so project it out of G instead of
+    # re-binding the whole covariance (SPmap binding, see state.py).
+    lines = moving & np.array([e.kind == ElementKind.LINE for e in loc.elements], dtype=bool)
+    if lines.any():
+        ux, uy = np.cos(new[lines, 2]), np.sin(new[lines, 2])
+        along = ux[:, None] * Ju[lines, 0, :] + uy[:, None] * Ju[lines, 1, :]
+        Ju[lines, 0, :] -= ux[:, None] * along
+        Ju[lines, 1, :] -= uy[:, None] * along
     G = np.where(moving[:, None, None], Ju, 0.0).reshape(3 * n, 3)
     loc.cov = loc.cov + G @ Q @ G.T
     loc.mean = new
-    loc.bind_lines()
     loc.symmetrise()
 
 

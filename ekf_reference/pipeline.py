@@ -130,7 +130,10 @@ class _Run:
                 cov,
             )
         if loc.has(Role.ANCHOR):
-            self.constrain_to_known(loc, lambda e: e.moving)
+            # Only features touched at this step can have become pairable with a known
+            # feature; the others were tested when last seen (saves ~80 % of the tests).
+            seen = {int(t) for t in self.obs_track[sl.start : sl.stop]}
+            self.constrain_to_known(loc, lambda e: e.moving and e.track in seen)
 
     def constrain_to_known(self, state: GaussianMap, which: Callable[[Element], bool]) -> None:
         """Pair map features with known features (hard constraints) and absorb them."""
