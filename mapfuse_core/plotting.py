@@ -162,8 +162,9 @@ def world_figure(
     r = 45.0
     ax2.set_xlim(pose[0] - r, pose[0] + r)
     ax2.set_ylim(pose[1] - r, pose[1] + r)
+    ax1.set_aspect("equal", adjustable="datalim")
+    ax2.set_aspect("equal", adjustable="box")  # keeps the fixed zoom limits
     for ax in (ax1, ax2):
-        ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.grid(alpha=0.3)

@@ -320,7 +320,21 @@ class GraphBuilder:
             self._mode = "fixed"
             self._plan(lm, kn)
         elif opts.association == "truth":
-            tid = np.asarray(log.feat_true_id, dtype=np.int64)
+            tid = np.asarray(log.feat_true_id, dtype=np.int64).copy()
+            if log.world is not None:
+                # A segment labelled with a tree's id (or the reverse) is an extraction
+                # mix-up, not a landmark of the other kind: drop it like an unlabelled one.
+                world_kind = dict(
+                    zip(log.world.ids.tolist(), log.world.kinds.tolist(), strict=True)
+                )
+                wrong = np.array(
+                    [
+                        t >= 0 and world_kind.get(int(t), k) != k
+                        for t, k in zip(tid, log.feat_kind, strict=True)
+                    ],
+                    dtype=bool,
+                )
+                tid[wrong] = -1
             kn = np.array([i if int(i) in self._known_row else -1 for i in tid], dtype=np.int64)
             self._mode = "fixed"
             self._plan(tid, kn)
