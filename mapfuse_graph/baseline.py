@@ -1,0 +1,557 @@
+"""Regression baselines: record a run's metrics, later check a new run is no worse.
+
+A *baseline file* is JSON::
+
+    {"format": "mapfuse.baseline", "version": 1,
+     "entries": [{"metrics": {...metrics.json...}, "note": "...", "mapfuse_version": "..."}]}
+
+Each entry keeps the whole ``metrics.json`` object of one run (scenario, seed,
+backend, fusion, …), so any metric can be checked later.  :func:`check_baseline`
+compares a new ``metrics.json`` object with the entry of the same backend and
+fusion setting, metric by metric, each with a direction and a tolerance:
+
+======================================  =========  ==================================
+metric (dotted path in metrics.json)    better     default: the new value may be …
+======================================  =========  ==================================
+``position_error_m.rmse``               lower      ≤ baseline × (1 + 10 %) + 0.01 m
+``position_error_m.max``                lower      ≤ baseline × (1 + 10 %) + 0.02 m
+``heading_error_rad.rmse``              lower      ≤ baseline × (1 + 10 %) + 0.001 rad
+``nees.fraction_within_chi2_95``        higher     ≥ baseline − 0.05
+``nees.mean``                           target 3   ``|new − 3| ≤ |baseline − 3| × (1 + 25 %) + 0.5``
+``anchor.position_error_m``             lower      ≤ baseline × (1 + 10 %) + 0.01 m
+``anchor.heading_error_rad``            lower      ≤ baseline × (1 + 10 %) + 0.001 rad
+======================================  =========  ==================================
+
+These seven are :data:`DEFAULT_METRICS`.  More are known to :data:`METRICS` (e.g.
+``position_error_m.final``, iSAM2's ``nees_filtered.*``, and ``runtime_s.*``, which is
+machine dependent and therefore never checked unless asked for).  The additive
+part of each tolerance keeps near-zero baselines from failing on noise; the
+relative part lets large values move with them.  ``nees.mean`` has a target, the
+3 degrees of freedom of the pose: a filter may not get *farther* from consistency
+in either direction (over- or under-confident).
+
+A metric the baseline has (e.g. an anchor) but the new run lacks fails; one the
+baseline lacks (``anchor`` of a run without fusion, errors of a log without truth)
+is skipped.  A new run of another scenario, seed, length, backend or fusion
+setting than its baseline fails with a message saying so.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Literal
+
+from mapfuse_core.measlog import MeasurementLog
+
+__all__ = [
+    "BASELINE_FORMAT",
+    "BASELINE_VERSION",
+    "DEFAULT_METRICS",
+    "METRICS",
+    "BaselineError",
+    "BaselineReport",
+    "MetricCheck",
+    "MetricSpec",
+    "Tolerance",
+    "check_baseline",
+    "check_log_against_baseline",
+    "load_baseline",
+    "record_baseline",
+    "record_baselines",
+    "save_baseline",
+]
+
+BASELINE_FORMAT = "mapfuse.baseline"
+BASELINE_VERSION = 1
+
+Better = Literal["lower", "higher", "target"]
+
+# What identifies a run: a baseline only applies to a run with the same values.
+_KEY_FIELDS = ("scenario", "seed", "steps", "backend", "fusion", "association", "estimate")
+# Fields that select the entry of a multi-run baseline file.
+_SELECT_FIELDS = ("backend", "fusion", "association", "estimate")
+
+
+class BaselineError(ValueError):
+    """A baseline file or object is malformed, or a requested metric is unknown."""
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How much worse than its baseline a metric may get: ``rel × |baseline| + abs``."""
+
+    rel: float = 0.10
+    """Relative part, a fraction of the baseline value (0.10 = 10 %)."""
+    abs: float = 0.0
+    """Absolute part, in the metric's unit."""
+
+    def __post_init__(self) -> None:
+        for name in ("rel", "abs"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"Tolerance.{name} must be finite and >= 0, got {v}")
+
+    def describe(self, better: Better, unit: str, target: float | None = None) -> str:
+        """The rule in words, e.g. ``"≤ baseline × (1 + 10 %) + 0.01 m"``."""
+        u = f" {unit}" if unit else ""
+        if better == "lower":
+            return f"≤ baseline × (1 + {100 * self.rel:g} %) + {self.abs:g}{u}"
+        if better == "higher":
+            return f"≥ baseline × (1 − {100 * self.rel:g} %) − {self.abs:g}{u}"
+        return (
+            f"|value − {target:g}| ≤ |baseline − {target:g}| × (1 + {100 * self.rel:g} %)"
+            f" + {self.abs:g}{u}"
+        )
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """A checkable metric: which way is better, its unit and its default tolerance."""
+
+    better: Better
+    """``"lower"`` (errors, time), ``"higher"`` (fractions) or ``"target"`` (closer is better)."""
+    unit: str
+    """Unit for messages (``""`` when dimensionless)."""
+    tolerance: Tolerance
+    """Default tolerance."""
+    target: float | None = None
+    """The ideal value when :attr:`better` is ``"target"``."""
+
+
+#: Every metric :func:`check_baseline` knows, by dotted path into ``metrics.json``.
+METRICS: Mapping[str, MetricSpec] = {
+    "position_error_m.rmse": MetricSpec("lower", "m", Tolerance(0.10, 0.01)),
+    "position_error_m.mean": MetricSpec("lower", "m", Tolerance(0.10, 0.01)),
+    "position_error_m.median": MetricSpec("lower", "m", Tolerance(0.10, 0.01)),
+    "position_error_m.max": MetricSpec("lower", "m", Tolerance(0.10, 0.02)),
+    "position_error_m.final": MetricSpec("lower", "m", Tolerance(0.25, 0.02)),
+    "heading_error_rad.rmse": MetricSpec("lower", "rad", Tolerance(0.10, 0.001)),
+    "heading_error_rad.max": MetricSpec("lower", "rad", Tolerance(0.10, 0.002)),
+    "nees.fraction_within_chi2_95": MetricSpec("higher", "", Tolerance(0.0, 0.05)),
+    "nees.mean": MetricSpec("target", "", Tolerance(0.25, 0.5), target=3.0),
+    "anchor.position_error_m": MetricSpec("lower", "m", Tolerance(0.10, 0.01)),
+    "anchor.heading_error_rad": MetricSpec("lower", "rad", Tolerance(0.10, 0.001)),
+    "anchor.correct_pairings": MetricSpec("higher", "", Tolerance(0.25, 0.0)),
+    "map.matched_known": MetricSpec("higher", "", Tolerance(0.10, 1.0)),
+    "position_error_filtered_m.rmse": MetricSpec("lower", "m", Tolerance(0.10, 0.01)),
+    "position_error_filtered_m.max": MetricSpec("lower", "m", Tolerance(0.10, 0.02)),
+    "nees_filtered.fraction_within_chi2_95": MetricSpec("higher", "", Tolerance(0.0, 0.05)),
+    "nees_filtered.mean": MetricSpec("target", "", Tolerance(0.25, 0.5), target=3.0),
+    "runtime_s.total": MetricSpec("lower", "s", Tolerance(1.0, 1.0)),
+    "runtime_s.per_step_p50": MetricSpec("lower", "s", Tolerance(1.0, 0.005)),
+    "runtime_s.per_step_p99": MetricSpec("lower", "s", Tolerance(1.0, 0.02)),
+}
+
+#: Metrics checked when none are named: accuracy, consistency and the anchor.
+DEFAULT_METRICS: tuple[str, ...] = (
+    "position_error_m.rmse",
+    "position_error_m.max",
+    "heading_error_rad.rmse",
+    "nees.fraction_within_chi2_95",
+    "nees.mean",
+    "anchor.position_error_m",
+    "anchor.heading_error_rad",
+)
+
+
+@dataclass(frozen=True)
+class MetricCheck:
+    """The outcome of one metric against its baseline."""
+
+    metric: str
+    """Dotted path of the metric in ``metrics.json``."""
+    status: Literal["pass", "fail", "skipped"]
+    """``"skipped"`` when the baseline has no value for it."""
+    baseline: float | None
+    """Baseline value (``None`` if absent)."""
+    value: float | None
+    """New value (``None`` if absent)."""
+    limit: float | None
+    """Worst acceptable value (``target`` metrics: the worst distance from the target)."""
+    tolerance: Tolerance
+    """Tolerance applied."""
+    spec: MetricSpec
+    """Direction and unit of the metric."""
+    message: str
+    """One line: metric, baseline value, new value and the rule."""
+
+    @property
+    def passed(self) -> bool:
+        """True unless the check failed (skipped checks pass)."""
+        return self.status != "fail"
+
+
+@dataclass(frozen=True)
+class BaselineReport:
+    """All checks of one run against its baseline entry."""
+
+    run: str
+    """What was checked, e.g. ``"ekf with fusion on loop600 seed 0 (2400 steps)"``."""
+    checks: tuple[MetricCheck, ...]
+    """One per metric checked."""
+    problems: tuple[str, ...] = field(default=())
+    """Failures not tied to a metric: a run of another scenario, seed, backend, … than
+    the baseline, or no matching baseline entry."""
+
+    @property
+    def passed(self) -> bool:
+        """True when no check failed and there is no problem."""
+        return not self.problems and all(c.passed for c in self.checks)
+
+    @property
+    def failures(self) -> tuple[MetricCheck, ...]:
+        """The failed checks."""
+        return tuple(c for c in self.checks if not c.passed)
+
+    def failure_message(self) -> str:
+        """Problems and failed checks, one per line (empty when passed)."""
+        return "\n".join([*self.problems, *(c.message for c in self.failures)])
+
+    def summary(self) -> str:
+        """Every check, one per line, under a PASS/FAIL header."""
+        head = f"{'PASS' if self.passed else 'FAIL'}: {self.run}"
+        body = [f"  problem: {p}" for p in self.problems]
+        body += [f"  {c.status:7s} {c.message}" for c in self.checks]
+        return "\n".join([head, *body])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "run": self.run,
+            "passed": self.passed,
+            "problems": list(self.problems),
+            "checks": [
+                {
+                    "metric": c.metric,
+                    "status": c.status,
+                    "baseline": c.baseline,
+                    "value": c.value,
+                    "limit": c.limit,
+                    "better": c.spec.better,
+                    "tolerance": {"rel": c.tolerance.rel, "abs": c.tolerance.abs},
+                    "message": c.message,
+                }
+                for c in self.checks
+            ],
+        }
+
+
+# --------------------------------------------------------------------------- recording
+
+
+def _version() -> str:
+    try:
+        return metadata.version("mapfuse")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _entry(metrics: Mapping[str, Any], note: str) -> dict[str, Any]:
+    missing = [k for k in ("scenario", "seed", "steps", "backend", "fusion") if k not in metrics]
+    if missing:
+        raise BaselineError(f"not a metrics.json object: missing {', '.join(missing)}")
+    # Round-trip through JSON: a plain, detached copy (no numpy scalars, no aliasing).
+    plain = json.loads(json.dumps(dict(metrics)))
+    return {"metrics": plain, "note": note, "mapfuse_version": _version()}
+
+
+def record_baseline(
+    source: MeasurementLog | Mapping[str, Any],
+    backend: str | None = None,
+    fusion: bool = True,
+    association: str = "ekf",
+    note: str = "",
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Any]:
+    """A baseline entry from a ``metrics.json`` object, or by running ``backend`` on a log.
+
+    With a log, ``backend`` is required and the run is
+    ``run_backend(log, backend, fusion, association)``, reporting
+    ``progress(label, k, n)``.  With metrics, ``backend`` (if given) must match them and
+    ``fusion``/``association`` are ignored.
+    """
+    if isinstance(source, MeasurementLog):
+        if backend is None:
+            raise ValueError("record_baseline on a log needs a backend ('ekf', 'batch', 'isam2')")
+        from mapfuse_graph.runner import run_backend
+
+        label = f"{backend} {'with' if fusion else 'without'} fusion"
+        report = None if progress is None else functools.partial(progress, label)
+        run = run_backend(source, backend, fusion=fusion, association=association, progress=report)
+        return _entry(run.metrics, note)
+    if backend is not None and source.get("backend") != backend:
+        raise ValueError(f"metrics are of backend {source.get('backend')!r}, not {backend!r}")
+    return _entry(source, note)
+
+
+def record_baselines(
+    log: MeasurementLog,
+    backends: Sequence[str] = ("ekf", "batch", "isam2"),
+    fusions: Sequence[bool] = (True, False),
+    note: str = "",
+    progress: Callable[[str, int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Entries for ``backends`` × ``fusions`` on ``log`` (one EKF run per fusion setting).
+
+    ``progress(label, k, n)`` as in :func:`mapfuse_graph.compare.compare`.
+    """
+    from mapfuse_graph.compare import compare
+
+    comparison = compare(log, progress=progress, backends=backends, fusions=fusions)
+    return [_entry(m, note) for m in comparison.metrics]
+
+
+def save_baseline(
+    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]], path: str | Path
+) -> Path:
+    """Write one entry or a list of entries to ``path`` as a baseline file."""
+    entries = _entries_of(baseline)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": BASELINE_FORMAT, "version": BASELINE_VERSION, "entries": entries}
+    path.write_text(json.dumps(doc, indent=2, sort_keys=False) + "\n")
+    return path
+
+
+def load_baseline(path: str | Path) -> list[dict[str, Any]]:
+    """The entries of a baseline file; :class:`BaselineError` naming the file otherwise."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise BaselineError(f"{path}: no such baseline file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BaselineError(f"{path}: not a readable JSON baseline ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != BASELINE_FORMAT:
+        raise BaselineError(f"{path}: not a mapfuse baseline file (format {BASELINE_FORMAT!r})")
+    if doc.get("version") != BASELINE_VERSION:
+        raise BaselineError(
+            f"{path}: baseline format version {doc.get('version')}, this mapfuse reads "
+            f"version {BASELINE_VERSION}; record the baseline again"
+        )
+    try:
+        return _entries_of(doc.get("entries"))
+    except BaselineError as exc:
+        raise BaselineError(f"{path}: {exc}") from None
+
+
+def _entries_of(baseline: object) -> list[dict[str, Any]]:
+    """Normalise one entry / a list of entries, validating each."""
+    items = [baseline] if isinstance(baseline, Mapping) else baseline
+    if not isinstance(items, Sequence) or isinstance(items, str) or not items:
+        raise BaselineError("a baseline must be an entry or a non-empty list of entries")
+    out = []
+    for i, e in enumerate(items):
+        if not isinstance(e, Mapping) or not isinstance(e.get("metrics"), Mapping):
+            raise BaselineError(f"entry {i} has no 'metrics' object")
+        missing = [
+            k for k in ("scenario", "seed", "steps", "backend", "fusion") if k not in e["metrics"]
+        ]
+        if missing:
+            raise BaselineError(f"entry {i}: metrics lack {', '.join(missing)}")
+        out.append(dict(e))
+    return out
+
+
+# --------------------------------------------------------------------------- checking
+
+
+def _get(metrics: Mapping[str, Any], path: str) -> float | None:
+    """Value at a dotted path; ``None`` if any part is absent, ``None`` or not finite."""
+    node: Any = metrics
+    for part in path.split("."):
+        if not isinstance(node, Mapping) or node.get(part) is None:
+            return None
+        node = node[part]
+    if isinstance(node, bool) or not isinstance(node, int | float):
+        return None
+    x = float(node)
+    return x if math.isfinite(x) else None
+
+
+def _describe_run(m: Mapping[str, Any]) -> str:
+    est = f", {m['estimate']} estimate" if m.get("estimate") else ""
+    return (
+        f"{m.get('backend')} {'with' if m.get('fusion') else 'without'} fusion{est} on "
+        f"{m.get('scenario')} seed {m.get('seed')} ({m.get('steps')} steps)"
+    )
+
+
+def _fmt(v: float | None, unit: str) -> str:
+    if v is None:
+        return "missing"
+    return f"{v:.6g}{' ' + unit if unit else ''}"
+
+
+def _check_one(
+    metric: str, spec: MetricSpec, tol: Tolerance, base: float | None, new: float | None
+) -> MetricCheck:
+    rule = tol.describe(spec.better, spec.unit, spec.target)
+    u = spec.unit
+
+    def out(
+        status: Literal["pass", "fail", "skipped"], limit: float | None, msg: str
+    ) -> MetricCheck:
+        return MetricCheck(metric, status, base, new, limit, tol, spec, msg)
+
+    if base is None:
+        return out("skipped", None, f"{metric}: not in the baseline (new value {_fmt(new, u)})")
+    if spec.better == "lower":
+        limit = base * (1.0 + tol.rel) + tol.abs
+        ok = new is not None and new <= limit
+        verdict = "within tolerance of" if ok else "worse than"
+        msg = (
+            f"{metric} = {_fmt(new, u)} is {verdict} the baseline {_fmt(base, u)} "
+            f"(lower is better; tolerance {rule} = {_fmt(limit, u)})"
+        )
+    elif spec.better == "higher":
+        limit = base * (1.0 - tol.rel) - tol.abs
+        ok = new is not None and new >= limit
+        verdict = "within tolerance of" if ok else "worse than"
+        msg = (
+            f"{metric} = {_fmt(new, u)} is {verdict} the baseline {_fmt(base, u)} "
+            f"(higher is better; tolerance {rule} = {_fmt(limit, u)})"
+        )
+    else:
+        target = 0.0 if spec.target is None else spec.target
+        limit = abs(base - target) * (1.0 + tol.rel) + tol.abs
+        ok = new is not None and abs(new - target) <= limit
+        verdict = "within tolerance of" if ok else "farther from the target than"
+        msg = (
+            f"{metric} = {_fmt(new, u)} is {verdict} the baseline {_fmt(base, u)} "
+            f"(target {target:g}; tolerance {rule} = {_fmt(limit, u)})"
+        )
+    if new is None:
+        msg = f"{metric} is missing from the new run; the baseline has {_fmt(base, u)} ({rule})"
+    return out("pass" if ok else "fail", limit, msg)
+
+
+def _select(
+    metrics: Mapping[str, Any], entries: list[dict[str, Any]]
+) -> tuple[dict[str, Any] | None, str]:
+    if len(entries) == 1:
+        return entries[0], ""
+    same = [
+        e
+        for e in entries
+        if all(
+            e["metrics"].get(k) == metrics.get(k)
+            for k in _SELECT_FIELDS
+            if k in e["metrics"] or k in metrics
+        )
+    ]
+    if len(same) == 1:
+        return same[0], ""
+    have = "; ".join(_describe_run(e["metrics"]) for e in entries)
+    if not same:
+        return None, f"no baseline entry for {_describe_run(metrics)} (the baseline has: {have})"
+    return None, f"{len(same)} baseline entries match {_describe_run(metrics)}: ambiguous"
+
+
+def _tolerance_for(
+    metric: str, spec: MetricSpec, tolerances: Tolerance | Mapping[str, Tolerance] | None
+) -> Tolerance:
+    if tolerances is None:
+        return spec.tolerance
+    if isinstance(tolerances, Tolerance):
+        return tolerances
+    return tolerances.get(metric, spec.tolerance)
+
+
+def check_baseline(
+    metrics: Mapping[str, Any],
+    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]] | str | Path,
+    tolerances: Tolerance | Mapping[str, Tolerance] | None = None,
+    which: Sequence[str] | None = None,
+) -> BaselineReport:
+    """Check a ``metrics.json`` object against its baseline entry.
+
+    ``baseline``: an entry (:func:`record_baseline`), a list of entries, or a baseline
+    file path; from several entries the one of the same backend, fusion, association
+    and estimate is used.  ``which``: metrics to check (default
+    :data:`DEFAULT_METRICS`; any key of :data:`METRICS`).  ``tolerances``: one
+    :class:`Tolerance` for all of them, or per metric (the others keep their default).
+    Raises :class:`BaselineError` for an unknown metric or a malformed baseline.
+    """
+    names = tuple(DEFAULT_METRICS if which is None else which)
+    unknown = [n for n in names if n not in METRICS]
+    if unknown:
+        raise BaselineError(
+            f"unknown metric(s) {', '.join(unknown)}; known: {', '.join(sorted(METRICS))}"
+        )
+    if isinstance(tolerances, Mapping):
+        extra = [n for n in tolerances if n not in METRICS]
+        if extra:
+            raise BaselineError(f"tolerance for unknown metric(s) {', '.join(extra)}")
+    entries = load_baseline(baseline) if isinstance(baseline, str | Path) else _entries_of(baseline)
+    run = _describe_run(metrics)
+    entry, problem = _select(metrics, entries)
+    if entry is None:
+        return BaselineReport(run=run, checks=(), problems=(problem,))
+    base = entry["metrics"]
+    problems = []
+    for k in _KEY_FIELDS:
+        if k in base and base.get(k) != metrics.get(k):
+            problems.append(
+                f"{k}: the baseline is of {k} {base.get(k)!r}, the new run of {metrics.get(k)!r}"
+            )
+    checks = tuple(
+        _check_one(
+            n,
+            METRICS[n],
+            _tolerance_for(n, METRICS[n], tolerances),
+            _get(base, n),
+            _get(metrics, n),
+        )
+        for n in names
+    )
+    return BaselineReport(run=run, checks=checks, problems=tuple(problems))
+
+
+def check_log_against_baseline(
+    log: MeasurementLog,
+    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]] | str | Path,
+    tolerances: Tolerance | Mapping[str, Tolerance] | None = None,
+    which: Sequence[str] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> list[BaselineReport]:
+    """Re-run every entry's backend/fusion/association on ``log`` and check each.
+
+    The EKF runs once per fusion setting; graph entries with ``association="ekf"``
+    reuse it.  ``progress(label, k, n)`` as in :func:`mapfuse_graph.compare.compare`.
+    """
+    from ekf_reference.result import EKFResult
+    from mapfuse_graph.runner import run_backend
+
+    entries = load_baseline(baseline) if isinstance(baseline, str | Path) else _entries_of(baseline)
+    ekf: dict[bool, EKFResult] = {}
+    reports = []
+    for e in entries:
+        m = e["metrics"]
+        backend, fusion = str(m["backend"]), bool(m["fusion"])
+        association = str(m.get("association", "ekf"))
+        label = f"{backend} {'with' if fusion else 'without'} fusion"
+        report = None if progress is None else functools.partial(progress, label)
+        run = run_backend(
+            log,
+            backend,
+            fusion=fusion,
+            association=association,
+            ekf_result=ekf.get(fusion),
+            progress=report,
+        )
+        if run.ekf is not None:
+            ekf.setdefault(fusion, run.ekf)
+        new = run.metrics
+        if m.get("estimate") == "filtered" and run.graph is not None:
+            from mapfuse_graph.solvers import graph_metrics
+
+            new = graph_metrics(run.graph, log, which="filtered")
+        reports.append(check_baseline(new, [e], tolerances, which))
+    return reports

@@ -1,0 +1,223 @@
+"""Backend comparison: every backend × fusion on one log, its report and its figures."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfuse_core.ccda import ccda_match
+from mapfuse_core.features import FeatureKind, express_in
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_graph.compare import FIGURE_FILES, Comparison, compare, write_comparison
+from mapfuse_graph.figures import (
+    ccda_figure,
+    fig6_errors_bounds,
+    fig7_error_fusion,
+    fig10_maps,
+    nees_figure,
+    timing_figure,
+)
+from tests.synthetic import synthetic_log
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def log() -> MeasurementLog:
+    return synthetic_log(150, 0)
+
+
+@pytest.fixture(scope="module")
+def progress_calls() -> list[tuple[str, int, int]]:
+    return []
+
+
+@pytest.fixture(scope="module")
+def comparison(log: MeasurementLog, progress_calls: list[tuple[str, int, int]]) -> Comparison:
+    return compare(log, progress=lambda label, k, n: progress_calls.append((label, k, n)))
+
+
+@pytest.fixture(scope="module")
+def no_truth() -> Comparison:
+    # A real-data-like log: same measurements, no true poses nor world.
+    log = dataclasses.replace(synthetic_log(100, 1), true_poses=None, world=None)
+    return compare(log)
+
+
+def test_every_backend_with_and_without_fusion(comparison: Comparison) -> None:
+    got = [(m["backend"], m["fusion"]) for m in comparison.metrics]
+    assert got == [(b, f) for f in (True, False) for b in ("ekf", "batch", "isam2")]
+    for r in comparison.runs:
+        assert r.poses.shape == (comparison.log.n_steps, 3)
+        assert r.metrics["steps"] == comparison.log.n_steps
+    assert comparison.has_truth
+    assert comparison.run("isam2", False).metrics["backend"] == "isam2"
+    with pytest.raises(KeyError, match="no batch run"):
+        dataclasses.replace(comparison, runs=comparison.runs[:1]).run("batch", True)
+
+
+def test_graph_runs_reuse_the_ekf_decisions_of_their_fusion_setting(
+    comparison: Comparison,
+) -> None:
+    for fusion in (True, False):
+        ekf = comparison.run("ekf", fusion).ekf
+        assert ekf is not None
+        assert ekf.config.fusion is fusion
+        for b in ("batch", "isam2"):
+            run = comparison.run(b, fusion)
+            # The very object: the EKF was not run a second time.
+            assert run.ekf is ekf
+            assert run.metrics["association"] == "ekf"
+
+
+def test_progress_is_labelled_per_run(progress_calls: list[tuple[str, int, int]]) -> None:
+    labels = {label for label, _, _ in progress_calls}
+    assert labels == {
+        f"{b} {w} fusion" for b in ("ekf", "batch", "isam2") for w in ("with", "without")
+    }
+    for label in labels:
+        last = [(k, n) for lab, k, n in progress_calls if lab == label][-1]
+        assert last[0] == last[1], f"{label} did not report completion"
+
+
+def test_subset_of_backends(log: MeasurementLog) -> None:
+    c = compare(log, backends=("isam2",), fusions=(True,))
+    assert [(m["backend"], m["fusion"]) for m in c.metrics] == [("isam2", True)]
+    assert c.runs[0].ekf is not None  # the decisions still came from an EKF run
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"backends": ("ekf", "gtsam")}, "backends must be among"),
+        ({"backends": ()}, "backends must be among"),
+        ({"fusions": (True, True)}, "fusions must be distinct"),
+    ],
+)
+def test_bad_arguments(log: MeasurementLog, kwargs: dict[str, object], match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        compare(log, **kwargs)  # type: ignore[arg-type]
+
+
+def test_write_comparison(comparison: Comparison, tmp_path: Path) -> None:
+    paths = write_comparison(comparison, tmp_path / "out")
+    out = tmp_path / "out"
+    assert json.loads((out / "comparison.json").read_text()) == json.loads(
+        json.dumps(comparison.metrics)
+    )
+    for name in FIGURE_FILES:
+        p = out / name
+        assert p.is_file(), name
+        assert p.read_bytes()[:8] == PNG
+        assert paths[name.removesuffix(".png")] == str(p)
+    report = (out / "report.md").read_text()
+    assert paths["report"] == str(out / "report.md")
+    table = [
+        line
+        for line in report.splitlines()
+        if line.startswith("| ") and not line.startswith("| ---")
+    ]
+    # Header, six runs, two iSAM2 filtered rows, two paper rows.
+    assert len(table) == 1 + 6 + 2 + 2
+    for col in (
+        "position RMSE [m]",
+        "heading RMSE [mrad]",
+        "NEES mean",
+        "anchor error",
+        "run time",
+    ):
+        assert col in table[0]
+    for b in ("ekf", "batch", "isam2"):
+        for w in ("with", "without"):
+            assert any(line.startswith(f"| {b} {w} fusion") for line in table)
+    # The paper's numbers beside ours.
+    assert "*paper: EKF with fusion*" in report
+    assert "< 0.15" in report
+    assert "≈ 0.50" in report
+    assert "0.038" in report
+    assert "3.8 cm" in report
+    assert "synthetic-ring" in report
+    assert "only a scale reference" in report  # not loop600
+    assert "no ground truth" not in report
+    ekf = comparison.run("ekf", True).metrics
+    assert f"{ekf['position_error_m']['rmse']:.3f}" in table[1]
+
+
+def test_log_without_truth_is_stated(no_truth: Comparison, tmp_path: Path) -> None:
+    assert not no_truth.has_truth
+    paths = write_comparison(no_truth, tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "**This log has no ground truth**" in report
+    assert "no truth" in report
+    assert set(paths) == {"comparison", "report", "fig10_maps", "timing"}
+    assert not (tmp_path / "fig6_errors_bounds.png").exists()
+    for m in json.loads((tmp_path / "comparison.json").read_text()):
+        assert m["position_error_m"] is None
+    with pytest.raises(ValueError, match="no true poses"):
+        fig6_errors_bounds(no_truth.run("ekf", True))
+
+
+def _check_axes(fig: object, n_axes: int) -> None:
+    axes = fig.axes  # type: ignore[attr-defined]
+    assert len(axes) == n_axes
+    for ax in axes:
+        assert "[" in ax.get_xlabel(), ax.get_xlabel()  # a unit
+        assert "[" in ax.get_ylabel(), ax.get_ylabel()
+        assert ax.get_legend() is not None or ax.get_title()
+
+
+def test_figures_have_labelled_axes_and_titles(comparison: Comparison) -> None:
+    runs = comparison.runs
+    fig = fig6_errors_bounds(comparison.run("ekf", True))
+    assert fig.get_suptitle().startswith("Fig. 6")
+    assert [ax.get_ylabel() for ax in fig.axes] == ["x error [m]", "y error [m]", "θ error [rad]"]
+    assert fig.axes[0].get_legend() is not None
+    fig = fig7_error_fusion(runs)
+    _check_axes(fig, 1)
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert "ekf with fusion" in labels
+    assert "isam2 without fusion" in labels
+    assert any("paper" in lab for lab in labels)
+    assert fig.axes[0].get_title().startswith("Fig. 7")
+    fig = nees_figure(runs)
+    _check_axes(fig, 2)
+    assert fig.axes[0].get_yscale() == "log"
+    assert any("χ²" in lab for lab in fig.axes[0].get_legend_handles_labels()[1])
+    assert any("filtered" in lab for lab in fig.axes[0].get_legend_handles_labels()[1])
+    fig = timing_figure(runs)
+    _check_axes(fig, 2)
+    assert fig.axes[1].get_yscale() == "log"
+    assert "per step [ms]" in fig.axes[0].get_ylabel()
+
+
+def test_fig10_is_in_the_known_map_frame(comparison: Comparison) -> None:
+    fused, plain = comparison.run("ekf", True), comparison.run("batch", False)
+    fig = fig10_maps([fused, plain])
+    _check_axes(fig, 2)
+    assert "estimated anchor" in fig.axes[0].get_title()
+    assert "true start pose" in fig.axes[1].get_title()
+    assert "Wknown" in fig.axes[0].get_xlabel()
+    # The estimated trajectory, drawn through the anchor, lies on the true one (W = Wknown).
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    est = np.column_stack(lines["estimated trajectory"].get_data())
+    truth = comparison.log.true_poses
+    assert truth is not None
+    assert np.max(np.hypot(*(est - truth[:, :2]).T)) < 0.5
+
+
+def test_ccda_figure(log: MeasurementLog) -> None:
+    known = log.known_map
+    T = np.array([5.0, -3.0, 0.4])  # x^B_A: the SLAM frame A seen from the known map B
+    pairs = zip(known.kinds, known.params, strict=True)
+    params = np.array([express_in(FeatureKind(int(k)), T, p)[0] for k, p in pairs])
+    map_a = KnownMapArrays(known.ids, known.kinds, params, known.covs + 1e-4 * np.eye(3))
+    res = ccda_match(map_a, known)
+    assert res.accepted
+    fig = ccda_figure(map_a, known, res, x_B_A_true=T)
+    _check_axes(fig, 2)
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert any(lab.startswith("pairings") for lab in labels)
