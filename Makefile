@@ -25,8 +25,8 @@ $(VENV)/.installed: pyproject.toml
 venv: $(VENV)/.installed
 
 demo: venv
-	$(VENV)/bin/mapfuse simulate loop600 --seed 0 --out $(OUT)
-	@echo "Demo output: $(OUT)/log.npz and $(OUT)/world.png"
+	$(VENV)/bin/mapfuse compare loop600 --seed 0 --out $(OUT)
+	@echo "Demo done: open $(OUT)/report.md and the figures beside it."
 
 lint: venv
 	$(VENV)/bin/ruff check .

@@ -92,6 +92,62 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+class _LabelledProgress:
+    """Adapts ``progress(label, k, n)`` callbacks to one :class:`_Progress` per label."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self._bars: dict[str, _Progress] = {}
+
+    def __call__(self, label: str, k: int, n: int) -> None:
+        bar = self._bars.setdefault(label, _Progress(label, self.enabled))
+        bar(k, n)
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from mapfuse_graph.compare import compare, write_comparison
+    from mapfuse_graph.runner import prepare_log
+
+    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    comparison = compare(log, progress=_LabelledProgress(not args.quiet))
+    scenario = None if args.scenario.endswith(".npz") else load_scenario(args.scenario)
+    paths = write_comparison(comparison, args.out, scenario=scenario)
+    print(json.dumps({"outputs": paths}, indent=2))
+    print(f"Report: {paths['report']}")
+    return 0
+
+
+def _cmd_baseline_record(args: argparse.Namespace) -> int:
+    from mapfuse_graph.baseline import record_baseline, save_baseline
+    from mapfuse_graph.runner import prepare_log
+
+    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    entries = [
+        record_baseline(log, args.backend, fusion=f, note=args.note)
+        for f in ((True, False) if args.fusion is None else (args.fusion,))
+    ]
+    save_baseline(entries, args.out)
+    print(json.dumps({"baseline": str(args.out), "entries": len(entries)}))
+    return 0
+
+
+def _cmd_baseline_check(args: argparse.Namespace) -> int:
+    from mapfuse_graph.baseline import Tolerance, check_log_against_baseline, load_baseline
+    from mapfuse_graph.runner import prepare_log
+
+    entries = load_baseline(args.baseline)
+    m0 = entries[0]["metrics"]
+    source = args.scenario or m0["scenario"]
+    log = prepare_log(source, seed=m0["seed"], progress=_Progress("simulate", not args.quiet))
+    tolerances = None
+    if args.tolerance is not None:
+        tolerances = Tolerance(rel=args.tolerance)
+    reports = check_log_against_baseline(log, entries, tolerances=tolerances)
+    for r in reports:
+        print(r.summary())
+    return 0 if all(r.passed for r in reports) else 1
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="mapfuse",
@@ -149,6 +205,43 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, help="output directory")
     run.add_argument("--quiet", action="store_true", help="no progress output")
     run.set_defaults(func=_cmd_run)
+
+    cmp_ = sub.add_parser(
+        "compare",
+        help="EKF, batch and iSAM2, with and without fusion, on one log",
+        description="Run {ekf, batch, isam2} x {fusion, no fusion} on one measurement log and "
+        "write OUT/comparison.json, OUT/report.md and the paper's figures.",
+    )
+    cmp_.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    cmp_.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    cmp_.add_argument("--out", required=True, help="output directory")
+    cmp_.add_argument("--quiet", action="store_true", help="no progress bar")
+    cmp_.set_defaults(func=_cmd_compare)
+
+    base = sub.add_parser("baseline", help="record or check regression baselines")
+    bsub = base.add_subparsers(dest="baseline_command", required=True)
+    rec = bsub.add_parser("record", help="record a backend's metrics as a baseline")
+    rec.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    rec.add_argument("--backend", default="ekf", choices=["ekf", "batch", "isam2"])
+    rec.add_argument("--seed", type=int, default=None)
+    fz = rec.add_mutually_exclusive_group()
+    fz.add_argument("--fusion", dest="fusion", action="store_true", default=None)
+    fz.add_argument("--no-fusion", dest="fusion", action="store_false")
+    rec.add_argument("--note", default="", help="free text stored with the baseline")
+    rec.add_argument("--out", required=True, help="baseline JSON file to write")
+    rec.add_argument("--quiet", action="store_true")
+    rec.set_defaults(func=_cmd_baseline_record)
+    chk = bsub.add_parser("check", help="re-run and compare against a stored baseline")
+    chk.add_argument("scenario", nargs="?", default=None, help="default: the baseline's")
+    chk.add_argument("--baseline", required=True, help="baseline JSON file")
+    chk.add_argument(
+        "--tolerance",
+        type=float,
+        default=None,
+        help="relative tolerance for every checked metric (default: per-metric defaults)",
+    )
+    chk.add_argument("--quiet", action="store_true")
+    chk.set_defaults(func=_cmd_baseline_check)
     return p
 
 

@@ -8,11 +8,13 @@ an improvement shows up as XPASS).  Issue 3 stays open until none is left.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ekf_reference import ekf_metrics
+from mapfuse_graph.testing import assert_no_worse_than_baseline
 from tests.loop600 import SEEDS, loop600_ekf, loop600_log
 
 pytestmark = pytest.mark.slow
@@ -87,3 +89,14 @@ def test_without_fusion_the_error_is_larger(seed: int) -> None:
     assert math.isfinite(plain["position_error_m"]["max"])
     assert np.isfinite(plain["nees"]["mean"])
     assert plain["position_error_m"]["rmse"] > fused["position_error_m"]["rmse"]
+
+
+BASELINE = Path(__file__).parent / "baselines" / "loop600_ekf_seed0.json"
+
+
+@pytest.mark.parametrize("fusion", [True, False])
+def test_ekf_no_worse_than_committed_loop600_baseline(fusion: bool) -> None:
+    # The committed baseline is this EKF on seed 0; a regression beyond the default
+    # tolerances (e.g. RMSE × 1.1 + 1 cm) fails with the metric, baseline and value.
+    m = ekf_metrics(loop600_ekf(0, fusion), loop600_log(0))
+    assert_no_worse_than_baseline(m, BASELINE)
