@@ -78,7 +78,12 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from mapfuse_graph.runner import prepare_log, run_backend, write_outputs
 
-    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    log = prepare_log(
+        args.scenario,
+        seed=args.seed,
+        progress=_Progress("simulate", not args.quiet),
+        data_dir=args.data,
+    )
     run = run_backend(
         log,
         args.backend,
@@ -108,9 +113,15 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from mapfuse_graph.compare import compare, write_comparison
     from mapfuse_graph.runner import prepare_log
 
-    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    log = prepare_log(
+        args.scenario,
+        seed=args.seed,
+        progress=_Progress("simulate", not args.quiet),
+        data_dir=args.data,
+    )
     comparison = compare(log, progress=_LabelledProgress(not args.quiet))
-    scenario = None if args.scenario.endswith(".npz") else load_scenario(args.scenario)
+    simulated = not (args.scenario.endswith(".npz") or args.data)
+    scenario = load_scenario(args.scenario) if simulated else None
     paths = write_comparison(comparison, args.out, scenario=scenario)
     print(json.dumps({"outputs": paths}, indent=2))
     print(f"Report: {paths['report']}")
@@ -176,7 +187,9 @@ def _parser() -> argparse.ArgumentParser:
         description="Run BACKEND on SCENARIO (built-in name, TOML path, or a log.npz) and "
         "write OUT/metrics.json, OUT/trajectory.tum and OUT/errors.png.",
     )
-    run.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    run.add_argument(
+        "scenario", help="built-in scenario, .toml path, log .npz, carpark or victoria-park"
+    )
     run.add_argument(
         "--backend", default="ekf", choices=["ekf", "batch", "isam2"], help="estimator"
     )
@@ -202,6 +215,7 @@ def _parser() -> argparse.ArgumentParser:
         "--no-fusion", dest="fusion", action="store_false", help="SLAM without map fusion"
     )
     run.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    run.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
     run.add_argument("--out", required=True, help="output directory")
     run.add_argument("--quiet", action="store_true", help="no progress output")
     run.set_defaults(func=_cmd_run)
@@ -214,6 +228,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     cmp_.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
     cmp_.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    cmp_.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
     cmp_.add_argument("--out", required=True, help="output directory")
     cmp_.add_argument("--quiet", action="store_true", help="no progress bar")
     cmp_.set_defaults(func=_cmd_compare)

@@ -47,12 +47,26 @@ class RunOutput:
     """The full graph result (batch and isam2 backends)."""
 
 
+DATASETS = ("carpark", "victoria-park")
+
+
 def prepare_log(
-    source: str, seed: int | None = None, progress: Callable[[int, int], None] | None = None
+    source: str,
+    seed: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    data_dir: str | None = None,
 ) -> MeasurementLog:
-    """A log from a ``.npz`` file, or by simulating a scenario (built-in name or TOML)."""
+    """A log from a ``.npz`` file, a real dataset (``carpark``, ``victoria-park``, needs
+    ``data_dir``), or by simulating a scenario (built-in name or TOML)."""
     if source.endswith(".npz"):
         return load_log(source)
+    if source in DATASETS:
+        if data_dir is None:
+            raise ValueError(f"dataset {source!r} needs a data directory (--data DIR)")
+        from mapfuse_core.datasets import load_carpark, load_victoria_park
+
+        loader = load_carpark if source == "carpark" else load_victoria_park
+        return loader(data_dir)
     return simulate(load_scenario(source), seed=seed, progress=progress).log
 
 
