@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from ekf_reference.result import EKFResult
-from mapfuse_core.evaluation import anchor_metrics, anchor_truth, build_metrics
+from mapfuse_core.evaluation import anchor_block, build_metrics
 from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["ekf_metrics"]
@@ -13,15 +13,7 @@ __all__ = ["ekf_metrics"]
 
 def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
     """``metrics.json`` of an EKF run on ``log``."""
-    anchor = None
-    if result.anchor is not None:
-        truth = anchor_truth(log.true_poses) if log.true_poses is not None else None
-        anchor = anchor_metrics(
-            result.anchor.x_Wknown_Wglobal,
-            truth,
-            result.anchor.accepted_at_step,
-            result.anchor.pairings,
-        )
+    anchor = anchor_block(result.anchor, log.true_poses)
     return build_metrics(
         scenario=log.scenario,
         seed=log.seed,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.stats import chi2
@@ -20,6 +20,7 @@ from mapfuse_core.se2 import FloatArray, compose, inverse, wrap_angle
 __all__ = [
     "CHI2_3_95",
     "PoseErrors",
+    "anchor_block",
     "anchor_metrics",
     "anchor_truth",
     "build_metrics",
@@ -172,6 +173,25 @@ def anchor_metrics(
         out["position_error_m"] = float(math.hypot(*(estimate[:2] - truth[:2])))
         out["heading_error_rad"] = float(abs(wrap_angle(estimate[2] - truth[2])))
     return out
+
+
+class AnchorLike(Protocol):
+    """What every backend's anchor result offers (EKF and graph alike)."""
+
+    @property
+    def x_Wknown_Wglobal(self) -> FloatArray: ...
+    @property
+    def accepted_at_step(self) -> int: ...
+    @property
+    def pairings(self) -> tuple[tuple[int, int], ...]: ...
+
+
+def anchor_block(anchor: AnchorLike | None, true_poses: FloatArray | None) -> dict[str, Any] | None:
+    """The ``anchor`` block of ``metrics.json`` for any backend's anchor (or ``None``)."""
+    if anchor is None:
+        return None
+    truth = anchor_truth(true_poses) if true_poses is not None else None
+    return anchor_metrics(anchor.x_Wknown_Wglobal, truth, anchor.accepted_at_step, anchor.pairings)
 
 
 def build_metrics(

@@ -33,8 +33,7 @@ import gtsam
 import numpy as np
 
 from mapfuse_core.evaluation import (
-    anchor_metrics,
-    anchor_truth,
+    anchor_block,
     build_metrics,
     pose_metrics,
     truth_in_global,
@@ -780,15 +779,7 @@ def graph_metrics(
         poses, covs = result.poses, result.covs
     else:
         raise ValueError(f"which must be 'smoothed' or 'filtered', got {which!r}")
-    anchor = None
-    if result.anchor is not None:
-        truth = anchor_truth(log.true_poses) if log.true_poses is not None else None
-        anchor = anchor_metrics(
-            result.anchor.x_Wknown_Wglobal,
-            truth,
-            result.anchor.accepted_at_step,
-            result.anchor.pairings,
-        )
+    anchor = anchor_block(result.anchor, log.true_poses)
     n = poses.shape[0]
     true_poses = None if log.true_poses is None else log.true_poses[:n]
     out = build_metrics(
