@@ -16,7 +16,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from mapfuse_core.measlog import save_log
+from mapfuse_core.measlog import MeasurementLog, save_log
 from mapfuse_core.scenario import ScenarioError, list_builtin_scenarios, load_scenario
 from mapfuse_core.simulate import simulate
 
@@ -75,15 +75,22 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    from mapfuse_graph.runner import prepare_log, run_backend, write_outputs
+def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> MeasurementLog:
+    """The measurement log a command works on: a .npz, a dataset or a simulation."""
+    from mapfuse_graph.runner import prepare_log
 
-    log = prepare_log(
-        args.scenario,
-        seed=args.seed,
+    return prepare_log(
+        source,
+        seed=seed,
         progress=_Progress("simulate", not args.quiet),
-        data_dir=args.data,
+        data_dir=getattr(args, "data", None),
     )
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from mapfuse_graph.runner import run_backend, write_outputs
+
+    log = _log_from_args(args, args.scenario, args.seed)
     run = run_backend(
         log,
         args.backend,
@@ -111,14 +118,8 @@ class _LabelledProgress:
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     from mapfuse_graph.compare import compare, write_comparison
-    from mapfuse_graph.runner import prepare_log
 
-    log = prepare_log(
-        args.scenario,
-        seed=args.seed,
-        progress=_Progress("simulate", not args.quiet),
-        data_dir=args.data,
-    )
+    log = _log_from_args(args, args.scenario, args.seed)
     comparison = compare(log, progress=_LabelledProgress(not args.quiet))
     simulated = not (args.scenario.endswith(".npz") or args.data)
     scenario = load_scenario(args.scenario) if simulated else None
@@ -130,9 +131,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse_graph.baseline import record_baseline, save_baseline
-    from mapfuse_graph.runner import prepare_log
 
-    log = prepare_log(args.scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    log = _log_from_args(args, args.scenario, args.seed)
     entries = [
         record_baseline(log, args.backend, fusion=f, note=args.note)
         for f in ((True, False) if args.fusion is None else (args.fusion,))
@@ -144,12 +144,11 @@ def _cmd_baseline_record(args: argparse.Namespace) -> int:
 
 def _cmd_baseline_check(args: argparse.Namespace) -> int:
     from mapfuse_graph.baseline import Tolerance, check_log_against_baseline, load_baseline
-    from mapfuse_graph.runner import prepare_log
 
     entries = load_baseline(args.baseline)
     m0 = entries[0]["metrics"]
     source = args.scenario or m0["scenario"]
-    log = prepare_log(source, seed=m0["seed"], progress=_Progress("simulate", not args.quiet))
+    log = _log_from_args(args, source, m0["seed"])
     tolerances = None
     if args.tolerance is not None:
         tolerances = Tolerance(rel=args.tolerance)

@@ -475,6 +475,39 @@ def observation_factor(
     raise ValueError(f"unknown feature kind {kind!r} (0 = line, 1 = circle)")
 
 
+def _tie_factor(
+    name: str,
+    error: Callable[..., tuple[FloatArray, FloatArray, FloatArray, FloatArray]],
+    keys: list[int],
+    noise: gtsam.noiseModel.Base,
+    dims: tuple[int, int, int],
+) -> gtsam.CustomFactor:
+    """A tie factor over (Pose2 anchor, landmark vector, known vector) keys.
+
+    ``error(A, landmark, known)`` returns the residual and its Jacobians w.r.t. the raw
+    anchor parameters, the landmark and the known feature; the anchor's is converted to
+    GTSAM's body-frame tangent here, once for both feature kinds.
+    """
+
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        k = this.keys()
+        a = values.atPose2(k[0])
+        A = np.array([a.x(), a.y(), a.theta()])
+        r, JA, JL, JK = error(A, values.atVector(k[1]), values.atVector(k[2]))
+        if H is not None:
+            JAb = to_body(JA, A[2])
+            if _Checks.enabled:
+                _check(name, r, (JAb, JL, JK), dims)
+            H[0] = JAb
+            H[1] = JL
+            H[2] = JK
+        return r
+
+    return gtsam.CustomFactor(noise, keys, cb)
+
+
 def line_tie_factor(
     anchor_key: int,
     landmark_key: int,
@@ -493,23 +526,14 @@ def line_tie_factor(
         raise ValueError(f"line tie factor needs a 2-dim noise model, got {noise.dim()}")
     t_k = float(t_known)
 
-    def cb(
-        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
-    ) -> FloatArray:
-        keys = this.keys()
-        a = values.atPose2(keys[0])
-        A = np.array([a.x(), a.y(), a.theta()])
-        r, JA, JL, JK = line_tie_error(A, values.atVector(keys[1]), values.atVector(keys[2]), t_k)
-        if H is not None:
-            JAb = to_body(JA, A[2])
-            if _Checks.enabled:
-                _check("line tie factor", r, (JAb, JL, JK), (3, 2, 2))
-            H[0] = JAb
-            H[1] = JL
-            H[2] = JK
-        return r
+    def error(
+        A: FloatArray, lm: FloatArray, kn: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        return line_tie_error(A, lm, kn, t_k)
 
-    return gtsam.CustomFactor(noise, [anchor_key, landmark_key, known_key], cb)
+    return _tie_factor(
+        "line tie factor", error, [anchor_key, landmark_key, known_key], noise, (3, 2, 2)
+    )
 
 
 def circle_tie_factor(
@@ -518,21 +542,10 @@ def circle_tie_factor(
     """Tie of a circle landmark (``Wglobal``) to a known circle (``Wknown``): 3-dim residual."""
     if noise.dim() != 3:
         raise ValueError(f"circle tie factor needs a 3-dim noise model, got {noise.dim()}")
-
-    def cb(
-        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
-    ) -> FloatArray:
-        keys = this.keys()
-        a = values.atPose2(keys[0])
-        A = np.array([a.x(), a.y(), a.theta()])
-        r, JA, JC, JK = circle_tie_error(A, values.atVector(keys[1]), values.atVector(keys[2]))
-        if H is not None:
-            JAb = to_body(JA, A[2])
-            if _Checks.enabled:
-                _check("circle tie factor", r, (JAb, JC, JK), (3, 3, 3))
-            H[0] = JAb
-            H[1] = JC
-            H[2] = JK
-        return r
-
-    return gtsam.CustomFactor(noise, [anchor_key, landmark_key, known_key], cb)
+    return _tie_factor(
+        "circle tie factor",
+        circle_tie_error,
+        [anchor_key, landmark_key, known_key],
+        noise,
+        (3, 3, 3),
+    )
