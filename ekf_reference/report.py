@@ -26,4 +26,6 @@ def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
         anchor=anchor,
         map_features=len(result.global_map.kinds),
         matched_known=int((result.global_map.known_ids >= 0).sum()),
+        timestamps=log.timestamps,
+        gps=log.gps,
     )

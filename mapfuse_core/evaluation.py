@@ -24,10 +24,13 @@ __all__ = [
     "anchor_metrics",
     "anchor_truth",
     "build_metrics",
+    "gps_position_metrics",
+    "interpolate_positions",
     "nees_series",
     "path_length",
     "pose_errors",
     "pose_metrics",
+    "rigid_alignment",
     "runtime_metrics",
     "summary_stats",
     "truth_in_global",
@@ -124,6 +127,93 @@ def pose_metrics(est: FloatArray, covs: FloatArray, truth: FloatArray) -> dict[s
     }
 
 
+def interpolate_positions(
+    timestamps: FloatArray, poses: FloatArray, query_times: FloatArray
+) -> tuple[FloatArray, np.ndarray]:
+    """Positions of ``poses`` (N, 3) at ``query_times``, linearly interpolated in time.
+
+    Returns the (M, 2) positions and the (M,) mask of the query times inside
+    ``[timestamps[0], timestamps[-1]]``: nothing is extrapolated, so the rows outside the
+    run are NaN.  ``timestamps`` must be non-decreasing.
+    """
+    t = np.asarray(timestamps, dtype=float)
+    q = np.asarray(query_times, dtype=float)
+    if t.ndim != 1 or t.shape[0] != poses.shape[0] or t.shape[0] == 0:
+        raise ValueError(f"need one timestamp per pose, got {t.shape} for poses {poses.shape}")
+    if np.any(np.diff(t) < 0.0):
+        raise ValueError("timestamps must be non-decreasing")
+    inside = (q >= t[0]) & (q <= t[-1]) & np.isfinite(q)
+    out = np.full((q.shape[0], 2), np.nan)
+    out[inside, 0] = np.interp(q[inside], t, poses[:, 0])
+    out[inside, 1] = np.interp(q[inside], t, poses[:, 1])
+    return out, inside
+
+
+def rigid_alignment(src: FloatArray, dst: FloatArray) -> FloatArray:
+    """The pose ``T = (x, y, θ)`` minimising ``Σ‖T ⊕ src_i − dst_i‖²`` over 2-D points.
+
+    Least-squares rotation and translation without scale (the 2-D Kabsch solution,
+    closed form through ``atan2``).  Needs at least two distinct points.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2:
+        raise ValueError(f"need two (M, 2) point sets of one shape, got {src.shape}, {dst.shape}")
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - ms, dst - md
+    if src.shape[0] < 2 or float(np.sum(a * a)) < 1e-12:
+        raise ValueError("alignment needs at least two distinct points")
+    # Cross-covariance terms give the optimal angle directly in 2-D.
+    theta = math.atan2(
+        float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
+        float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])),
+    )
+    c, s = math.cos(theta), math.sin(theta)
+    t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
+    return np.array([t[0], t[1], theta])
+
+
+def gps_position_metrics(
+    timestamps: FloatArray,
+    poses: FloatArray,
+    gps_times: FloatArray,
+    gps_xy: FloatArray,
+    x_ref_Wglobal: FloatArray | None = None,
+) -> dict[str, Any] | None:
+    """Position error against GPS fixes, the ``position_error_m`` block of real data.
+
+    The estimate (poses in ``Wglobal``) is interpolated at the GPS times inside the run,
+    then expressed in the GPS frame: through ``x_ref_Wglobal`` (the anchor
+    ``x^Wknown_Wglobal`` when the known map shares the GPS frame, as the car park's
+    surveyed beacons do) or, when it is ``None``, through the rigid transform that best
+    fits the estimate to GPS (which hides a rigid error of the whole trajectory; the
+    block says which one was used).  ``None`` when fewer than two fixes fall inside the
+    run.
+    """
+    xy, inside = interpolate_positions(timestamps, poses, gps_times)
+    est, ref = xy[inside], np.asarray(gps_xy, dtype=float)[inside]
+    finite = np.all(np.isfinite(ref), axis=1)
+    est, ref = est[finite], ref[finite]
+    if est.shape[0] < 2:
+        return None
+    if x_ref_Wglobal is None:
+        T, alignment = rigid_alignment(est, ref), "best_fit"
+    else:
+        T, alignment = np.asarray(x_ref_Wglobal, dtype=float), "anchor"
+    c, s = math.cos(T[2]), math.sin(T[2])
+    mapped = est @ np.array([[c, s], [-s, c]]) + T[:2]
+    out: dict[str, Any] = summary_stats(np.hypot(*(mapped - ref).T))
+    out.update(
+        {
+            "reference": "gps",
+            "alignment": alignment,
+            "fixes": int(est.shape[0]),
+            "x_gps_Wglobal": [float(v) for v in T],
+        }
+    )
+    return out
+
+
 def runtime_metrics(step_time_s: FloatArray) -> dict[str, float]:
     """The ``runtime_s`` block: total and per-step percentiles."""
     return {
@@ -207,8 +297,15 @@ def build_metrics(
     anchor: dict[str, Any] | None,
     map_features: int,
     matched_known: int,
+    timestamps: FloatArray | None = None,
+    gps: tuple[FloatArray, FloatArray] | None = None,
 ) -> dict[str, Any]:
-    """One ``metrics.json`` object (schema in the README), identical for every backend."""
+    """One ``metrics.json`` object (schema in the README), identical for every backend.
+
+    Without true poses but with ``gps`` (times, East/North) and ``timestamps``, the
+    position errors are against GPS (:func:`gps_position_metrics`, through the anchor
+    when there is one); heading and NEES stay ``None``.
+    """
     out: dict[str, Any] = {
         "scenario": scenario,
         "seed": int(seed),
@@ -220,6 +317,11 @@ def build_metrics(
         out.update(pose_metrics(poses, covs, truth_in_global(true_poses)))
     else:
         out.update({"position_error_m": None, "heading_error_rad": None, "nees": None})
+        if gps is not None and timestamps is not None:
+            ref = None if anchor is None else np.asarray(anchor["estimate"], dtype=float)
+            out["position_error_m"] = gps_position_metrics(
+                timestamps[: poses.shape[0]], poses, gps[0], gps[1], ref
+            )
     out["anchor"] = anchor
     out["map"] = {"features": int(map_features), "matched_known": int(matched_known)}
     out["runtime_s"] = runtime_metrics(step_time_s)

@@ -124,6 +124,13 @@ class MeasurementLog:
         """Total number of extracted features ``M``."""
         return int(self.feat_step.shape[0])
 
+    @property
+    def gps(self) -> tuple[FloatArray, FloatArray] | None:
+        """``(gps_times, gps_xy)`` when the log carries GPS fixes, else ``None``."""
+        if self.gps_times is None or self.gps_xy is None:
+            return None
+        return self.gps_times, self.gps_xy
+
     def feature_slice(self, k: int) -> slice:
         """Index range of the features extracted at step ``k``."""
         if not 0 <= k < self.n_steps:

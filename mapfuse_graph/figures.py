@@ -17,7 +17,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mapfuse_core.evaluation import CHI2_3_95, nees_series, pose_errors, truth_in_global
+from mapfuse_core.evaluation import (
+    CHI2_3_95,
+    interpolate_positions,
+    nees_series,
+    pose_errors,
+    truth_in_global,
+)
 from mapfuse_core.features import FeatureKind, transform_feature
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.plotting import (
@@ -47,6 +53,9 @@ __all__ = [
     "fig6_errors_bounds",
     "fig7_error_fusion",
     "fig10_maps",
+    "gps_error_figure",
+    "gps_errors",
+    "gps_trajectory_figure",
     "map_of",
     "nees_figure",
     "plot_map_arrays",
@@ -240,6 +249,19 @@ def _in_frame(T: FloatArray, kinds: np.ndarray, params: FloatArray) -> FloatArra
     ).reshape(-1, 3)
 
 
+def _display_frame(run: RunOutput) -> tuple[FloatArray, str]:
+    """Where Fig. 10 draws a run: its anchor, else the true start, the GPS fit, or none."""
+    T = anchor_of(run)
+    if T is not None:
+        return T, "through its estimated anchor"
+    if run.log.true_poses is not None:
+        return np.asarray(run.log.true_poses[0], dtype=float), "through the true start pose"
+    gps_fit = _gps_alignment(run)
+    if gps_fit is not None:
+        return gps_fit, "through its best fit to GPS"
+    return np.zeros(3), "in Wglobal (no anchor, no truth)"
+
+
 def fig10_maps(runs: Sequence[RunOutput], world: World | None = None) -> Figure:
     """Estimated map and trajectory of each run over the known map, in ``Wknown``.
 
@@ -258,12 +280,7 @@ def fig10_maps(runs: Sequence[RunOutput], world: World | None = None) -> Figure:
     axes = np.atleast_1d(fig.subplots(1, len(runs)))
     for ax, run in zip(axes, runs, strict=True):
         log = run.log
-        T = anchor_of(run)
-        how = "through its estimated anchor"
-        if T is None and log.true_poses is not None:
-            T, how = np.asarray(log.true_poses[0], dtype=float), "through the true start pose"
-        elif T is None:
-            T, how = np.zeros(3), "in Wglobal (no anchor, no truth)"
+        T, how = _display_frame(run)
         if world is not None:
             plot_world(ax, world, color="0.75", label="true world")
         elif log.world is not None:
@@ -309,6 +326,100 @@ def fig10_maps(runs: Sequence[RunOutput], world: World | None = None) -> Figure:
         _finish(ax, "x in Wknown [m]", "y in Wknown [m]", f"{run_label(run)}: map {how}")
     m = runs[0].metrics
     fig.suptitle(f"Fig. 10: estimated maps over the known map ({m['scenario']}, seed {m['seed']})")
+    return fig
+
+
+# --------------------------------------------------------------------------- real data
+
+
+def _gps_alignment(run: RunOutput) -> FloatArray | None:
+    """``x^gps_Wglobal`` the run's GPS metrics used (anchor or best fit), if any."""
+    block = run.metrics.get("position_error_m")
+    if not isinstance(block, dict) or "x_gps_Wglobal" not in block:
+        return None
+    return np.asarray(block["x_gps_Wglobal"], dtype=float)
+
+
+def gps_errors(run: RunOutput) -> tuple[FloatArray, FloatArray]:
+    """``(times (G,), position error (G,))`` of a run against GPS, as in its metrics.
+
+    The estimate goes into the GPS frame through the transform the metrics used (the
+    anchor with fusion, the best fit without); only fixes inside the run are kept.
+    """
+    T = _gps_alignment(run)
+    gps = run.log.gps
+    if T is None or gps is None:
+        raise ValueError(f"run {run_label(run)!r} has no GPS-based position errors")
+    xy, inside = interpolate_positions(run.timestamps, run.poses, gps[0])
+    c, s = math.cos(T[2]), math.sin(T[2])
+    mapped = xy[inside] @ np.array([[c, s], [-s, c]]) + T[:2]
+    return gps[0][inside], np.hypot(*(mapped - gps[1][inside]).T)
+
+
+def gps_error_figure(runs: Sequence[RunOutput]) -> Figure:
+    """Position error against GPS over time, one curve per run (real data)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 4.5), layout="constrained")
+    ax = fig.subplots()
+    for run in runs:
+        t, e = gps_errors(run)
+        how = run.metrics["position_error_m"]["alignment"].replace("_", " ")
+        ax.plot(
+            t - run.timestamps[0],
+            e,
+            _style(run),
+            color=_colour(run),
+            lw=1.0,
+            label=f"{run_label(run)} ({how}; median {np.median(e):.3f} m)",
+        )
+    m = runs[0].metrics if runs else {"scenario": "?"}
+    _finish(
+        ax,
+        "time since the first scan [s]",
+        "position error against GPS [m]",
+        f"Position error against GPS ({m['scenario']}); GPS itself has errors",
+    )
+    return fig
+
+
+def gps_trajectory_figure(runs: Sequence[RunOutput]) -> Figure:
+    """Estimated trajectories over the GPS track, in the GPS frame (real data)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 8), layout="constrained")
+    ax = fig.subplots()
+    gps = runs[0].log.gps if runs else None
+    if gps is not None:
+        ax.plot(gps[1][:, 0], gps[1][:, 1], ".", ms=2, color="k", label="GPS")
+    for run in runs:
+        T = _gps_alignment(run)
+        if T is None:
+            continue
+        est = np.array([compose(T, p) for p in run.poses])
+        how = run.metrics["position_error_m"]["alignment"].replace("_", " ")
+        ax.plot(
+            est[:, 0],
+            est[:, 1],
+            _style(run),
+            color=_colour(run),
+            lw=1.0,
+            label=f"{run_label(run)} ({how})",
+        )
+    known = runs[0].log.known_map if runs else None
+    if known is not None and len(known) > 0:
+        plot_map_arrays(
+            ax,
+            known.kinds,
+            known.params,
+            known.extents,
+            color="tab:red",
+            lw=1.0,
+            label="known map",
+        )
+    ax.set_aspect("equal", adjustable="datalim")
+    m = runs[0].metrics if runs else {"scenario": "?"}
+    _finish(ax, "East [m]", "North [m]", f"Trajectories over GPS ({m['scenario']})")
     return fig
 
 

@@ -123,7 +123,11 @@ def run_backend(
 
 
 def write_outputs(run: RunOutput, out: str | Path) -> dict[str, str]:
-    """Write ``metrics.json``, ``trajectory.tum``, ``errors.png`` (and EKF associations)."""
+    """Write ``metrics.json``, ``trajectory.tum``, ``errors.png`` (and EKF associations).
+
+    Real data with GPS gets ``gps_errors.png`` and ``gps_trajectory.png`` instead of
+    ``errors.png``, which needs true poses.
+    """
     from mapfuse_core.plotting import errors_figure
 
     out = Path(out)
@@ -141,6 +145,14 @@ def write_outputs(run: RunOutput, out: str | Path) -> dict[str, str]:
         fig = errors_figure(run.timestamps, err.dx, run.covs, title)
         paths["errors"] = out / "errors.png"
         fig.savefig(paths["errors"], dpi=110)
+    elif isinstance(run.metrics.get("position_error_m"), dict):
+        # Real data: no truth for errors.png; the GPS comparison stands in for it.
+        from mapfuse_graph.figures import gps_error_figure, gps_trajectory_figure
+
+        paths["gps_errors"] = out / "gps_errors.png"
+        gps_error_figure([run]).savefig(paths["gps_errors"], dpi=110)
+        paths["gps_trajectory"] = out / "gps_trajectory.png"
+        gps_trajectory_figure([run]).savefig(paths["gps_trajectory"], dpi=110)
     if run.ekf is not None and run.graph is None:
         paths["associations"] = save_associations(run.ekf, out / "associations.npz")
     return {k: str(v) for k, v in paths.items()}

@@ -35,6 +35,7 @@ import numpy as np
 from mapfuse_core.evaluation import (
     anchor_block,
     build_metrics,
+    gps_position_metrics,
     pose_metrics,
     truth_in_global,
 )
@@ -794,6 +795,8 @@ def graph_metrics(
         anchor=anchor,
         map_features=len(result.landmarks.kinds),
         matched_known=int(np.sum(result.landmarks.known_ids >= 0)),
+        timestamps=log.timestamps,
+        gps=log.gps,
     )
     out["association"] = result.association
     out["estimate"] = which
@@ -802,4 +805,9 @@ def graph_metrics(
         filtered = pose_metrics(fp, fc, truth_in_global(true_poses))
         out["nees_filtered"] = filtered["nees"]
         out["position_error_filtered_m"] = filtered["position_error_m"]
+    elif which == "smoothed" and fp is not None and log.gps is not None:
+        ref = None if anchor is None else np.asarray(anchor["estimate"], dtype=float)
+        out["position_error_filtered_m"] = gps_position_metrics(
+            log.timestamps[: fp.shape[0]], fp, *log.gps, ref
+        )
     return out

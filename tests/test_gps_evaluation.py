@@ -1,0 +1,125 @@
+"""Position errors against GPS: interpolation, rigid alignment and the metrics block."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mapfuse_core.evaluation import (
+    build_metrics,
+    gps_position_metrics,
+    interpolate_positions,
+    rigid_alignment,
+)
+from mapfuse_core.se2 import compose, wrap_scalar
+
+
+def _track(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """A curved drive in ``Wglobal``: times and (x, y, θ) poses."""
+    t = np.linspace(0.0, 40.0, n)
+    th = 0.05 * t
+    poses = np.column_stack((10.0 * np.sin(th), 10.0 * (1.0 - np.cos(th)), th))
+    return t, poses
+
+
+@given(
+    x=st.floats(-50, 50),
+    y=st.floats(-50, 50),
+    theta=st.floats(-math.pi, math.pi),
+)
+def test_rigid_alignment_recovers_the_transform(x: float, y: float, theta: float) -> None:
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-20.0, 20.0, (30, 2))
+    c, s = math.cos(theta), math.sin(theta)
+    dst = src @ np.array([[c, s], [-s, c]]) + (x, y)
+    T = rigid_alignment(src, dst)
+    # Exact data: only rounding separates the fit from the transform.
+    assert T[:2] == pytest.approx((x, y), abs=1e-9)
+    assert abs(wrap_scalar(T[2] - theta)) < 1e-12
+
+
+def test_rigid_alignment_rejects_degenerate_input() -> None:
+    with pytest.raises(ValueError, match="two distinct points"):
+        rigid_alignment(np.ones((5, 2)), np.zeros((5, 2)))
+    with pytest.raises(ValueError, match="point sets"):
+        rigid_alignment(np.zeros((5, 2)), np.zeros((4, 2)))
+
+
+def test_interpolation_never_extrapolates() -> None:
+    t, poses = _track()
+    q = np.array([-1.0, 0.0, 20.0, 40.0, 41.0, np.nan])
+    xy, inside = interpolate_positions(t, poses, q)
+    assert inside.tolist() == [False, True, True, True, False, False]
+    assert np.all(np.isnan(xy[~inside]))
+    np.testing.assert_allclose(xy[1], poses[0, :2])
+    np.testing.assert_allclose(xy[3], poses[-1, :2])
+    with pytest.raises(ValueError, match="one timestamp per pose"):
+        interpolate_positions(t[:-1], poses, q)
+    with pytest.raises(ValueError, match="non-decreasing"):
+        interpolate_positions(t[::-1], poses, q)
+
+
+def test_anchor_and_best_fit_alignments() -> None:
+    t, poses = _track()
+    anchor = np.array([5.0, -3.0, 0.7])
+    gps_t = np.linspace(-5.0, 45.0, 101)  # some fixes before and after the run
+    inside = (gps_t >= 0.0) & (gps_t <= 40.0)
+    truth = np.array(
+        [
+            compose(anchor, [np.interp(g, t, poses[:, 0]), np.interp(g, t, poses[:, 1]), 0.0])
+            for g in gps_t
+        ]
+    )[:, :2]
+    exact = gps_position_metrics(t, poses, gps_t, truth, anchor)
+    assert exact is not None
+    assert exact["alignment"] == "anchor"
+    assert exact["fixes"] == int(inside.sum())
+    assert exact["max"] < 1e-9
+    # A wrong anchor shows as error; the best fit absorbs any rigid error by design.
+    wrong = gps_position_metrics(t, poses, gps_t, truth, anchor + np.array([0.3, 0.0, 0.0]))
+    assert wrong is not None
+    assert wrong["median"] == pytest.approx(0.3, abs=1e-9)
+    fit = gps_position_metrics(t, poses, gps_t, truth, None)
+    assert fit is not None
+    assert fit["alignment"] == "best_fit"
+    assert fit["max"] < 1e-9
+    np.testing.assert_allclose(fit["x_gps_Wglobal"], anchor, atol=1e-9)
+    # NaN fixes are skipped, not propagated.
+    holed = truth.copy()
+    holed[50] = np.nan
+    m = gps_position_metrics(t, poses, gps_t, holed, anchor)
+    assert m is not None
+    assert m["fixes"] == exact["fixes"] - 1
+    assert gps_position_metrics(t, poses, gps_t[:1], truth[:1], anchor) is None
+
+
+def test_build_metrics_uses_gps_without_truth() -> None:
+    t, poses = _track()
+    anchor = np.array([1.0, 2.0, 0.3])
+    gps_xy = np.array([compose(anchor, p)[:2] for p in poses]) + 0.1
+    common = {
+        "scenario": "real",
+        "seed": -1,
+        "backend": "ekf",
+        "fusion": True,
+        "poses": poses,
+        "covs": np.tile(np.eye(3), (poses.shape[0], 1, 1)),
+        "true_poses": None,
+        "step_time_s": np.full(poses.shape[0], 1e-3),
+        "map_features": 0,
+        "matched_known": 0,
+    }
+    block = {"estimate": anchor.tolist()}
+    m = build_metrics(**common, anchor=block, timestamps=t, gps=(t, gps_xy))
+    assert m["position_error_m"]["alignment"] == "anchor"
+    assert m["position_error_m"]["median"] == pytest.approx(0.1 * math.sqrt(2.0), rel=1e-9)
+    assert m["heading_error_rad"] is None
+    assert m["nees"] is None
+    m = build_metrics(**common, anchor=None, timestamps=t, gps=(t, gps_xy))
+    assert m["position_error_m"]["alignment"] == "best_fit"
+    assert m["position_error_m"]["max"] < 1e-9
+    assert build_metrics(**common, anchor=None)["position_error_m"] is None
