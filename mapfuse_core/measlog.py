@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import io
 import zipfile
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +130,31 @@ class MeasurementLog:
         if self.gps_times is None or self.gps_xy is None:
             return None
         return self.gps_times, self.gps_xy
+
+    def head(self, n_steps: int) -> MeasurementLog:
+        """The first ``n_steps`` steps of this log (all of it if it is shorter).
+
+        For quick experiments on a long run; GPS fixes are kept whole (the metrics use
+        only those inside the run).
+        """
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+            raise ValueError(f"n_steps must be an int >= 1, got {n_steps!r}")
+        n = min(n_steps, self.n_steps)
+        m = int(self._offsets[n])
+        return replace(
+            self,
+            timestamps=self.timestamps[:n],
+            odometry=self.odometry[:n],
+            odometry_cov=self.odometry_cov[:n],
+            feat_step=self.feat_step[:m],
+            feat_kind=self.feat_kind[:m],
+            feat_params=self.feat_params[:m],
+            feat_cov=self.feat_cov[:m],
+            feat_true_id=self.feat_true_id[:m],
+            feat_n_points=self.feat_n_points[:m],
+            feat_extent=self.feat_extent[:m],
+            true_poses=None if self.true_poses is None else self.true_poses[:n],
+        )
 
     def feature_slice(self, k: int) -> slice:
         """Index range of the features extracted at step ``k``."""

@@ -87,6 +87,24 @@ def test_feature_slice() -> None:
         log.feature_slice(5)
 
 
+def test_head_keeps_the_first_steps_and_their_features() -> None:
+    log = small_log()
+    h = log.head(3)
+    assert h.n_steps == 3
+    # Steps 0 and 2 hold features 0–2; step 3's three features are cut.
+    assert h.n_features == 3
+    np.testing.assert_array_equal(h.feat_step, [0, 0, 2])
+    np.testing.assert_array_equal(h.feat_true_id, log.feat_true_id[:3])
+    assert h.true_poses is not None
+    assert log.true_poses is not None
+    np.testing.assert_array_equal(h.true_poses, log.true_poses[:3])
+    assert h.feature_slice(2) == slice(2, 3)
+    assert log.head(99).n_steps == log.n_steps
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="n_steps"):
+            log.head(bad)  # type: ignore[arg-type]
+
+
 def test_nan_is_rejected_with_its_location() -> None:
     log = small_log()
     params = log.feat_params.copy()
