@@ -21,7 +21,14 @@ from mapfuse_core.se2 import FloatArray
 from mapfuse_core.simulate import simulate
 from mapfuse_graph.solvers import GraphResult, graph_metrics, run_graph
 
-__all__ = ["BACKENDS", "RunOutput", "prepare_log", "run_backend", "write_outputs"]
+__all__ = [
+    "BACKENDS",
+    "RunOutput",
+    "default_ekf_config",
+    "prepare_log",
+    "run_backend",
+    "write_outputs",
+]
 
 BACKENDS = ("ekf", "batch", "isam2")
 ASSOCIATIONS = ("ekf", "truth", "own")
@@ -70,6 +77,22 @@ def prepare_log(
     return simulate(load_scenario(source), seed=seed, progress=progress).log
 
 
+def default_ekf_config(log: MeasurementLog, fusion: bool = True) -> EKFConfig:
+    """The EKF configuration ``mapfuse`` uses for ``log``: the defaults, except on
+    Victoria Park.
+
+    Victoria Park's 7,230 scans hold 53k tree detections, a quarter of which are seen
+    once (trunks far away or behind others), so the global map grows to well over a
+    thousand features and every join costs O(F²).  Local maps of 200 scans (43 s of
+    driving) make 5× fewer joins than the default 40.
+    """
+    from mapfuse_core.datasets import VICTORIA_PARK_NAME
+
+    if log.scenario == VICTORIA_PARK_NAME:
+        return EKFConfig(fusion=fusion, local_map_steps=200)
+    return EKFConfig(fusion=fusion)
+
+
 def run_backend(
     log: MeasurementLog,
     backend: str,
@@ -91,7 +114,7 @@ def run_backend(
             f"unknown association {association!r}; choose one of {', '.join(ASSOCIATIONS)}"
         )
     if backend == "ekf":
-        res = run_ekf(log, EKFConfig(fusion=fusion), progress=progress)
+        res = run_ekf(log, default_ekf_config(log, fusion), progress=progress)
         return RunOutput(
             metrics=ekf_metrics(res, log),
             timestamps=log.timestamps,
@@ -101,7 +124,7 @@ def run_backend(
             ekf=res,
         )
     if association == "ekf" and ekf_result is None:
-        ekf_result = run_ekf(log, EKFConfig(fusion=fusion))
+        ekf_result = run_ekf(log, default_ekf_config(log, fusion))
     g = run_graph(
         log,
         backend=backend,
