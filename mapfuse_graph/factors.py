@@ -1,8 +1,10 @@
 """GTSAM factors of the mapfuse measurement models (method.md §7).
 
-Every residual is computed by :mod:`mapfuse_core.features` (the EKF's own model),
-never re-derived here; this module only chooses the landmark variables, chains the
-Jacobians and converts them to GTSAM's tangent conventions.
+Every residual is defined by :mod:`mapfuse_core.features` (the EKF's own model);
+this module only chooses the landmark variables, chains the Jacobians and converts
+them to GTSAM's tangent conventions.  The one exception is the *callbacks* of the
+observation factors (see "Closed-form callbacks" below): they evaluate the same
+functions in closed form, and the tests hold them equal to the shared model.
 
 Variables
 ---------
@@ -41,6 +43,25 @@ the zero-residual point, ``Jz Σz Jzᵀ`` with ``Jz = ∂pairing(z, f)/∂z`` at
 ``Σz`` in the observed line's own frame, so the along-line pseudo-variance never
 enters.
 
+Closed-form callbacks
+---------------------
+The line and circle observation factors are most of the graph (on loop600 12.7k of
+15.2k factors) and GTSAM calls a Python callback for each of them on every
+linearisation.  Going through :func:`line_observation_error` (``line_from_normal``,
+``observe``, ``to_body``: about 20 small numpy arrays and 6 matrix products per
+call) cost ~64 µs CPU per linearised line factor (circle ~36 µs) against ~14 µs
+for the same numbers computed from the five scalars ``(x, y, θ, ρ, α)``; an empty
+callback costs ~7 µs, a ``BearingRangeFactor2D`` under 1 µs.  That made batch
+Levenberg–Marquardt 8–14× slower than a same-size graph of GTSAM built-in factors
+instead of ≤ 3× (issue 4; ``benchmarks/bench_graph.py``).  So
+:func:`line_factor` and :func:`circle_factor` hand GTSAM the closed forms of
+:func:`line_observation_error` and :func:`circle_observation_error` with the pose
+Jacobian already in the body tangent.  They are not a second model: the tests
+(``test_*_factor_is_the_shared_model``) check on hypothesis-generated inputs,
+θ and α near ±π included, that residuals and Jacobians equal the shared model
+functions chained through :func:`to_body` to ~1e-12; change the model there first,
+then these.
+
 Jacobian shape guard
 --------------------
 A wrongly shaped Jacobian handed to GTSAM segfaults or silently corrupts the
@@ -68,7 +89,7 @@ from mapfuse_core.features import (
     transform_feature,
     transform_line,
 )
-from mapfuse_core.se2 import FloatArray, wrap_scalar
+from mapfuse_core.se2 import FloatArray, wrap_scalar, wrap_scalar_half
 
 __all__ = [
     "JacobianShapeError",
@@ -384,40 +405,105 @@ def custom_factor(
 
 
 def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
+    """Callback of :func:`line_factor`: :func:`line_observation_error` in closed form.
+
+    Exists for speed only (see "Closed-form callbacks" in the module docstring); it
+    must stay equal to ``line_observation_error`` followed by :func:`to_body`.
+
+    With ``n = (cos α, sin α)``, ``p = X ⊕ z_xy``, ``e = ρ − p·n`` (signed distance
+    of ``p`` to the landmark line), ``φ = α − θ`` and ``ψ = φ − z_θ``, the landmark
+    frame at the foot of ``p``, seen from ``X``, is ``z_xy + e (cos φ, sin φ)`` with
+    heading ``α + π/2 − θ``; its SPmap pairing with ``z`` is therefore
+    ``(e sin ψ, α + π/2 − θ − z_θ  mod π)``.  ``t* = p · (−sin α, cos α)`` moves
+    with ``X`` and ``α`` but only along the line, which the lateral residual does
+    not see.  Jacobians, with ``S = sin ψ``, ``C = cos ψ``:
+
+    * body tangent of ``X``: ``[[−S cos φ, −S sin φ, (z_y cos φ − z_x sin φ) S − e C],
+      [0, 0, −1]]``;
+    * ``(ρ, α)``: ``[[S, e C − t* S], [0, 1]]``.
+    """
+    zx, zy, zt = float(z[0]), float(z[1]), float(z[2])
+    czt, szt = math.cos(zt), math.sin(zt)
+    angle_offset = math.pi / 2.0 - zt
+    # GTSAM copies H[i] on assignment, so one pair of Jacobian buffers per factor can
+    # be refilled on every call: ~1.5 µs (10 %) less than building two new arrays.
+    # The constant second rows are written once here.
+    Jx = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    Jl = np.array([[0.0, 0.0], [0.0, 1.0]])
+
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
     ) -> FloatArray:
         keys = this.keys()
         p = values.atPose2(keys[0])
-        x = np.array([p.x(), p.y(), p.theta()])
+        x, y, th = p.x(), p.y(), p.theta()
+        # Python floats: scalar arithmetic on numpy scalars is several times slower.
+        rho, alpha = values.atVector(keys[1]).tolist()
+        c, s = math.cos(th), math.sin(th)
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        px = x + c * zx - s * zy
+        py = y + s * zx + c * zy
+        e = rho - px * ca - py * sa
+        cphi = ca * c + sa * s
+        sphi = sa * c - ca * s
+        S = sphi * czt - cphi * szt
+        r = np.array([e * S, wrap_scalar_half(alpha - th + angle_offset)])
         if H is None:
-            return line_observation_residual(z, x, values.atVector(keys[1]))
-        r, Jx, Jl = line_observation_error(z, x, values.atVector(keys[1]))
-        if H is not None:
-            Jb = to_body(Jx, x[2])
-            if _Checks.enabled:
-                _check("line factor", r, (Jb, Jl), (3, 2))
-            H[0] = Jb
-            H[1] = Jl
+            return r
+        C = cphi * czt + sphi * szt
+        t = py * ca - px * sa
+        Jx[0, 0] = -S * cphi
+        Jx[0, 1] = -S * sphi
+        Jx[0, 2] = (zy * cphi - zx * sphi) * S - e * C
+        Jl[0, 0] = S
+        Jl[0, 1] = e * C - t * S
+        if _Checks.enabled:
+            _check("line factor", r, (Jx, Jl), (3, 2))
+        H[0] = Jx
+        H[1] = Jl
         return r
 
     return cb
 
 
 def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
+    """Callback of :func:`circle_factor`: :func:`circle_observation_error` in closed form.
+
+    Exists for speed only, like :func:`_line_cb`.  The centre seen from ``X`` is
+    ``l = R(θ)ᵀ (c − X_xy)``; the residual ``(l − z_xy, r − z_r)`` has the pose
+    Jacobian ``[[−c, −s, l_y], [s, −c, −l_x], 0]`` in raw parameters, which
+    :func:`to_body` turns into ``[[−1, 0, l_y], [0, −1, −l_x], 0]``, and the circle
+    Jacobian ``blockdiag(R(θ)ᵀ, 1)``.
+    """
+    zx, zy, zr = float(z[0]), float(z[1]), float(z[2])
+    # Refilled on every call, as in _line_cb.
+    Jx = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 0.0]])
+    Jc = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
     ) -> FloatArray:
         keys = this.keys()
         p = values.atPose2(keys[0])
-        x = np.array([p.x(), p.y(), p.theta()])
-        r, Jx, Jc = observe(FeatureKind.CIRCLE, z, x, values.atVector(keys[1]))
-        if H is not None:
-            Jb = to_body(Jx, x[2])
-            if _Checks.enabled:
-                _check("circle factor", r, (Jb, Jc), (3, 3))
-            H[0] = Jb
-            H[1] = Jc
+        x, y, th = p.x(), p.y(), p.theta()
+        cx, cy, cr = values.atVector(keys[1]).tolist()
+        c, s = math.cos(th), math.sin(th)
+        dx, dy = cx - x, cy - y
+        lx = c * dx + s * dy
+        ly = -s * dx + c * dy
+        r = np.array([lx - zx, ly - zy, cr - zr])
+        if H is None:
+            return r
+        Jx[0, 2] = ly
+        Jx[1, 2] = -lx
+        Jc[0, 0] = c
+        Jc[0, 1] = s
+        Jc[1, 0] = -s
+        Jc[1, 1] = c
+        if _Checks.enabled:
+            _check("circle factor", r, (Jx, Jc), (3, 3))
+        H[0] = Jx
+        H[1] = Jc
         return r
 
     return cb

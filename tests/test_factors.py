@@ -19,7 +19,7 @@ from mapfuse_core.features import (
     pairing_residual,
     transform_feature,
 )
-from mapfuse_core.se2 import compose, inverse, wrap_angle
+from mapfuse_core.se2 import compose, inverse, wrap_angle, wrap_angle_half
 from mapfuse_graph import factors as fx
 from tests.jacobians import angle, circles, coord, numerical_jacobian, poses
 
@@ -176,6 +176,93 @@ def test_line_factor_jacobians(z: np.ndarray, x: np.ndarray, ra: np.ndarray) -> 
     v.insert(L, ra)
     scale = float(np.abs(x[:2]).max() + abs(ra[0]) + 50.0)
     _assert_close(_analytic(f, v), _tangent_jacobians(f, v, (1,)), scale)
+
+
+# The factor callbacks are closed forms of the shared model (speed, see the factors
+# module docstring); these hold them to it.  The two paths round differently: the
+# shared one goes through ~20 intermediate arrays, so agreement is to a few ulps of
+# the inputs' magnitude (measured worst 7e-16 × scale over 20k random draws), and
+# 1e-12 × scale still fails any wrong term.
+# The α variable is never wrapped, so values beyond ±π are legal inputs too.
+unwrapped_rho_alpha = st.one_of(
+    rho_alpha,
+    st.builds(
+        lambda r, a: np.array([r, a]),
+        st.floats(min_value=-60.0, max_value=60.0, allow_nan=False),
+        st.floats(min_value=-4 * math.pi, max_value=4 * math.pi, allow_nan=False),
+    ),
+)
+
+
+def _callback_outputs(
+    factor: gtsam.CustomFactor, values: gtsam.Values, dims: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Residual of the error-only call, and residual and Jacobians of the linearising one."""
+    m = factor.dim()
+    H = gtsam.JacobianVector([np.zeros((m, d)) for d in dims])
+    r_lin = np.asarray(factor.unwhitenedError(values, H), dtype=float)
+    r_err = np.asarray(factor.unwhitenedError(values), dtype=float)
+    return r_err, r_lin, [np.asarray(J) for J in H]
+
+
+@given(z=line_meas, x=poses(), ra=unwrapped_rho_alpha)
+def test_line_factor_is_the_shared_model(z: np.ndarray, x: np.ndarray, ra: np.ndarray) -> None:
+    f = fx.line_factor(X, L, z, gtsam.noiseModel.Unit.Create(2))
+    v = gtsam.Values()
+    v.insert(X, _pose2(x))
+    v.insert(L, ra)
+    xv = fx.pose_of(v.atPose2(X))  # the pose exactly as the callback reads it
+    r_ref, Jx_ref, Jl_ref = fx.line_observation_error(z, xv, ra)
+    J_ref = [fx.to_body(Jx_ref, float(xv[2])), Jl_ref]
+    r_err, r_lin, J = _callback_outputs(f, v, (3, 2))
+    tol = 1e-12 * (1.0 + float(np.abs(xv[:2]).max() + abs(ra[0]) + np.abs(z[:2]).max()))
+    for r in (r_err, r_lin):
+        assert abs(r[0] - r_ref[0]) <= tol
+        # Angles modulo π: a residual of exactly ±π/2 may land on either end.
+        assert abs(float(wrap_angle_half(r[1] - r_ref[1]))) <= tol
+    for a, b in zip(J, J_ref, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=tol)
+
+
+@given(z=circles(), x=poses(), c=circles())
+def test_circle_factor_is_the_shared_model(z: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
+    f = fx.circle_factor(X, L, z, gtsam.noiseModel.Unit.Create(3))
+    v = gtsam.Values()
+    v.insert(X, _pose2(x))
+    v.insert(L, c)
+    xv = fx.pose_of(v.atPose2(X))
+    r_ref, Jx_ref, Jc_ref = fx.circle_observation_error(z, xv, c)
+    J_ref = [fx.to_body(Jx_ref, float(xv[2])), Jc_ref]
+    r_err, r_lin, J = _callback_outputs(f, v, (3, 3))
+    tol = 1e-12 * (1.0 + float(np.abs(xv[:2]).max() + np.abs(c[:2]).max()))
+    np.testing.assert_allclose(r_err, r_ref, rtol=0.0, atol=tol)
+    np.testing.assert_allclose(r_lin, r_ref, rtol=0.0, atol=tol)
+    for a, b in zip(J, J_ref, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=tol)
+
+
+def test_reused_jacobian_buffers_do_not_leak_between_linearisations() -> None:
+    # The callbacks refill one Jacobian buffer per factor; GTSAM must have copied the
+    # previous linearisation's Jacobians, not kept a view of the buffer.
+    line = fx.line_factor(X, L, np.array([3.0, 1.0, 0.4]), gtsam.noiseModel.Unit.Create(2))
+    circle = fx.circle_factor(X, K, np.array([2.0, -1.0, 0.5]), gtsam.noiseModel.Unit.Create(3))
+    g = gtsam.NonlinearFactorGraph()
+    g.add(line)
+    g.add(circle)
+
+    def values(x: np.ndarray) -> gtsam.Values:
+        v = gtsam.Values()
+        v.insert(X, _pose2(x))
+        v.insert(L, np.array([5.0, 0.2]))
+        v.insert(K, np.array([4.0, 1.0, 0.6]))
+        return v
+
+    v1, v2 = values(np.array([1.0, 2.0, 0.3])), values(np.array([-4.0, 0.5, 2.9]))
+    first = g.linearize(v1).jacobian()[0].copy()
+    lin1 = g.linearize(v1)
+    g.linearize(v2)
+    np.testing.assert_array_equal(lin1.jacobian()[0], first)
+    assert not np.allclose(g.linearize(v2).jacobian()[0], first)
 
 
 @given(z=circles(), x=poses(), c=circles())
