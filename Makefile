@@ -43,6 +43,8 @@ test: lint typecheck unit
 bench: venv
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ekf.py
+	$(PY) benchmarks/bench_graph.py
+	$(PY) benchmarks/bench_real.py --data $(DATA)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache .hypothesis
