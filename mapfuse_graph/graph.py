@@ -61,6 +61,7 @@ from mapfuse_graph.factors import (
     circle_observation_error,
     circle_tie_error,
     circle_tie_factor,
+    known_line_prior_factor,
     landmark_from_observation,
     line_factor,
     line_observation_error,
@@ -506,9 +507,13 @@ class GraphBuilder:
         )
         for r in range(len(self.known)):
             kind = FeatureKind(int(self.known.kinds[r]))
-            mean, cov = _known_prior(kind, self.known.params[r], self.known.covs[r])
+            f, f_cov = self.known.params[r], self.known.covs[r]
+            mean, cov = _known_prior(kind, f, f_cov)
             out.values.insert(known_key(r, kind), mean)
-            out.factors.add(gtsam.PriorFactorVector(known_key(r, kind), mean, make_noise(cov)))
+            if kind == FeatureKind.LINE:
+                out.factors.add(known_line_prior_factor(known_key(r, kind), f, f_cov))
+            else:
+                out.factors.add(gtsam.PriorFactorVector(known_key(r, kind), mean, make_noise(cov)))
         out.anchor_added = True
 
     def _add_tie(self, i: int, out: StepGraph) -> None:

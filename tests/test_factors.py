@@ -287,6 +287,33 @@ def test_line_tie_factor_jacobians(a: np.ndarray, ra: np.ndarray, k: np.ndarray,
     _assert_close(_analytic(f, v), _tangent_jacobians(f, v, (1,)), scale)
 
 
+@given(ra=rho_alpha, k=line_meas)
+def test_known_line_prior_jacobian(ra: np.ndarray, k: np.ndarray) -> None:
+    f = fx.known_line_prior_factor(K, k, np.diag([0.01, 0.01, 0.0025]))
+    v = gtsam.Values()
+    v.insert(K, ra)
+    scale = float(abs(ra[0]) + np.abs(k[:2]).max() + 50.0)
+    _assert_close(_analytic(f, v), _tangent_jacobians(f, v, (1,)), scale)
+
+
+@given(k=line_meas, t=coord)
+def test_known_line_prior_is_zero_on_the_surveyed_wall(k: np.ndarray, t: float) -> None:
+    # Any point of the wall gives the same (ρ, α): the prior has no along-line term.
+    f = line_from_normal(*fx.line_to_rho_alpha(k)[0], t)[0]
+    r, _ = fx.known_line_prior_error(fx.line_to_rho_alpha(f)[0], k)
+    np.testing.assert_allclose(r, 0.0, atol=1e-9 * (1.0 + np.abs(k[:2]).max() + abs(t)))
+
+
+def test_known_line_prior_noise_is_the_lateral_angle_block() -> None:
+    # A wall along x (θ₀ = 0): lateral is y, so the residual covariance picks σy², σθ²
+    # and their covariance, whatever the along-line σx.
+    cov = np.array([[4.0, 0.1, 0.2], [0.1, 0.09, 0.003], [0.2, 0.003, 0.0025]])
+    S = fx.known_line_prior_cov(np.array([30.0, 5.0, 0.0]), cov)
+    np.testing.assert_allclose(S, [[0.09, -0.003], [-0.003, 0.0025]], atol=1e-15)
+    with pytest.raises(ValueError, match="known line"):
+        fx.known_line_prior_factor(K, np.array([0.0, np.nan, 0.0]), cov)
+
+
 @given(a=poses(), c=circles(), k=circles())
 def test_circle_tie_factor_jacobians(a: np.ndarray, c: np.ndarray, k: np.ndarray) -> None:
     f = fx.circle_tie_factor(A, L, K, gtsam.noiseModel.Unit.Create(3))

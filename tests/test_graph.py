@@ -146,9 +146,9 @@ def _known_frame_solution(log: MeasurementLog) -> np.ndarray:
                 r = known_row[tid]
                 mean, P = log.known_map.params[r], log.known_map.covs[r]
                 if kind == FeatureKind.LINE:
-                    mean, J = fx.line_to_rho_alpha(mean)
-                    P = J @ P @ J.T
-                g.add(gtsam.PriorFactorVector(key, mean, fx.make_noise(P)))
+                    g.add(fx.known_line_prior_factor(key, mean, P))
+                else:
+                    g.add(gtsam.PriorFactorVector(key, mean, fx.make_noise(P)))
         key = landmark_key(dense[tid], kind)
         g.add(fx.observation_factor(kind, pose_key(k), key, log.feat_params[j], log.feat_cov[j]))
     sol, report = levenberg_marquardt(g, v)
