@@ -23,7 +23,10 @@ NOTEBOOKS = (
     "02_ekf_reference",
     "03_graph_vs_ekf",
     "04_ccda_matching",
+    "05_real_data_carpark",
 )
+# Notebooks that read the real datasets: skipped, like the real-data tests, without them.
+NEEDS_DATA = ("05_real_data_carpark",)
 # Per-cell timeout (s): a whole notebook targets two minutes; the margin is for loaded
 # machines, the timeout only catches a hung or runaway cell.
 TIMEOUT_S = 600
@@ -62,7 +65,14 @@ def test_notebook_is_stored_clean(name: str) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", NOTEBOOKS)
-def test_notebook_runs(name: str) -> None:
+def test_notebook_runs(
+    name: str, request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if name in NEEDS_DATA:
+        # Skips with a message when the data directory is absent.  The kernel inherits
+        # MAPFUSE_DATA, made absolute because it runs in the notebooks directory.
+        data = request.getfixturevalue("data_dir")
+        monkeypatch.setenv("MAPFUSE_DATA", str(Path(data).resolve()))
     nb = _read(name)
     client = nbclient.NotebookClient(
         nb,
