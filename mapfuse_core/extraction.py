@@ -19,8 +19,8 @@ Pipeline (all geometry is in the sensor frame ``S`` of the scan):
    Gauss–Newton on the measured ranges; covariance from the Gauss–Newton normal
    matrix; SPmap frame from :func:`mapfuse_core.features.line_from_normal` at the
    segment midpoint.
-4. **Circles**: Levenberg–Marquardt (``scipy.optimize.least_squares``) on
-   ``‖p_i − c‖ − r`` weighted by ``1 / nᵢᵀΣᵢnᵢ`` for the decision, refined by
+4. **Circles**: Levenberg–Marquardt (MINPACK's ``lmder``, see :func:`_levenberg_marquardt`)
+   on ``‖p_i − c‖ − r`` weighted by ``1 / nᵢᵀΣᵢnᵢ`` for the decision, refined by
    Levenberg–Marquardt on the measured ranges; covariance ``(Jᵀ W J)⁻¹``.
 
 Noise model (that of :mod:`mapfuse_core.laser`): a return at nominal bearing ``β``
@@ -71,11 +71,11 @@ from __future__ import annotations
 import functools
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import leastsq
 from scipy.stats import chi2 as chi2_dist
 
 from mapfuse_core.features import FeatureKind, line_from_normal
@@ -295,6 +295,13 @@ def _gauss_newton_cov(J: FloatArray, w: FloatArray, max_cond: float) -> FloatArr
     return 0.5 * (cov + cov.T)
 
 
+def _median(a: FloatArray) -> float:
+    """``np.median`` of a finite 1-D array, bit for bit, without its generality and cost."""
+    s = np.sort(a)
+    m = s.size // 2
+    return float(s[m]) if s.size % 2 else float((s[m - 1] + s[m]) / 2.0)
+
+
 def _min_normal(S: FloatArray) -> FloatArray:
     """Unit eigenvector of the smaller eigenvalue of a symmetric 2×2 scatter matrix."""
     # The major axis of [[a, b], [b, c]] is at ½ atan2(2b, a − c); the normal is ⊥ to it.
@@ -370,7 +377,7 @@ def _refine_line(r: FloatArray, b: FloatArray, start: _LineFit, noise: _Noise) -
     for _ in range(12):
         g = b - alpha
         cg = np.cos(g)
-        if rho <= 0.0 or bool(np.any(cg <= 1e-3)):
+        if rho <= 0.0 or bool((cg <= 1e-3).any()):
             return None
         tg = np.tan(g)
         pred = rho / cg
@@ -472,7 +479,7 @@ def _line_feature(
     if start is None:
         return "degenerate"
     keep = np.abs(start.cos_inc) >= math.cos(params.max_line_incidence_rad)
-    if not np.all(keep):
+    if not keep.all():
         P, r, b, ids = P[keep], r[keep], b[keep], ids[keep]
         if P.shape[0] < params.min_line_points:
             return "grazing"
@@ -601,6 +608,50 @@ def _beam_cos_inc(circle: FloatArray, sin_b: FloatArray, cos_b: FloatArray) -> F
     return out
 
 
+# scipy's default forward-difference step (``approx_derivative``, "2-point"): √eps times
+# max(1, |x|), away from zero.  The point-space circle fit was tuned with exactly that
+# Jacobian, so it is kept bit for bit (see :func:`_geometric_circle`).
+_FD_REL_STEP = float(np.finfo(np.float64).eps) ** 0.5
+# MINPACK settings of scipy's ``least_squares(method="lm")``, which these fits were
+# tuned with: gtol, and 100 evaluations per parameter.
+_LM_GTOL = 1e-8
+_LM_EVALS_PER_PARAM = 100
+
+
+def _levenberg_marquardt(
+    fun: Callable[[FloatArray], FloatArray],
+    jac: Callable[[FloatArray], FloatArray],
+    x0: FloatArray,
+    tol: float,
+) -> FloatArray:
+    """MINPACK's ``lmder`` from ``x0`` with ``ftol = xtol = tol`` (may return non-finite values).
+
+    Called through :func:`scipy.optimize.leastsq` rather than ``least_squares``: the
+    solver, its settings and therefore its iterates are the same, but ``least_squares``
+    wraps every evaluation in bookkeeping that costs more than these 3-parameter
+    problems themselves (it was a quarter of the extraction time).
+    """
+    out = leastsq(
+        fun,
+        x0,
+        Dfun=jac,
+        full_output=True,  # no warning when the evaluation budget runs out
+        ftol=tol,
+        xtol=tol,
+        gtol=_LM_GTOL,
+        maxfev=_LM_EVALS_PER_PARAM * x0.size,
+    )
+    return np.asarray(out[0], dtype=np.float64)
+
+
+def _point_circle_residuals(P: FloatArray, X: FloatArray, sig: FloatArray) -> FloatArray:
+    """(k, n) ``(‖p_i − c‖ − r) / σ_i`` for each of the k circles ``(cx, cy, r)`` in ``X``."""
+    dx = P[:, 0] - X[:, 0:1]
+    dy = P[:, 1] - X[:, 1:2]
+    out: FloatArray = (np.hypot(dx, dy) - X[:, 2:3]) / sig
+    return out
+
+
 def _geometric_circle(
     P: FloatArray, r: FloatArray, b: FloatArray, noise: _Noise, r_limit: float
 ) -> _CircleFit | None:
@@ -608,7 +659,8 @@ def _geometric_circle(
 
     Decides whether the central returns of a cluster lie on a circle; its estimate is
     only the start of :func:`_refine_circle` (see there for why).  ``None`` if the
-    points are collinear or the radius exceeds ``r_limit``.
+    points are collinear or the radius exceeds ``r_limit``.  The Jacobian is the forward
+    difference of :data:`_FD_REL_STEP`, the three shifted evaluations done at once.
     """
     if P.shape[0] < 4:
         return None
@@ -616,16 +668,23 @@ def _geometric_circle(
     if x is None or x[2] > r_limit:
         return None
     sin_b, cos_b = np.sin(b), np.cos(b)
+    diag = np.arange(3)
     for _ in range(2):
         sig = np.sqrt(_normal_var(noise, r, _beam_cos_inc(x, sin_b, cos_b)))
 
         def fun(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
-            d = P - p[:2]
-            out: FloatArray = (np.hypot(d[:, 0], d[:, 1]) - p[2]) / sig
+            out: FloatArray = _point_circle_residuals(P, p[None, :], sig)[0]
             return out
 
-        sol: Any = least_squares(fun, x, method="lm", xtol=1e-10, ftol=1e-10)
-        x = np.asarray(sol.x, dtype=np.float64)
+        def jac(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
+            h = _FD_REL_STEP * np.where(p >= 0.0, 1.0, -1.0) * np.maximum(1.0, np.abs(p))
+            shifted = np.tile(p, (3, 1))
+            shifted[diag, diag] = p + h
+            f = _point_circle_residuals(P, np.vstack((p, shifted)), sig)
+            out: FloatArray = ((f[1:] - f[0]) / ((p + h) - p)[:, None]).T
+            return out
+
+        x = _levenberg_marquardt(fun, jac, x, 1e-10)
         if not np.all(np.isfinite(x)) or abs(x[2]) > r_limit:
             return None
     x[2] = abs(x[2])
@@ -674,21 +733,31 @@ def _refine_circle(
     measured range of each nominal beam (:func:`_circle_system`) removes it, and also
     accounts for the second-order effect of the bearing noise on the mean range.
     """
+    # The solver asks for the Jacobian at the point it last accepted, usually the one
+    # whose residuals it just computed: keep the last system instead of recomputing it.
+    last: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+
+    def system(p: FloatArray) -> tuple[FloatArray, FloatArray]:
+        key = p.tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = _circle_system(b, p, noise)[:2]
+        return last[key]
+
     x = x0.copy()
     for _ in range(2):
         var = _circle_system(b, x, noise)[2]
         sig = np.sqrt(var)
 
         def fun(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
-            out: FloatArray = (r - _circle_system(b, p, noise)[0]) / sig
+            out: FloatArray = (r - system(p)[0]) / sig
             return out
 
         def jac(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
-            out: FloatArray = -_circle_system(b, p, noise)[1] / sig[:, None]
+            out: FloatArray = -system(p)[1] / sig[:, None]
             return out
 
-        sol: Any = least_squares(fun, x, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
-        x = np.asarray(sol.x, dtype=np.float64)
+        x = _levenberg_marquardt(fun, jac, x, 1e-12)
         if not np.all(np.isfinite(x)):
             return None
     x[2] = abs(x[2])
@@ -735,7 +804,7 @@ def _circle_beams(
     spacing = float(b[1] - b[0]) if b.size > 1 else 0.0
     half = 0.5 * (span[1] - span[0] + spacing)
     sh = math.sin(min(half, 0.5 * math.pi - 1e-3))
-    rho = float(np.median(r))
+    rho = _median(r)
     rad = rho * sh / (1.0 - sh)
     if rad <= 0.0:
         return none, 0.0
@@ -812,6 +881,10 @@ def _label(hit_ids: np.ndarray, majority: float) -> int:
     """World id of at least ``majority`` of the points, else −1."""
     if hit_ids.size == 0:
         return -1
+    # Nearly always a single id; np.unique costs as much as a line fit.
+    first = int(hit_ids[0])
+    if (hit_ids == first).all():
+        return first if first >= 0 else -1
     ids, counts = np.unique(hit_ids, return_counts=True)
     k = int(np.argmax(counts))
     if ids[k] >= 0 and counts[k] >= majority * hit_ids.size:
@@ -867,15 +940,16 @@ def extract_features(
     min_pts = min(params.min_line_points, params.min_circle_points)
     n_beams = scan.bearings.size
     for cl in _segment(scan, laser, params):
+        # Most clusters are a few returns (far trunks, wall slivers): reject them first.
+        if cl.size - 2 * params.end_trim < min_pts:
+            rejected["too_few_points"] += 1
+            continue
         span_b = (float(scan.bearings[cl[0]]), float(scan.bearings[cl[-1]]))
         at_fov_edge = bool(cl[0] == 0 or cl[-1] == n_beams - 1)
         beside = np.array([j for j in (cl[0] - 1, cl[-1] + 1) if 0 <= j < n_beams], dtype=int)
         outside = (scan.ranges[beside], scan.bearings[beside])
         if params.end_trim:
             cl = cl[params.end_trim : cl.size - params.end_trim]
-        if cl.size < min_pts:
-            rejected["too_few_points"] += 1
-            continue
         r = scan.ranges[cl]
         b = scan.bearings[cl]
         ids = scan.hit_ids[cl]

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from scipy.optimize import least_squares
 
+from mapfuse_core import extraction as ex
 from mapfuse_core.extraction import ExtractedFeature, ExtractionParams, extract_features
 from mapfuse_core.features import (
     FeatureKind,
@@ -169,6 +171,48 @@ def test_extraction_is_deterministic() -> None:
     for fa, fb in zip(a.features, b.features, strict=True):
         assert np.array_equal(fa.params, fb.params)
         assert np.array_equal(fa.cov, fb.cov)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_circle_fits_solve_the_problem_least_squares_solved(seed: int) -> None:
+    """The circle fits call MINPACK through ``leastsq`` (and estimate the point-space
+    Jacobian themselves) to skip ``least_squares``' overhead: same solver, same problem,
+    so the same solution as ``least_squares(method="lm")`` with its default Jacobian."""
+    laser = LaserParams()
+    world = World((), (CircleObstacle(3, (6.0, 1.0 - 0.4 * seed), 0.3 + 0.1 * seed),))
+    scan = scan_of(world, ORIGIN, laser, seed=seed)
+    hit = scan.hit_ids == 3
+    r, b = scan.ranges[hit][1:-1], scan.bearings[hit][1:-1]
+    P = np.column_stack((r * np.cos(b), r * np.sin(b)))
+    noise = ex._Noise(laser.sigma_range_m**2, laser.sigma_bearing_rad**2, 1e-12)
+    geo = ex._geometric_circle(P, r, b, noise, 8.0)
+    assert geo is not None
+    x = ex._kasa(P)
+    assert x is not None
+    for _ in range(2):
+        sig = np.sqrt(ex._normal_var(noise, r, ex._beam_cos_inc(x, np.sin(b), np.cos(b))))
+
+        def fun(p: np.ndarray, sig: np.ndarray = sig) -> np.ndarray:
+            return np.asarray((np.hypot(*(P - p[:2]).T) - p[2]) / sig)
+
+        x = least_squares(fun, x, method="lm", xtol=1e-10, ftol=1e-10).x
+    x[2] = abs(x[2])
+    np.testing.assert_allclose(geo.x, x, rtol=0.0, atol=1e-9)
+    fit = ex._refine_circle(r, b, geo.x, noise)
+    assert fit is not None
+    x = geo.x.copy()
+    for _ in range(2):
+        sig = np.sqrt(ex._circle_system(b, x, noise)[2])
+
+        def res(p: np.ndarray, sig: np.ndarray = sig) -> np.ndarray:
+            return np.asarray((r - ex._circle_system(b, p, noise)[0]) / sig)
+
+        def jac(p: np.ndarray, sig: np.ndarray = sig) -> np.ndarray:
+            return np.asarray(-ex._circle_system(b, p, noise)[1] / sig[:, None])
+
+        x = least_squares(res, x, jac=jac, method="lm", xtol=1e-12, ftol=1e-12).x
+    x[2] = abs(x[2])
+    np.testing.assert_allclose(fit.x, x, rtol=0.0, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- labels
