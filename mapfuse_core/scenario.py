@@ -7,7 +7,9 @@ and the reason, so a typo never silently falls back to a default.
 File layout (every section rejects keys it does not know)::
 
     [scenario]    name?, description?, seed
-    [trajectory]  start = [x, y, θ], steps, waypoints = [[x, y], …]
+    [trajectory]  start = [x, y, θ], and either
+                  steps, waypoints = [[x, y], …]             (pure pursuit, constant speed)
+                  or controls = [[v, φ, n], …], steps?       (n steps at speed v, steering φ)
     [vehicle]     optional overrides of VehicleParams fields
     [laser]       optional overrides of LaserParams fields
     [world]       segments = [{id, p1, p2}, …], circles = [{id, centre, radius}, …]
@@ -39,10 +41,11 @@ from numpy.typing import NDArray
 from mapfuse_core.features import FeatureKind, express_in
 from mapfuse_core.laser import LaserParams, cast_rays
 from mapfuse_core.se2 import FloatArray, wrap_angle
-from mapfuse_core.vehicle import MotionResult, VehicleParams
+from mapfuse_core.vehicle import MotionResult, VehicleParams, simulate_controls, simulate_motion
 from mapfuse_core.world import CircleObstacle, WallSegment, World
 
 __all__ = [
+    "ControlSegment",
     "FeatureMove",
     "KnownMap",
     "KnownMapSpec",
@@ -50,9 +53,11 @@ __all__ = [
     "ScenarioError",
     "build_known_map",
     "check_visibility",
+    "control_table",
     "features_in_view",
     "list_builtin_scenarios",
     "load_scenario",
+    "simulate_drive",
 ]
 
 IntArray = NDArray[np.int64]
@@ -92,6 +97,18 @@ class FeatureMove:
     """Rotation of a line about its midpoint (rad); 0 for circles."""
     dr: float
     """Change of a circle's radius (m); 0 for lines."""
+
+
+@dataclass(frozen=True)
+class ControlSegment:
+    """A stretch of the drive at constant true controls (a ``trajectory.controls`` row)."""
+
+    speed_mps: float
+    """Speed ``v`` of the rear axle (m/s); negative reverses, 0 stands still."""
+    steer_rad: float
+    """Steering angle ``φ`` (rad), ``|φ| ≤ VehicleParams.max_steer_rad``; positive turns left."""
+    steps: int
+    """Number of steps ``n ≥ 1`` driven with these controls."""
 
 
 # eq=False: the fields hold arrays, whose == is elementwise; compare by identity instead.
@@ -144,9 +161,14 @@ class Scenario:
     start: FloatArray
     """(3,) true start pose ``(x, y, θ)`` in ``W``."""
     steps: int
-    """Number of poses to simulate (≥ 2), the start included."""
+    """Number of poses to simulate (≥ 2), the start included; with :attr:`controls`, at
+    most one more than the steps they drive (fewer shortens the drive)."""
     waypoints: FloatArray
-    """(K, 2) path the driver follows, K ≥ 2."""
+    """(K, 2) path the pure-pursuit driver follows, K ≥ 2; (0, 2) when the drive is given
+    by :attr:`controls` instead."""
+    controls: tuple[ControlSegment, ...]
+    """The true controls the car is driven with, stretch by stretch; empty when it
+    follows :attr:`waypoints`."""
     vehicle: VehicleParams
     """Vehicle model, odometry noise and driver."""
     laser: LaserParams
@@ -468,22 +490,16 @@ def _parse(doc: dict[str, Any], source: str, stem: str) -> Scenario:
     )
     seed = r.integer(meta["seed"], "scenario.seed", minimum=0)
 
-    traj = r.table(top["trajectory"], "trajectory", required=("start", "steps", "waypoints"))
-    start = np.array(r.vector(traj["start"], "trajectory.start", 3, angle_last=True))
-    start[2] = float(wrap_angle(start[2]))
-    steps = r.integer(traj["steps"], "trajectory.steps", minimum=2)
-    wp_items = r.array(traj["waypoints"], "trajectory.waypoints")
-    if len(wp_items) < 2:
-        raise r.fail("trajectory.waypoints", f"needs at least 2 waypoints, got {len(wp_items)}")
-    waypoints = np.array(
-        [r.vector(w, f"trajectory.waypoints[{i}]", 2) for i, w in enumerate(wp_items)]
-    )
-    for i in range(1, waypoints.shape[0]):
-        if np.hypot(*(waypoints[i] - waypoints[i - 1])) <= 1e-6:
-            raise r.fail(f"trajectory.waypoints[{i}]", "repeats the previous waypoint")
-
+    start, steps, waypoints, controls = _parse_trajectory(r, top["trajectory"])
     vehicle: VehicleParams = _params_from(r, top.get("vehicle", {}), "vehicle", VehicleParams)
     laser: LaserParams = _params_from(r, top.get("laser", {}), "laser", LaserParams)
+    for i, c in enumerate(controls):
+        if abs(c.steer_rad) > vehicle.max_steer_rad:
+            raise r.fail(
+                f"trajectory.controls[{i}][1]",
+                f"steering {c.steer_rad:.6g} rad is beyond the vehicle's steering limit "
+                f"vehicle.max_steer_rad = {vehicle.max_steer_rad:.6g}",
+            )
 
     wt = r.table(top["world"], "world", optional=("segments", "circles"))
     segs, circs, world_keys = _features(r, wt, "world")
@@ -494,8 +510,6 @@ def _parse(doc: dict[str, Any], source: str, stem: str) -> Scenario:
     except ValueError as e:  # pragma: no cover - every World check is done above
         raise r.fail("world", str(e)) from None
     known = _parse_known_map(r, top["known_map"], world, world_keys)
-    for a in (start, waypoints):
-        a.setflags(write=False)
     return Scenario(
         name=name,
         description=description,
@@ -505,10 +519,76 @@ def _parse(doc: dict[str, Any], source: str, stem: str) -> Scenario:
         start=start,
         steps=steps,
         waypoints=waypoints,
+        controls=controls,
         vehicle=vehicle,
         laser=laser,
         known_map=known,
     )
+
+
+def _parse_trajectory(
+    r: _Reader, value: object
+) -> tuple[FloatArray, int, FloatArray, tuple[ControlSegment, ...]]:
+    """Start, number of poses, waypoints and controls of ``[trajectory]`` (one of the two
+    given, the other empty); the steering limit is checked once the vehicle is known."""
+    key = "trajectory"
+    traj = r.table(value, key, required=("start",), optional=("steps", "waypoints", "controls"))
+    start = np.array(r.vector(traj["start"], f"{key}.start", 3, angle_last=True))
+    start[2] = float(wrap_angle(start[2]))
+    start.setflags(write=False)
+    if "waypoints" in traj and "controls" in traj:
+        raise r.fail(f"{key}.controls", "give either waypoints or controls, not both")
+    if "controls" not in traj:
+        if "waypoints" not in traj:
+            raise r.fail(
+                key,
+                "no drive: give waypoints = [[x, y], ...] (with steps) "
+                "or controls = [[v, phi, n], ...]",
+            )
+        if "steps" not in traj:
+            raise r.fail(f"{key}.steps", "missing required key")
+        steps = r.integer(traj["steps"], f"{key}.steps", minimum=2)
+        wp_items = r.array(traj["waypoints"], f"{key}.waypoints")
+        if len(wp_items) < 2:
+            raise r.fail(f"{key}.waypoints", f"needs at least 2 waypoints, got {len(wp_items)}")
+        waypoints = np.array(
+            [r.vector(w, f"{key}.waypoints[{i}]", 2) for i, w in enumerate(wp_items)]
+        )
+        for i in range(1, waypoints.shape[0]):
+            if np.hypot(*(waypoints[i] - waypoints[i - 1])) <= 1e-6:
+                raise r.fail(f"{key}.waypoints[{i}]", "repeats the previous waypoint")
+        waypoints.setflags(write=False)
+        return start, steps, waypoints, ()
+
+    rows = r.array(traj["controls"], f"{key}.controls")
+    if not rows:
+        raise r.fail(f"{key}.controls", "needs at least one control [v, phi, n]")
+    controls: list[ControlSegment] = []
+    for i, row in enumerate(rows):
+        k = f"{key}.controls[{i}]"
+        items = r.array(row, k)
+        if len(items) != 3:
+            raise r.fail(k, f"must be [v, phi, n] (3 entries), got {len(items)} entries")
+        controls.append(
+            ControlSegment(
+                speed_mps=r.number(items[0], f"{k}[0]"),
+                steer_rad=r.number(items[1], f"{k}[1]", angle=True),
+                steps=r.integer(items[2], f"{k}[2]", minimum=1),
+            )
+        )
+    driven = sum(c.steps for c in controls)
+    steps = driven + 1
+    if "steps" in traj:
+        given = r.integer(traj["steps"], f"{key}.steps", minimum=2)
+        if given != steps:
+            raise r.fail(
+                f"{key}.steps",
+                f"is {given} but the controls drive {driven} steps, i.e. {steps} poses with "
+                "the start (leave steps out to take it from the controls)",
+            )
+    waypoints = np.zeros((0, 2))
+    waypoints.setflags(write=False)
+    return start, steps, waypoints, tuple(controls)
 
 
 def _parse_known_map(
@@ -689,6 +769,37 @@ def build_known_map(scenario: Scenario, rng: np.random.Generator) -> KnownMap:
         true_params=true_params,
         frame=np.array(spec.frame),
     )
+
+
+# --------------------------------------------------------------------------- drive
+
+
+def control_table(controls: Sequence[ControlSegment]) -> FloatArray:
+    """(Σ n, 2) true controls ``(v, φ)`` step by step: each segment repeated ``steps`` times."""
+    if not controls:
+        return np.zeros((0, 2))
+    vphi = np.array([(c.speed_mps, c.steer_rad) for c in controls], dtype=np.float64)
+    return np.repeat(vphi, [c.steps for c in controls], axis=0)
+
+
+def simulate_drive(scenario: Scenario, rng: np.random.Generator) -> MotionResult:
+    """The scenario's true drive and odometry over ``scenario.steps`` poses.
+
+    Pure pursuit through :attr:`Scenario.waypoints`
+    (:func:`~mapfuse_core.vehicle.simulate_motion`), or the first ``steps − 1`` rows of
+    the :attr:`Scenario.controls` table (:func:`~mapfuse_core.vehicle.simulate_controls`);
+    the noise is drawn from ``rng`` the same way for both.
+    """
+    if not scenario.controls:
+        return simulate_motion(
+            scenario.start, scenario.waypoints, scenario.steps, scenario.vehicle, rng
+        )
+    table = control_table(scenario.controls)
+    if not 2 <= scenario.steps <= table.shape[0] + 1:
+        raise ValueError(
+            f"steps must be in [2, {table.shape[0] + 1}] for these controls, got {scenario.steps}"
+        )
+    return simulate_controls(scenario.start, table[: scenario.steps - 1], scenario.vehicle, rng)
 
 
 # --------------------------------------------------------------------------- visibility

@@ -11,6 +11,10 @@ curvature ``κ = tan φ / L``, so the increment in the vehicle frame is exact:
 
 which tends smoothly to the straight line ``(v·dt, 0, 0)`` when ``φ → 0``.
 
+The true controls come from a pure-pursuit driver following waypoints at constant
+speed (:func:`simulate_motion`) or from a given table of controls
+(:func:`simulate_controls`); the noise below is the same for both.
+
 Noise enters twice, as in a real car:
 
 * **odometry** (what the estimator sees): the increment of the *noisy* controls
@@ -29,6 +33,7 @@ added to the true motion and to the covariance.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +47,7 @@ __all__ = [
     "odometry_covariance",
     "pure_pursuit_steer",
     "relative_increments",
+    "simulate_controls",
     "simulate_motion",
 ]
 
@@ -303,10 +309,61 @@ def simulate_motion(
     x0 = as_pose(start, "start")
     if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 2:
         raise ValueError(f"steps must be an integer >= 2, got {steps!r}")
-    n = int(steps)
     path = _Path.of(waypoints)
-    dt, L = params.dt_s, params.wheelbase_m
     v = params.speed_mps
+    # Progress is searched only a little behind and ahead of the last value.
+    arc = path.project(x0[:2], 0.0, min(path.cum[-1], 4.0 * params.lookahead_m))
+    window = 4.0 * params.lookahead_m + 2.0 * params.step_length_m
+
+    def driver(k: int, x: FloatArray) -> tuple[float, float]:
+        nonlocal arc
+        arc = path.project(x[:2], max(arc - params.step_length_m, 0.0), arc + window)
+        return v, pure_pursuit_steer(x, path.point_at(arc + params.lookahead_m), params)
+
+    return _drive(x0, int(steps), params, rng, driver)
+
+
+def simulate_controls(
+    start: FloatArray,
+    controls: FloatArray,
+    params: VehicleParams,
+    rng: np.random.Generator,
+) -> MotionResult:
+    """Drive from ``start`` with given true controls, one row ``(v m/s, φ rad)`` per step.
+
+    ``controls`` is (M, 2), M ≥ 1: row ``k`` moves pose ``k`` to pose ``k + 1``, so the
+    result has M + 1 poses.  ``|φ|`` must not exceed ``params.max_steer_rad`` (the
+    pure-pursuit driver never steers beyond it either); a negative ``v`` reverses.
+    Noise is drawn exactly as in :func:`simulate_motion`.
+    """
+    x0 = as_pose(start, "start")
+    u = np.asarray(controls, dtype=np.float64)
+    if u.ndim != 2 or u.shape[1] != 2 or u.shape[0] < 1:
+        raise ValueError(f"controls must have shape (M >= 1, 2), got {u.shape}")
+    if not np.all(np.isfinite(u)):
+        raise ValueError("controls have a non-finite entry")
+    worst = int(np.argmax(np.abs(u[:, 1])))
+    if abs(u[worst, 1]) > params.max_steer_rad:
+        raise ValueError(
+            f"controls[{worst}] steers {u[worst, 1]} rad, beyond the steering limit "
+            f"max_steer_rad = {params.max_steer_rad}"
+        )
+
+    def table(k: int, x: FloatArray) -> tuple[float, float]:
+        return float(u[k - 1, 0]), float(u[k - 1, 1])
+
+    return _drive(x0, u.shape[0] + 1, params, rng, table)
+
+
+def _drive(
+    x0: FloatArray,
+    n: int,
+    params: VehicleParams,
+    rng: np.random.Generator,
+    control: Callable[[int, FloatArray], tuple[float, float]],
+) -> MotionResult:
+    """``n`` poses from ``x0``; ``control(k, x_{k−1})`` gives the true ``(v, φ)`` of step k."""
+    dt, L = params.dt_s, params.wheelbase_m
     slip_sd = np.asarray(params.slip_sigma)
     noise_sd = np.array([params.sigma_v, params.sigma_phi])
 
@@ -315,13 +372,9 @@ def simulate_motion(
     odometry = np.zeros((n, 3))
     odometry_cov = np.zeros((n, 3, 3))
     poses[0] = x0
-    # Progress is searched only a little behind and ahead of the last value.
-    arc = path.project(x0[:2], 0.0, min(path.cum[-1], 4.0 * params.lookahead_m))
-    window = 4.0 * params.lookahead_m + 2.0 * params.step_length_m
     for k in range(1, n):
         x = poses[k - 1]
-        arc = path.project(x[:2], max(arc - params.step_length_m, 0.0), arc + window)
-        phi = pure_pursuit_steer(x, path.point_at(arc + params.lookahead_m), params)
+        v, phi = control(k, x)
         controls[k] = (v, phi)
         n_u = rng.normal(0.0, noise_sd)
         slip = rng.normal(0.0, slip_sd)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -12,18 +13,23 @@ from scipy.stats import chi2
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.laser import cast_rays
 from mapfuse_core.scenario import (
+    ControlSegment,
     Scenario,
     ScenarioError,
     build_known_map,
     check_visibility,
+    control_table,
     features_in_view,
     list_builtin_scenarios,
     load_scenario,
+    simulate_drive,
 )
 from mapfuse_core.se2 import wrap_angle
-from mapfuse_core.vehicle import MotionResult, simulate_motion
+from mapfuse_core.simulate import simulate
+from mapfuse_core.vehicle import MotionResult, VehicleParams
 
 BAD_DIR = Path(__file__).parent / "data" / "bad_scenarios"
+CIRCLE_CONTROLS = Path(__file__).parent / "data" / "circle_controls.toml"
 BAD_FILES = sorted(BAD_DIR.glob("*.toml"))
 
 #: The extent of the paper's Fig. 4 (x_min, x_max, y_min, y_max).
@@ -67,13 +73,7 @@ def _write(tmp_path: Path, text: str, name: str = "scenario.toml") -> Path:
 def _motion(scenario: Scenario, seed: int | None = None) -> MotionResult:
     """The drive exactly as the simulator makes it (first of three spawned streams)."""
     ss = np.random.SeedSequence(scenario.seed if seed is None else seed).spawn(3)[0]
-    return simulate_motion(
-        scenario.start,
-        scenario.waypoints,
-        scenario.steps,
-        scenario.vehicle,
-        np.random.default_rng(ss),
-    )
+    return simulate_drive(scenario, np.random.default_rng(ss))
 
 
 # --------------------------------------------------------------------------- errors
@@ -276,6 +276,98 @@ def test_check_visibility_counts_sampled_steps(tmp_path: Path) -> None:
     counts = check_visibility(s, m, stride=8)
     assert counts.shape == (len(range(0, 40, 8)) + 1,)  # and the last pose
     assert counts.min() >= 1
+
+
+# --------------------------------------------------------------------------- controls
+
+#: The trajectory of SMALL as a table of controls: 39 steps straight ahead.
+SMALL_CONTROLS = SMALL.replace(
+    "steps = 40\nwaypoints = [[0.0, 0.0], [20.0, 0.0]]",
+    'controls = [[2.0, 0.0, 30], [1.5, "pi/64", 5], [2.0, -0.1, 4]]',
+)
+
+
+def test_controls_scenario_loads(tmp_path: Path) -> None:
+    s = load_scenario(_write(tmp_path, SMALL_CONTROLS))
+    assert s.controls == (
+        ControlSegment(speed_mps=2.0, steer_rad=0.0, steps=30),
+        ControlSegment(speed_mps=1.5, steer_rad=math.pi / 64, steps=5),
+        ControlSegment(speed_mps=2.0, steer_rad=-0.1, steps=4),
+    )
+    assert s.steps == 40  # the start and the 39 steps the controls drive
+    assert s.waypoints.shape == (0, 2)
+    table = control_table(s.controls)
+    assert table.shape == (39, 2)
+    np.testing.assert_array_equal(table[29:31], [[2.0, 0.0], [1.5, math.pi / 64]])
+    np.testing.assert_array_equal(table[-1], [2.0, -0.1])
+    # steps may be given too, when it agrees with the controls
+    agreed = SMALL_CONTROLS.replace("controls =", "steps = 40\ncontrols =")
+    assert load_scenario(_write(tmp_path, agreed, "agreed.toml")).steps == 40
+
+
+def test_waypoint_scenarios_have_no_controls(tmp_path: Path) -> None:
+    s = load_scenario(_write(tmp_path, SMALL))
+    assert s.controls == ()
+    assert control_table(s.controls).shape == (0, 2)
+
+
+def test_controls_steering_limit_is_the_vehicles(tmp_path: Path) -> None:
+    """The limit is ``vehicle.max_steer_rad`` as the file sets it, not the default."""
+    wide = SMALL_CONTROLS.replace("-0.1, 4]", "-0.7, 4]") + "\n[vehicle]\nmax_steer_rad = 0.75\n"
+    assert load_scenario(_write(tmp_path, wide)).controls[-1].steer_rad == -0.7
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(_write(tmp_path, wide.replace("0.75", "0.6"), "narrow.toml"))
+    assert info.value.key == "trajectory.controls[2][1]"
+    assert "max_steer_rad = 0.6" in info.value.reason
+
+
+def test_controls_drive_the_expected_circle() -> None:
+    """circle_controls.toml: 10 m straight east, then a circle of radius L / tan φ = 10 m
+    about (10, 10).  With the slip made negligible the true path is exact; with the
+    file's slip (σ 2 mm, 0.2 mrad per step) it stays within 20 cm."""
+    s = load_scenario(CIRCLE_CONTROLS)
+    assert s.steps == 1 + 40 + 252
+    L, phi = s.vehicle.wheelbase_m, s.controls[1].steer_rad
+    radius = L / math.tan(phi)
+    assert radius == pytest.approx(10.0, abs=1e-12)
+    quiet = dataclasses.replace(s, vehicle=VehicleParams(slip_sigma=(1e-12, 1e-12, 1e-12)))
+    P = simulate_drive(quiet, np.random.default_rng(0)).true_poses
+    np.testing.assert_allclose(P[:41, 0], 0.25 * np.arange(41), atol=1e-9)
+    np.testing.assert_allclose(P[:41, 1:], 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.hypot(P[40:, 0] - 10.0, P[40:, 1] - 10.0), radius, atol=1e-8)
+    turn = wrap_angle(np.diff(P[40:, 2]))
+    np.testing.assert_allclose(turn, 0.25 / radius, atol=1e-12)  # Δθ = s / R, s = 0.25 m
+    # One lap is 2πR / 0.25 m ≈ 251.3 steps: the end is just past the circle's start.
+    assert np.hypot(*(P[-1, :2] - P[40, :2])) < 0.25
+    noisy = _motion(s).true_poses
+    assert np.abs(np.hypot(noisy[40:, 0] - 10.0, noisy[40:, 1] - 10.0) - radius).max() < 0.2
+    np.testing.assert_array_equal(_motion(s).controls[1:], control_table(s.controls))
+
+
+def test_controls_scenario_simulates_reproducibly() -> None:
+    s = load_scenario(CIRCLE_CONTROLS)
+    a = simulate(s, seed=3).log
+    assert a.n_steps == s.steps
+    assert a.true_poses is not None
+    np.testing.assert_array_equal(a.true_poses, _motion(s, seed=3).true_poses)
+    kinds = set(a.feat_kind.tolist())
+    assert kinds == {int(FeatureKind.LINE), int(FeatureKind.CIRCLE)}
+    assert set(a.feat_true_id.tolist()) >= {1, 2, 3, 4}
+    b = simulate(s, seed=3).log
+    np.testing.assert_array_equal(a.feat_params, b.feat_params)
+    np.testing.assert_array_equal(a.odometry, b.odometry)
+
+
+def test_shortened_controls_drive_the_first_steps() -> None:
+    """``dataclasses.replace(scenario, steps=…)`` shortens a controls drive as it does a
+    waypoint drive; it cannot lengthen it."""
+    s = load_scenario(CIRCLE_CONTROLS)
+    full = _motion(s)
+    short = _motion(dataclasses.replace(s, steps=100))
+    assert short.true_poses.shape == (100, 3)
+    np.testing.assert_array_equal(short.true_poses, full.true_poses[:100])
+    with pytest.raises(ValueError, match=r"steps must be in \[2, 293\]"):
+        _motion(dataclasses.replace(s, steps=294))
 
 
 # --------------------------------------------------------------------------- loop600

@@ -17,6 +17,7 @@ from mapfuse_core.vehicle import (
     car_increment,
     odometry_covariance,
     relative_increments,
+    simulate_controls,
     simulate_motion,
 )
 from tests.jacobians import ATOL, RTOL, numerical_jacobian
@@ -259,6 +260,50 @@ def test_driver_converges_to_an_offset_line() -> None:
 def test_simulate_motion_rejects_bad_input(waypoints: np.ndarray, steps: int) -> None:
     with pytest.raises(ValueError, match=r"waypoints|steps"):
         simulate_motion(START, waypoints, steps, VehicleParams(), np.random.default_rng(0))
+
+
+def test_controls_replay_a_pure_pursuit_drive_exactly() -> None:
+    """The same true controls and noise stream give the same drive, bit for bit."""
+    course = np.array([[0.0, 0.0], [30.0, 0.0], [30.0, 30.0], [0.0, 30.0]])
+    driven = simulate_motion(START, course, 300, VehicleParams(), np.random.default_rng(4))
+    replay = simulate_controls(
+        START, driven.controls[1:], VehicleParams(), np.random.default_rng(4)
+    )
+    for name in ("true_poses", "controls", "odometry", "odometry_cov"):
+        assert getattr(replay, name).tobytes() == getattr(driven, name).tobytes(), name
+
+
+def test_constant_controls_drive_the_turning_circle() -> None:
+    """Constant (v, φ) with negligible slip: the rear axle stays on the circle of radius
+    L / tan φ, turning v·dt·tan φ / L per step; a negative speed runs it backwards."""
+    quiet = VehicleParams(slip_sigma=(1e-12, 1e-12, 1e-12))
+    L, phi, n = quiet.wheelbase_m, 0.3, 200
+    R = L / math.tan(phi)
+    for v in (2.0, -1.0):
+        m = simulate_controls(START, np.tile([v, phi], (n, 1)), quiet, np.random.default_rng(0))
+        assert m.true_poses.shape == (n + 1, 3)
+        np.testing.assert_array_equal(m.controls[1:], np.tile([v, phi], (n, 1)))
+        centre = np.array([0.0, R])  # left of the start pose (0, 0, 0)
+        radius = np.hypot(*(m.true_poses[:, :2] - centre).T)
+        np.testing.assert_allclose(radius, R, atol=1e-8)
+        turn = se2.wrap_angle(np.diff(m.true_poses[:, 2]))
+        np.testing.assert_allclose(turn, v * quiet.dt_s * math.tan(phi) / L, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    ("controls", "match"),
+    [
+        (np.zeros((0, 2)), "shape"),
+        (np.zeros((3, 3)), "shape"),
+        (np.zeros(4), "shape"),
+        (np.array([[2.0, 0.0], [math.inf, 0.0]]), "non-finite"),
+        (np.array([[2.0, 0.0], [2.0, math.nan]]), "non-finite"),
+        (np.array([[2.0, 0.1], [2.0, -0.6]]), r"controls\[1\].*steering limit"),
+    ],
+)
+def test_simulate_controls_rejects_bad_input(controls: np.ndarray, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        simulate_controls(START, controls, VehicleParams(), np.random.default_rng(0))
 
 
 def _distance_to_polyline(p: np.ndarray, poly: np.ndarray) -> float:
