@@ -74,7 +74,10 @@ def test_graph_runs_reuse_the_ekf_decisions_of_their_fusion_setting(
             assert run.metrics["association"] == "ekf"
 
 
-def test_progress_is_labelled_per_run(progress_calls: list[tuple[str, int, int]]) -> None:
+def test_progress_is_labelled_per_run(
+    comparison: Comparison, progress_calls: list[tuple[str, int, int]]
+) -> None:
+    # Requesting ``comparison`` makes the calls exist whichever worker runs this test.
     labels = {label for label, _, _ in progress_calls}
     assert labels == {
         f"{b} {w} fusion" for b in ("ekf", "batch", "isam2") for w in ("with", "without")
