@@ -169,7 +169,9 @@ class OdometryNoise:
         for name in ("floor_sigma_xy_m_per_sqrt_s", "floor_sigma_theta_rad_per_sqrt_s"):
             _check_finite("OdometryNoise", name, getattr(self, name), positive=True)
         _check_finite(
-            "OdometryNoise", "sigma_steer_saturated_rad", self.sigma_steer_saturated_rad,
+            "OdometryNoise",
+            "sigma_steer_saturated_rad",
+            self.sigma_steer_saturated_rad,
             positive=False,
         )
         sat = self.steer_saturation_rad
