@@ -262,6 +262,10 @@ def test_options_are_validated() -> None:
         CarGeometry(wheelbase_m=math.nan)
     with pytest.raises(ValueError, match="sigma_range_m"):
         VictoriaParkOptions(sigma_range_m=-1.0)
+    with pytest.raises(ValueError, match="speed_scale"):
+        VictoriaParkOptions(speed_scale=0.0)
+    with pytest.raises(ValueError, match="bearing_offset_rad"):
+        VictoriaParkOptions(bearing_offset_rad=math.inf)
 
 
 # --------------------------------------------------------------------------- reflector poles
@@ -496,9 +500,10 @@ def test_victoria_structure(victoria: MeasurementLog) -> None:
 def test_victoria_first_detections_match_the_file(victoria: MeasurementLog, data_dir: Path) -> None:
     rows = np.loadtxt(data_dir / VICTORIA_PARK_NAME / "detections" / "measurements.dat", max_rows=5)
     t, rho, bearing, diam = rows.T
+    opts = VictoriaParkOptions()
     assert np.all(victoria.feat_step[:5] == 0)
-    assert victoria.timestamps[0] == t[0]
-    beta = bearing - math.pi / 2.0
+    assert victoria.timestamps[0] == pytest.approx(t[0] + opts.detection_time_offset_s)
+    beta = bearing - math.pi / 2.0 + opts.bearing_offset_rad
     np.testing.assert_allclose(
         victoria.feat_params[:5],
         np.column_stack((rho * np.cos(beta), rho * np.sin(beta), diam / 2)),
@@ -537,6 +542,42 @@ def test_victoria_bearing_convention_keeps_trees_still(victoria: MeasurementLog)
 
     # Five scans (1 s) apart: 0.30 m against 4.1 m mirrored.
     assert median_nn(False) < 0.5 < 2.0 < median_nn(True)
+
+
+def _tracked_pair_distance(log: MeasurementLog, gap: int = 10) -> float:
+    """Median distance (m) between detections of one trunk ``gap`` scans apart, both put
+    in the world through the dead reckoning (pairs found scan to scan within 0.65 m)."""
+    dr = dead_reckoning(log.odometry)
+    world = features_in_world(log, dr)
+    d = []
+    for k in range(gap, log.n_steps, 3):
+        a, b = world[log.feature_slice(k)], world[log.feature_slice(k - gap)]
+        if len(a) and len(b):
+            nn = np.hypot(*(a[:, None, :] - b[None]).T).min(axis=0)
+            d.append(nn[nn < 0.65 + 0.05 * gap])
+    return float(np.median(np.concatenate(d)))
+
+
+def test_victoria_calibration_keeps_trees_stiller(victoria: MeasurementLog, data_dir: Path) -> None:
+    """The fitted calibration (VICTORIA_PARK_CALIBRATION_NOTE) brings the detections of a
+    trunk two seconds apart closer together than the raw data, and the bearing offset is
+    most of it: without it the EKF diverges."""
+    raw = load_victoria_park(
+        data_dir,
+        options=VictoriaParkOptions(
+            bearing_offset_rad=0.0,
+            steering_offset_rad=0.0,
+            speed_scale=1.0,
+            detection_time_offset_s=0.0,
+        ),
+    )
+    no_bearing = load_victoria_park(data_dir, options=VictoriaParkOptions(bearing_offset_rad=0.0))
+    calibrated = _tracked_pair_distance(victoria)
+    # Measured: 0.170 m calibrated, 0.300 m raw, 0.202 m without the bearing offset.
+    assert calibrated < 0.6 * _tracked_pair_distance(raw)
+    assert calibrated < 0.9 * _tracked_pair_distance(no_bearing)
+    np.testing.assert_allclose(raw.feat_params[:, 2], victoria.feat_params[:, 2])  # radii untouched
+    assert raw.n_features == victoria.n_features
 
 
 def test_victoria_filters_are_counted(data_dir: Path) -> None:
@@ -710,8 +751,14 @@ def write_victoria(
     return root
 
 
+RAW_VICTORIA = VictoriaParkOptions(
+    bearing_offset_rad=0.0, steering_offset_rad=0.0, speed_scale=1.0, detection_time_offset_s=0.0
+)
+"""No calibration: the files' values as they are."""
+
+
 def test_fabricated_victoria_loads(tmp_path: Path) -> None:
-    log = load_victoria_park(write_victoria(tmp_path))
+    log = load_victoria_park(write_victoria(tmp_path), options=RAW_VICTORIA)
     assert log.n_steps == 3
     assert log.n_features == 4
     np.testing.assert_array_equal(log.feat_step, [0, 0, 1, 2])
@@ -722,6 +769,27 @@ def test_fabricated_victoria_loads(tmp_path: Path) -> None:
     )
     assert log.gps_times is not None
     np.testing.assert_allclose(log.gps_times, [0.0, 1.0, 1.2], atol=1e-9)
+
+
+def test_fabricated_victoria_calibration_is_applied(tmp_path: Path) -> None:
+    opts = VictoriaParkOptions(
+        bearing_offset_rad=0.1,
+        steering_offset_rad=0.0,
+        speed_scale=1.5,
+        detection_time_offset_s=-0.05,
+    )
+    log = load_victoria_park(write_victoria(tmp_path), options=opts)
+    np.testing.assert_allclose(log.timestamps, [0.95, 1.15, 1.35], atol=1e-12)
+    np.testing.assert_allclose(log.odometry[1:], [[0.3, 0.0, 0.0]] * 2, atol=1e-12)
+    np.testing.assert_allclose(
+        log.feat_params[0], [10 * math.cos(0.1), 10 * math.sin(0.1), 0.2], atol=1e-6
+    )
+    assert log.gps_times is not None  # GPS stays on the dead-reckoning clock
+    np.testing.assert_allclose(log.gps_times, [0.0, 1.0, 1.2], atol=1e-9)
+    turning = load_victoria_park(
+        write_victoria(tmp_path), options=dataclasses.replace(RAW_VICTORIA, steering_offset_rad=0.1)
+    )
+    assert turning.odometry[1, 2] > 0.0  # positive steering offset turns left
 
 
 @pytest.mark.parametrize(
