@@ -24,7 +24,10 @@ class EKFConfig:
     gate_prob: float = 0.999
     """χ² gate probability of individual compatibility (observation ↔ map feature)."""
     association: Literal["nn", "jcbb"] = "nn"
-    """Nearest neighbour with individual compatibility, or joint compatibility (JCBB)."""
+    """Nearest neighbour with individual compatibility, or joint compatibility (JCBB).
+    Either way a circle takes at most one observation per scan and a line any number
+    (the segments of one wall split by an occluder): see
+    :func:`ekf_reference.association.exclusive`."""
     line_overlap_gap_m: float = 4.0
     """Two collinear line observations are one wall only if their extents overlap or the
     gap between them is below this (m): SPmap's along-line coordinate at work."""

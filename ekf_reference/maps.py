@@ -70,6 +70,13 @@ class CIContext:
     """(k, 3) global mean of the shared elements when the local map started."""
     A: FloatArray
     """``P_gs P_ss⁺`` over all global dofs (3n × 3k): how global elements follow the shared."""
+    angle_dofs: np.ndarray
+    """Flat indices (into ``3k``) of the shared elements' angles, wrapped in differences."""
+    base_mean: FloatArray
+    """``x^Wlocal_Wglobal`` of the global map (it does not change during a local map)."""
+    base_cond_cov: FloatArray
+    """Its covariance given the shared elements, ``P_bb − A_b P_sb``: constant too, so
+    :func:`vehicle_in_global` does not redo it at every step."""
 
 
 def new_global_map() -> GaussianMap:
@@ -92,29 +99,35 @@ def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | Non
     shared = [global_map.find(Role.ANCHOR), *global_map.indices(Role.KNOWN)]
     Pss = global_map.marginal(shared)
     first = len(loc)
-    for gi in shared:
-        e = global_map.elements[gi]
-        loc.add(
-            Element(
-                e.kind,
-                e.role,
-                moving=e.role == Role.ANCHOR,
-                track=e.track,
-                extent=e.extent,
-                true_id=e.true_id,
-            ),
-            global_map.mean[gi],
-            np.zeros((3, 3)),
+    # Filled in one go: GaussianMap.add reallocates the covariance per element.
+    loc.elements += [
+        Element(
+            e.kind,
+            e.role,
+            moving=e.role == Role.ANCHOR,
+            track=e.track,
+            extent=e.extent,
+            true_id=e.true_id,
         )
-    idx = loc.dofs(range(first, len(loc)))
-    loc.cov[np.ix_(idx, idx)] = Pss
+        for e in (global_map.elements[gi] for gi in shared)
+    ]
+    loc.mean = np.vstack([loc.mean, global_map.mean[shared]])
+    cov = np.zeros((3 * len(loc), 3 * len(loc)))
+    cov[3 * first :, 3 * first :] = Pss
+    loc.cov = cov
     s_dofs = global_map.dofs(shared)
     A = global_map.cov[:, s_dofs] @ np.linalg.pinv(Pss, rcond=1e-10, hermitian=True)
+    gb = global_map.find(Role.BASE)
+    P_sb = global_map.cov[s_dofs, 3 * gb : 3 * gb + 3]
+    kinds = [global_map.elements[i].kind for i in shared]
     ctx = CIContext(
         shared_global=shared,
         shared_local=list(range(first, len(loc))),
         mu_s=global_map.mean[shared].copy(),
         A=A,
+        angle_dofs=_angle_dofs(kinds),
+        base_mean=global_map.mean[gb].copy(),
+        base_cond_cov=global_map.block(gb) - A[3 * gb : 3 * gb + 3] @ P_sb,
     )
     return loc, ctx
 
@@ -129,7 +142,8 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
     dx, dy = m[:, 0] - u[0], m[:, 1] - u[1]
     lx = c * dx + s * dy
     ly = -s * dx + c * dy
-    is_circle = np.array([e.kind == ElementKind.CIRCLE for e in loc.elements], dtype=bool)
+    kinds = loc.kinds_roles()[0]
+    is_circle = kinds == int(ElementKind.CIRCLE)
     n = len(loc)
     Ju = np.zeros((n, 3, 3))
     Ju[:, 0, 0], Ju[:, 0, 1], Ju[:, 0, 2] = -c, -s, ly
@@ -144,7 +158,7 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
     # The rotation keeps a bound line bound (its direction turns with it); only the
     # odometry noise would add along-line variance, so project it out of G instead of
     # re-binding the whole covariance (SPmap binding, see state.py).
-    lines = moving & np.array([e.kind == ElementKind.LINE for e in loc.elements], dtype=bool)
+    lines = moving & (kinds == int(ElementKind.LINE))
     if lines.any():
         ux, uy = np.cos(new[lines, 2]), np.sin(new[lines, 2])
         along = ux[:, None] * Ju[lines, 0, :] + uy[:, None] * Ju[lines, 1, :]
@@ -183,24 +197,26 @@ def vehicle_in_global(
     """
     gb = global_map.find(Role.BASE)
     lb = loc.find(Role.BASE)
-    b = global_map.mean[gb].copy()
-    Pbb = global_map.block(gb).copy()
     Pb_l = np.zeros((3, 3))
-    if ctx is not None:
-        s_L, Js, idx_L = shared_in_global_frame(loc, ctx)
-        d = (s_L - ctx.mu_s).reshape(-1)
-        d = _wrap_diff(d, [global_map.elements[i].kind for i in ctx.shared_global])
+    if ctx is None:
+        b = global_map.mean[gb].copy()
+        Pbb = global_map.block(gb).copy()
+    else:
+        a = ctx.shared_local[0]
+        # shared_in_global_frame without its dense Jacobian: only the anchor's rows mix
+        # elements, so M = A_b Js is assembled from them directly.
+        s_L = loc.mean[ctx.shared_local].copy()
+        s_L[0], Jb, Ja = relative(loc.mean[lb], loc.mean[a])
+        d = _wrap_flat((s_L - ctx.mu_s).reshape(-1), ctx.angle_dofs)
         A_b = ctx.A[3 * gb : 3 * gb + 3]
-        # M = A_b Js without forming Js densely: only the anchor rows of Js mix elements.
-        M = np.zeros((3, 3 * len(idx_L)))
-        M[:, 0:6] = A_b[:, 0:3] @ Js[0:3, 0:6]
+        M = np.zeros((3, 3 * (len(ctx.shared_local) + 1)))
+        M[:, 0:6] = A_b[:, 0:3] @ np.hstack([Jb, Ja])
         M[:, 6:] = A_b[:, 3:]
-        dofs = _leading_dofs(idx_L)
+        dofs = _leading_dofs([lb, *ctx.shared_local])
         P_L = loc.cov[:dofs, :dofs]
-        b = b + A_b @ d
+        b = ctx.base_mean + A_b @ d
         b[2] = float(wrap_angle(b[2]))
-        s_dofs = global_map.dofs(ctx.shared_global)
-        Pbb = Pbb - A_b @ global_map.cov[s_dofs, 3 * gb : 3 * gb + 3] + M @ P_L @ M.T
+        Pbb = ctx.base_cond_cov + M @ P_L @ M.T
         Pb_l = M @ loc.cov[:dofs, 3 * lb : 3 * lb + 3]
     y, J1, J2 = compose_jacobians(loc.mean[lb], b)
     P_joint = np.block([[loc.block(lb), Pb_l.T], [Pb_l, Pbb]])
@@ -218,12 +234,22 @@ def _leading_dofs(idx: list[int]) -> int:
     return 3 * len(idx)
 
 
-def _wrap_diff(d: FloatArray, kinds: Sequence[ElementKind]) -> FloatArray:
+def _angle_dofs(kinds: Sequence[ElementKind]) -> np.ndarray:
+    """Flat indices of the angles among the parameters of elements of ``kinds``."""
+    return np.array(
+        [3 * k + 2 for k, kind in enumerate(kinds) if kind != ElementKind.CIRCLE], dtype=np.int64
+    )
+
+
+def _wrap_flat(d: FloatArray, angle_dofs: np.ndarray) -> FloatArray:
     out = d.copy()
-    for k, kind in enumerate(kinds):
-        if kind != ElementKind.CIRCLE:
-            out[3 * k + 2] = float(wrap_angle(out[3 * k + 2]))
+    out[angle_dofs] = wrap_angle(out[angle_dofs])
     return out
+
+
+def _wrap_diff(d: FloatArray, kinds: Sequence[ElementKind]) -> FloatArray:
+    """Flattened parameter differences of elements of ``kinds``, angles wrapped."""
+    return _wrap_flat(d, _angle_dofs(kinds))
 
 
 def shared_in_global_frame(

@@ -8,7 +8,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ekf_reference.association import Query, apply, evaluate, predict_targets
+from ekf_reference.association import (
+    Candidate,
+    Query,
+    apply,
+    evaluate,
+    individual_candidates,
+    predict_all_targets,
+)
 from ekf_reference.config import EKFConfig
 from ekf_reference.maps import (
     CIContext,
@@ -94,10 +101,7 @@ class _Run:
                     extent=(float(ext[0]), float(ext[1])),
                 )
             )
-        targets = {
-            kind: predict_targets(loc, kind, lambda e: e.moving)
-            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
-        }
+        targets = predict_all_targets(loc, lambda e: e.moving)
         chosen = associate(loc, queries, targets, self.config)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is None:
@@ -109,31 +113,67 @@ class _Run:
                 e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
         apply(loc, [c for c in chosen if c is not None])
+        born: list[int] = []
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is not None:
+                continue
+            # A wall first seen as two segments (a tree in front of it) would otherwise
+            # become two landmarks at once, which later observations then split between
+            # them by best fit: fold the second segment into the first.
+            twin = self._same_step_twin(loc, q, born)
+            if twin is not None:
+                e = loc.elements[twin.target]
+                self.obs_track[j] = e.track
+                e.n_obs += 1
+                e.extent = merge_extent(loc.mean[twin.target], e.extent, q.params, q.extent)
+                apply(loc, [twin])
                 continue
             t = self.tracks.new()
             self.obs_track[j] = t
             cov = bind_line_cov(q.params, q.cov) if q.kind == ElementKind.LINE else q.cov
-            loc.add(
-                Element(
-                    q.kind,
-                    Role.FEATURE,
-                    moving=True,
-                    track=t,
-                    extent=q.extent,
-                    true_id=int(log.feat_true_id[j]),
-                    n_obs=1,
-                    in_local=True,
-                ),
-                q.params,
-                cov,
+            born.append(
+                loc.add(
+                    Element(
+                        q.kind,
+                        Role.FEATURE,
+                        moving=True,
+                        track=t,
+                        extent=q.extent,
+                        true_id=int(log.feat_true_id[j]),
+                        n_obs=1,
+                        in_local=True,
+                    ),
+                    q.params,
+                    cov,
+                )
             )
         if loc.has(Role.ANCHOR):
             # Only features touched at this step can have become pairable with a known
             # feature; the others were tested when last seen (saves ~80 % of the tests).
             seen = {int(t) for t in self.obs_track[sl.start : sl.stop]}
             self.constrain_to_known(loc, lambda e: e.moving and e.track in seen)
+
+    def _same_step_twin(self, loc: GaussianMap, q: Query, born: list[int]) -> Candidate | None:
+        """Best individually compatible line among those created at this step.
+
+        Circles are left alone: one scan sees a circle once, so two compatible circle
+        measurements are two trees.
+        """
+        same = [i for i in born if loc.elements[i].kind == ElementKind.LINE]
+        if q.kind != ElementKind.LINE or not same:
+            return None
+        cfg = self.config
+        cands = individual_candidates(
+            loc,
+            q,
+            same,
+            loc.mean[same],
+            cfg.gate_prob,
+            cfg.prefilter_m,
+            cfg.prefilter_rad,
+            cfg.line_overlap_gap_m,
+        )
+        return cands[0] if cands else None
 
     def constrain_to_known(self, state: GaussianMap, which: Callable[[Element], bool]) -> None:
         """Pair map features with known features (hard constraints) and absorb them."""
@@ -144,10 +184,7 @@ class _Run:
         ]
         if not queries:
             return
-        targets = {
-            kind: predict_targets(state, kind, lambda e: False)
-            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
-        }
+        targets = predict_all_targets(state, lambda e: False)
         chosen = associate(state, queries, targets, self.config)
         pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         if not pairs:
@@ -178,10 +215,7 @@ class _Run:
             for i, e in enumerate(joint.elements)
             if e.role == Role.FEATURE and e.in_local
         ]
-        targets = {
-            kind: predict_targets(joint, kind, lambda e: not e.in_local)
-            for kind in (ElementKind.LINE, ElementKind.CIRCLE)
-        }
+        targets = predict_all_targets(joint, lambda e: not e.in_local)
         chosen = associate(joint, queries, targets, self.config)
         pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         apply(joint, [c for _, c in pairs])

@@ -89,6 +89,24 @@ class GaussianMap:
         self.mean: FloatArray = np.zeros((0, 3))
         self.cov: FloatArray = np.zeros((0, 0))
         self.elements: list[Element] = []
+        self._kr: tuple[list[Element], int, np.ndarray, np.ndarray] | None = None
+
+    def kinds_roles(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n,) int arrays of the elements' kinds and roles (read-only, cached).
+
+        Asked for several times a step; an element's kind and role never change, and
+        the element list only grows or is replaced, so the cache is keyed on the list
+        object (held, so its identity cannot be reused) and its length.
+        """
+        kr = self._kr
+        if kr is None or kr[0] is not self.elements or kr[1] != len(self.elements):
+            n = len(self.elements)
+            kinds = np.fromiter((e.kind for e in self.elements), dtype=np.int64, count=n)
+            roles = np.fromiter((e.role for e in self.elements), dtype=np.int64, count=n)
+            kinds.setflags(write=False)
+            roles.setflags(write=False)
+            kr = self._kr = (self.elements, n, kinds, roles)
+        return kr[2], kr[3]
 
     # ------------------------------------------------------------------ structure
 
@@ -154,30 +172,33 @@ class GaussianMap:
 
     def find(self, role: Role) -> int:
         """Index of the (single) element with ``role``; raises if absent."""
-        for i, e in enumerate(self.elements):
-            if e.role == role:
-                return i
-        raise KeyError(f"no {role.name} element in the map")
+        hits = np.flatnonzero(self.kinds_roles()[1] == int(role))
+        if hits.size == 0:
+            raise KeyError(f"no {role.name} element in the map")
+        return int(hits[0])
 
     def has(self, role: Role) -> bool:
         """Whether an element with ``role`` exists."""
-        return any(e.role == role for e in self.elements)
+        return bool((self.kinds_roles()[1] == int(role)).any())
 
     def indices(self, role: Role) -> list[int]:
         """Indices of the elements with ``role``."""
-        return [i for i, e in enumerate(self.elements) if e.role == role]
+        out: list[int] = np.flatnonzero(self.kinds_roles()[1] == int(role)).tolist()
+        return out
 
     # ------------------------------------------------------------------ operations
 
     def wrap(self) -> None:
         """Wrap the angles of poses and lines to ``(−π, π]``."""
-        ang = np.array([e.kind != ElementKind.CIRCLE for e in self.elements], dtype=bool)
+        ang = self.kinds_roles()[0] != int(ElementKind.CIRCLE)
         if ang.any():
             self.mean[ang, 2] = wrap_angle(self.mean[ang, 2])
 
     def symmetrise(self) -> None:
         """Remove round-off asymmetry of the covariance."""
-        self.cov = 0.5 * (self.cov + self.cov.T)
+        # In place (numpy buffers the overlapping transpose): this runs twice a step.
+        self.cov += self.cov.T
+        self.cov *= 0.5
 
     def apply_linear(self, blocks: FloatArray, mask: np.ndarray) -> None:
         """``P ← F P Fᵀ`` for block-diagonal ``F`` with ``blocks[i]`` where ``mask[i]``, else I."""
@@ -193,7 +214,7 @@ class GaussianMap:
 
     def bind_lines(self) -> None:
         """Project the along-line degree of freedom of every line out of the covariance."""
-        lines = np.array([e.kind == ElementKind.LINE for e in self.elements], dtype=bool)
+        lines = self.kinds_roles()[0] == int(ElementKind.LINE)
         if not lines.any():
             return
         th = self.mean[:, 2]

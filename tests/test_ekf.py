@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from ekf_reference.maps import predict
+from ekf_reference.association import Query, predict_all_targets
+from ekf_reference.maps import associate, predict
 from ekf_reference.pipeline import _Run
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
-from mapfuse_core.features import FeatureKind, observe, transform_feature
+from mapfuse_core.features import FeatureKind, canonical_line, observe, transform_feature
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError
 from mapfuse_core.se2 import compose_jacobians, wrap_angle
 from tests.synthetic import ring_world, synthetic_log
@@ -112,8 +114,6 @@ def test_robotcentric_local_map_agrees_with_absolute_ekf() -> None:
 
 
 def test_prediction_moves_features_by_the_inverse_increment() -> None:
-    from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-
     m = GaussianMap()
     m.add(Element(ElementKind.POSE, Role.BASE, True, -1), np.zeros(3), np.zeros((3, 3)))
     m.add(
@@ -216,3 +216,71 @@ def test_jcbb_gives_same_associations_on_clean_data() -> None:
     nn = run_ekf(log, EKFConfig(fusion=False, association="nn"))
     jc = run_ekf(log, EKFConfig(fusion=False, association="jcbb"))
     np.testing.assert_allclose(nn.poses, jc.poses, atol=1e-9)
+
+
+def _segment(
+    x0: float, x1: float, y: float, s_lat: float, s_th: float
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """A wall segment along ``y = const`` in the sensor frame: SPmap params, cov, extent."""
+    line = canonical_line(np.array([0.5 * (x0 + x1), y, 0.0]))
+    c, s = math.cos(line[2]), math.sin(line[2])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    half = 0.5 * (x1 - x0)
+    cov = R @ np.diag([(x1 - x0) ** 2 / 12.0, s_lat**2, s_th**2]) @ R.T
+    return line, cov, (-half, half)
+
+
+def test_two_segments_of_one_wall_in_one_scan_make_one_landmark() -> None:
+    # A wall behind a tree: one scan sees it as two collinear segments.  Both are
+    # observations of one line; a second landmark would split later observations
+    # between the two by best fit.
+    base = synthetic_log(steps=2, seed=3)
+    segs = [_segment(2.0, 6.0, 5.0, 0.01, 0.002), _segment(8.0, 12.0, 5.0, 0.01, 0.002)]
+    log = dataclasses.replace(
+        base,
+        feat_step=np.zeros(2, dtype=np.int64),
+        feat_kind=np.full(2, int(FeatureKind.LINE), dtype=np.int8),
+        feat_params=np.array([p for p, _, _ in segs]),
+        feat_cov=np.array([c for _, c, _ in segs]),
+        feat_true_id=np.full(2, 7, dtype=np.int64),
+        feat_n_points=np.full(2, 20, dtype=np.int64),
+        feat_extent=np.array([e for _, _, e in segs]),
+    )
+    run = _Run(log, EKFConfig(fusion=False))
+    run.observe(0)
+    lines = [e for e in run.local.elements if e.kind == ElementKind.LINE]
+    assert len(lines) == 1
+    assert lines[0].n_obs == 2
+    assert lines[0].extent[1] - lines[0].extent[0] == pytest.approx(10.0, abs=1e-6)
+    assert run.obs_track[0] == run.obs_track[1]
+
+
+def test_line_landmarks_take_several_observations_circles_one() -> None:
+    m = GaussianMap()
+    m.add(Element(ElementKind.POSE, Role.BASE, True, -1), np.zeros(3), np.zeros((3, 3)))
+    line, cov, ext = _segment(0.0, 14.0, 5.0, 0.01, 0.002)
+    m.add(Element(ElementKind.LINE, Role.FEATURE, True, 0, extent=ext), line, cov)
+    m.add(
+        Element(ElementKind.CIRCLE, Role.FEATURE, True, 1),
+        np.array([10.0, -3.0, 0.3]),
+        np.eye(3) * 1e-4,
+    )
+    queries = []
+    for x0, x1 in ((1.0, 5.0), (9.0, 13.0)):
+        p, c, e = _segment(x0, x1, 5.0, 0.01, 0.002)
+        # The segments' extents relative to their own midpoints, as extraction gives.
+        queries.append(Query(ElementKind.LINE, p, c, e))
+    for dx in (0.0, 0.01):
+        queries.append(
+            Query(
+                ElementKind.CIRCLE,
+                np.array([10.0 + dx, -3.0, 0.3]),
+                np.eye(3) * 1e-4,
+                (math.nan, math.nan),
+            )
+        )
+    chosen = associate(m, queries, predict_all_targets(m, lambda e: True), EKFConfig())
+    assert [c.target if c is not None else None for c in chosen[:2]] == [1, 1]
+    circle_hits = [c for c in chosen[2:] if c is not None]
+    assert len(circle_hits) == 1
+    assert circle_hits[0].target == 2
