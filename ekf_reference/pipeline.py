@@ -196,7 +196,23 @@ class _Run:
 
     # ------------------------------------------------------------------ join
 
+    def drop_rare_local_features(self) -> None:
+        """Marginalise out local features seen fewer than ``min_obs_to_join`` times."""
+        loc = self.local
+        drop = [
+            i
+            for i, e in enumerate(loc.elements)
+            if e.role == Role.FEATURE and e.in_local and e.n_obs < self.config.min_obs_to_join
+        ]
+        if not drop:
+            return
+        tracks = np.array([loc.elements[i].track for i in drop], dtype=np.int64)
+        self.obs_track[np.isin(self.obs_track, tracks)] = -1
+        loc.remove(drop)
+
     def join(self, k: int) -> None:
+        if self.config.min_obs_to_join > 1:
+            self.drop_rare_local_features()
         g, loc, ctx = self.global_map, self.local, self.ctx
         joint = self._stack(g, loc, ctx)
         n_g = len(g) if ctx is None else len(g) - len(ctx.shared_global)

@@ -284,3 +284,21 @@ def test_line_landmarks_take_several_observations_circles_one() -> None:
     circle_hits = [c for c in chosen[2:] if c is not None]
     assert len(circle_hits) == 1
     assert circle_hits[0].target == 2
+
+
+def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
+    log = synthetic_log(steps=160, seed=5)
+    base = run_ekf(log, EKFConfig(fusion=False))
+    res = run_ekf(log, EKFConfig(fusion=False, min_obs_to_join=3))
+    # Measured: 6 observations (of local features seen once or twice) are dropped here;
+    # every other observation keeps a landmark, and the dropped ones take no map entry.
+    dropped = res.obs_landmark < 0
+    assert np.sum(base.obs_landmark < 0) == 0
+    assert 0 < dropped.sum() < 20
+    assert len(res.global_map.kinds) <= len(base.global_map.kinds)
+    # The filter still works: the poses stay close to the run that kept everything.
+    assert np.max(np.abs(res.poses[:, :2] - base.poses[:, :2])) < 0.05
+    same = run_ekf(log, EKFConfig(fusion=False, min_obs_to_join=1))
+    np.testing.assert_array_equal(same.poses, base.poses)
+    with pytest.raises(ValueError, match="min_obs_to_join"):
+        EKFConfig(min_obs_to_join=0)
