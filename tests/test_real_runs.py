@@ -6,6 +6,7 @@ quoted in comments are those of the shared copies with default options.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -13,7 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ekf_reference import EKFConfig
 from mapfuse_core.datasets import (
+    VICTORIA_PARK_NAME,
     CarGeometry,
     OdometryNoise,
     integrate_odometry,
@@ -24,7 +27,8 @@ from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.cli import main
 from mapfuse_graph.compare import Comparison, compare, write_comparison
 from mapfuse_graph.figures import gps_errors
-from mapfuse_graph.runner import run_backend
+from mapfuse_graph.runner import default_ekf_config, default_isam2_options, run_backend
+from tests.synthetic import synthetic_log
 
 pytestmark = pytest.mark.slow
 
@@ -158,3 +162,14 @@ def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: Measure
     late = (t >= 300.0) & (t <= 450.0)
     assert late.sum() > 100
     assert np.median(e[late]) < 3.0
+
+
+def test_dataset_specific_defaults() -> None:
+    log = synthetic_log(40, 1)
+    vp = dataclasses.replace(log, scenario=VICTORIA_PARK_NAME)
+    assert default_ekf_config(log, True) == EKFConfig(fusion=True)
+    assert default_ekf_config(vp, False) == EKFConfig(
+        fusion=False, local_map_steps=200, min_obs_to_join=2
+    )
+    assert default_isam2_options(log).relinearize_skip == 1
+    assert default_isam2_options(vp).relinearize_skip == 10
