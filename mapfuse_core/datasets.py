@@ -50,7 +50,14 @@ import scipy.io
 
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.se2 import FloatArray, compose, compose_jacobians, inverse, wrap_scalar
+from mapfuse_core.se2 import (
+    FloatArray,
+    compose,
+    compose_jacobians,
+    inverse,
+    transform_point,
+    wrap_scalar,
+)
 from mapfuse_core.vehicle import car_increment
 
 __all__ = [
@@ -727,9 +734,7 @@ def gps_reference_labels(
         return labels
     for i, (k, f) in enumerate(zip(feat_step.tolist(), feat_xy, strict=True)):
         T = fits[have[np.argmin(np.abs(have - k))]]
-        x = compose(T, dr[k])
-        c, s_ = math.cos(x[2]), math.sin(x[2])
-        w = x[:2] + np.array([c * f[0] - s_ * f[1], s_ * f[0] + c * f[1]])
+        w = transform_point(compose(T, dr[k]), f)
         d = np.hypot(beacons[:, 0] - w[0], beacons[:, 1] - w[1])
         order = np.argsort(d)
         if d[order[0]] < gate_m and (d.size == 1 or d[order[1]] >= 2.0 * gate_m):

@@ -15,7 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.se2 import FloatArray, compose, inverse, wrap_angle
+from mapfuse_core.se2 import FloatArray, compose, inverse, transform_point, wrap_angle
 
 __all__ = [
     "CHI2_3_95",
@@ -24,6 +24,7 @@ __all__ = [
     "anchor_metrics",
     "anchor_truth",
     "build_metrics",
+    "gps_error_series",
     "gps_position_metrics",
     "integrated_autocorrelation_time",
     "interpolate_positions",
@@ -228,6 +229,30 @@ def rigid_alignment(src: FloatArray, dst: FloatArray) -> FloatArray:
     return np.array([t[0], t[1], theta])
 
 
+def _gps_pairs(
+    timestamps: FloatArray, poses: FloatArray, gps_times: FloatArray, gps_xy: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(times, estimated positions, GPS positions)`` at the finite fixes inside the run."""
+    xy, inside = interpolate_positions(timestamps, poses, gps_times)
+    ref = np.asarray(gps_xy, dtype=float)[inside]
+    keep = np.all(np.isfinite(ref), axis=1)
+    return np.asarray(gps_times, dtype=float)[inside][keep], xy[inside][keep], ref[keep]
+
+
+def gps_error_series(
+    timestamps: FloatArray,
+    poses: FloatArray,
+    gps_times: FloatArray,
+    gps_xy: FloatArray,
+    x_gps_Wglobal: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """``(times, position errors)`` at the GPS fixes inside the run, the estimate put in
+    the GPS frame through ``x_gps_Wglobal`` (e.g. the ``x_gps_Wglobal`` of the metrics)."""
+    t, est, ref = _gps_pairs(timestamps, poses, gps_times, gps_xy)
+    T = np.asarray(x_gps_Wglobal, dtype=float)
+    return t, np.hypot(*(transform_point(T, est) - ref).T)
+
+
 def gps_position_metrics(
     timestamps: FloatArray,
     poses: FloatArray,
@@ -245,19 +270,14 @@ def gps_position_metrics(
     block says which one was used).  ``None`` when fewer than two fixes fall inside the
     run.
     """
-    xy, inside = interpolate_positions(timestamps, poses, gps_times)
-    est, ref = xy[inside], np.asarray(gps_xy, dtype=float)[inside]
-    finite = np.all(np.isfinite(ref), axis=1)
-    est, ref = est[finite], ref[finite]
+    _, est, ref = _gps_pairs(timestamps, poses, gps_times, gps_xy)
     if est.shape[0] < 2:
         return None
     if x_ref_Wglobal is None:
         T, alignment = rigid_alignment(est, ref), "best_fit"
     else:
         T, alignment = np.asarray(x_ref_Wglobal, dtype=float), "anchor"
-    c, s = math.cos(T[2]), math.sin(T[2])
-    mapped = est @ np.array([[c, s], [-s, c]]) + T[:2]
-    out: dict[str, Any] = summary_stats(np.hypot(*(mapped - ref).T))
+    out: dict[str, Any] = summary_stats(np.hypot(*(transform_point(T, est) - ref).T))
     out.update(
         {
             "reference": "gps",

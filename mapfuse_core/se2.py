@@ -156,9 +156,14 @@ def relative(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, Floa
 
 
 def transform_point(a: FloatArray, p: FloatArray) -> FloatArray:
-    """Point ``p`` given in frame ``a``, expressed in the frame ``a`` is given in."""
+    """Point ``p`` given in frame ``a``, expressed in the frame ``a`` is given in.
+
+    ``p`` may also be an ``(M, 2)`` array of points, all moved at once.
+    """
     c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * p[0] - s * p[1], a[1] + s * p[0] + c * p[1]])
+    q = np.asarray(p, dtype=float)
+    x, y = q[..., 0], q[..., 1]
+    return np.stack((a[0] + c * x - s * y, a[1] + s * x + c * y), axis=-1)
 
 
 def transform_point_jacobians(

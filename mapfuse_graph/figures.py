@@ -19,7 +19,7 @@ import numpy as np
 
 from mapfuse_core.evaluation import (
     CHI2_3_95,
-    interpolate_positions,
+    gps_error_series,
     nees_series,
     pose_errors,
     truth_in_global,
@@ -350,10 +350,7 @@ def gps_errors(run: RunOutput) -> tuple[FloatArray, FloatArray]:
     gps = run.log.gps
     if T is None or gps is None:
         raise ValueError(f"run {run_label(run)!r} has no GPS-based position errors")
-    xy, inside = interpolate_positions(run.timestamps, run.poses, gps[0])
-    c, s = math.cos(T[2]), math.sin(T[2])
-    mapped = xy[inside] @ np.array([[c, s], [-s, c]]) + T[:2]
-    return gps[0][inside], np.hypot(*(mapped - gps[1][inside]).T)
+    return gps_error_series(run.timestamps, run.poses, *gps, T)
 
 
 def gps_error_figure(runs: Sequence[RunOutput]) -> Figure:

@@ -119,3 +119,13 @@ def test_scalar_wraps_match_vectorised(a: float) -> None:
     assert se2.wrap_scalar_half(a) == pytest.approx(float(se2.wrap_angle_half(a)), abs=1e-12)
     for edge in (math.pi, -math.pi, 3 * math.pi):
         assert se2.wrap_scalar(edge) == pytest.approx(math.pi)
+
+
+def test_transform_point_moves_many_points_like_one() -> None:
+    a = np.array([1.0, -2.0, 2.5])
+    pts = np.random.default_rng(4).uniform(-10.0, 10.0, (7, 2))
+    many = se2.transform_point(a, pts)
+    assert many.shape == (7, 2)
+    for p, q in zip(pts, many, strict=True):
+        np.testing.assert_allclose(q, se2.transform_point(a, p), atol=1e-15)
+    np.testing.assert_allclose(many, [se2.compose(a, [*p, 0.0])[:2] for p in pts], atol=1e-12)
