@@ -209,6 +209,26 @@ def _label(m: Mapping[str, Any]) -> str:
     return f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion"
 
 
+def _run_name(m: Mapping[str, Any]) -> str:
+    """Label of a row, marking smoothed estimates."""
+    return f"{_label(m)}{' (smoothed)' if m.get('estimate') == 'smoothed' else ''}"
+
+
+def _map_and_runtime(m: Mapping[str, Any]) -> list[str]:
+    """The map-size and run-time cells every table ends with."""
+    mp, rt = m["map"], m["runtime_s"]
+    return [
+        f"{mp['features']} ({mp['matched_known']})",
+        f"{_num(rt['total'], 2)} ({_num(rt['per_step_p50'], 2, 1e3)})",
+    ]
+
+
+def _figure_list(figures: Sequence[str]) -> list[str]:
+    if not figures:
+        return []
+    return ["", "Figures:", ""] + [f"- [`{n}`]({n}): {FIGURE_FILES.get(n, '')}" for n in figures]
+
+
 def _row(cells: Sequence[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
@@ -221,8 +241,7 @@ def _metric_row(m: Mapping[str, Any], has_truth: bool) -> list[str]:
         m.get("anchor"),
     )
     no = "no truth"
-    estimate = " (smoothed)" if m.get("estimate") == "smoothed" else ""
-    cells = [f"{_label(m)}{estimate}"]
+    cells = [_run_name(m)]
     if has_truth and pos is not None and head is not None and nees is not None:
         cells += [
             _num(pos["rmse"]),
@@ -242,10 +261,7 @@ def _metric_row(m: Mapping[str, Any], has_truth: bool) -> list[str]:
             f"{_num(anchor['position_error_m'])}, {_num(anchor['heading_error_rad'], 2, 1e3)}"
             f" ({anchor['correct_pairings']}/{anchor['pairings']} pairings correct)"
         )
-    mp, rt = m["map"], m["runtime_s"]
-    cells.append(f"{mp['features']} ({mp['matched_known']})")
-    cells.append(f"{_num(rt['total'], 2)} ({_num(rt['per_step_p50'], 2, 1e3)})")
-    return cells
+    return cells + _map_and_runtime(m)
 
 
 def _filtered_row(m: Mapping[str, Any]) -> list[str] | None:
@@ -267,8 +283,7 @@ def _filtered_row(m: Mapping[str, Any]) -> list[str] | None:
 
 def _gps_row(m: Mapping[str, Any]) -> list[str]:
     pos, anchor = m["position_error_m"], m.get("anchor")
-    estimate = " (smoothed)" if m.get("estimate") == "smoothed" else ""
-    cells = [f"{_label(m)}{estimate}", str(pos["alignment"]).replace("_", " ")]
+    cells = [_run_name(m), str(pos["alignment"]).replace("_", " ")]
     cells += [_num(pos[k]) for k in ("median", "rmse", "max", "final")]
     filtered = m.get("position_error_filtered_m")
     cells.append(_num(filtered["median"]) if isinstance(filtered, dict) else "")
@@ -279,10 +294,7 @@ def _gps_row(m: Mapping[str, Any]) -> list[str]:
             f"step {anchor['accepted_at_step']}: "
             f"{anchor['correct_pairings']}/{anchor['pairings']} correct"
         )
-    mp, rt = m["map"], m["runtime_s"]
-    cells.append(f"{mp['features']} ({mp['matched_known']})")
-    cells.append(f"{_num(rt['total'], 2)} ({_num(rt['per_step_p50'], 2, 1e3)})")
-    return cells
+    return cells + _map_and_runtime(m)
 
 
 def _gps_table(comparison: Comparison) -> list[str]:
@@ -377,10 +389,7 @@ def report_markdown(
             "NEES cannot be computed.",
             "",
         ]
-        lines += _gps_table(comparison)
-        if figures:
-            lines += ["", "Figures:", ""]
-            lines += [f"- [`{n}`]({n}): {FIGURE_FILES.get(n, '')}" for n in figures]
+        lines += _gps_table(comparison) + _figure_list(figures)
         return "\n".join(lines) + "\n"
     if not truth:
         lines += [
@@ -436,10 +445,7 @@ def report_markdown(
             f"- The paper's numbers are for its 600 m loop (our `loop600`); this log is "
             f"`{log.scenario}`, so they are only a scale reference here."
         )
-    if figures:
-        lines += ["", "Figures:", ""]
-        for name in figures:
-            lines.append(f"- [`{name}`]({name}): {FIGURE_FILES.get(name, '')}")
+    lines += _figure_list(figures)
     return "\n".join(lines) + "\n"
 
 
