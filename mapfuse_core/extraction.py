@@ -47,6 +47,14 @@ does not describe, with rules computable without the truth:
   come from the other wall and are dropped from both segments; end returns of a line
   with a normalised residual above ``end_outlier_sigma`` are peeled off (a corner
   too close to a cluster end for the split to see);
+* a cluster end next to a *nearer* return (an occluder, e.g. a trunk in front of a
+  building) may hide a corner: the adjoining wall can show as a stub of one or two
+  returns, too short for the split, and a ray cast near the hidden corner can cross
+  it, so its range comes from the other wall.  Line fits drop the returns within
+  ``corner_margin_sigma · σβ`` of such an end (``occluded_end_margin``).  On loop600
+  the farthest wall of a building behind a tree had a mean angle error of −0.53 σ
+  over fixed-pose scans (variance 1.42 instead of 1); with the margin, −0.05 σ and
+  1.01;
 * the outermost return of a cluster was kept *because* its perturbed ray still hit
   the feature, which conditions its bearing error (``end_trim``);
 * grazing returns are dropped (incidence above ``max_line_incidence_rad`` /
@@ -120,6 +128,11 @@ class ExtractionParams:
     and the line refitted (it likely lies on the wall round an unseen corner)."""
     max_end_outliers: int = 3
     """At most this many returns are peeled off each end of a line that way."""
+    occluded_end_margin: bool = True
+    """Whether line fits drop the returns within ``corner_margin_sigma · σβ`` of a
+    cluster end whose neighbouring return is nearer (a possibly hidden corner; see the
+    module docstring).  Decided from ranges and bearings alone, so it selects no noise
+    realisation."""
     min_circle_points: int = 5
     """Minimum number of central (non-grazing) points a circle is fitted to."""
     circle_radius_min_m: float = 0.05
@@ -155,7 +168,11 @@ class ExtractionParams:
     still gives finite weights; far below any real noise."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.occluded_end_margin, bool):
+            raise ValueError("ExtractionParams.occluded_end_margin must be a bool")
         for name, value in self.__dict__.items():
+            if name == "occluded_end_margin":
+                continue
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"ExtractionParams.{name} must be a number, got {value!r}")
             if not math.isfinite(value):
@@ -908,6 +925,23 @@ def _segment(scan: Scan, laser: LaserParams, params: ExtractionParams) -> list[n
     return np.split(idx, np.flatnonzero(breaks) + 1)
 
 
+def _outside_occluded_ends(
+    scan: Scan, b: FloatArray, ends: list[tuple[int, int]], margin: float
+) -> np.ndarray:
+    """Mask of the returns at bearings ``b`` farther than ``margin`` in bearing from
+    every occluded cluster end.
+
+    ``ends`` pairs the beam index of each outermost return of the cluster (before
+    ``end_trim``) with that of the beam just beyond it; the end is occluded when that
+    beam's return is nearer.
+    """
+    keep = np.ones(b.size, dtype=bool)
+    for end, beyond in ends:
+        if scan.ranges[beyond] < scan.ranges[end]:
+            keep &= np.abs(b - scan.bearings[end]) > margin
+    return keep
+
+
 def extract_features(
     scan: Scan, laser: LaserParams, params: ExtractionParams = ExtractionParams()
 ) -> ExtractionResult:
@@ -938,6 +972,8 @@ def extract_features(
     rejected: Counter[str] = Counter()
     features: list[ExtractedFeature] = []
     min_pts = min(params.min_line_points, params.min_circle_points)
+    # Round-off in the bearings must not decide whether a beam is inside the margin.
+    end_margin = params.corner_margin_sigma * laser.sigma_bearing_rad * (1.0 + 1e-9)
     n_beams = scan.bearings.size
     for cl in _segment(scan, laser, params):
         # Most clusters are a few returns (far trunks, wall slivers): reject them first.
@@ -946,7 +982,8 @@ def extract_features(
             continue
         span_b = (float(scan.bearings[cl[0]]), float(scan.bearings[cl[-1]]))
         at_fov_edge = bool(cl[0] == 0 or cl[-1] == n_beams - 1)
-        beside = np.array([j for j in (cl[0] - 1, cl[-1] + 1) if 0 <= j < n_beams], dtype=int)
+        ends = [(e, j) for e, j in ((cl[0], cl[0] - 1), (cl[-1], cl[-1] + 1)) if 0 <= j < n_beams]
+        beside = np.array([j for _, j in ends], dtype=int)
         outside = (scan.ranges[beside], scan.bearings[beside])
         if params.end_trim:
             cl = cl[params.end_trim : cl.size - params.end_trim]
@@ -977,5 +1014,9 @@ def extract_features(
         if float(np.hypot(*np.ptp(P, axis=0))) < params.min_line_length_m:
             rejected["too_short"] += 1
             continue
+        if params.occluded_end_margin:
+            keep = _outside_occluded_ends(scan, b, ends, end_margin)
+            if not keep.all():
+                P, r, b, ids = P[keep], r[keep], b[keep], ids[keep]
         features.extend(_lines_from_cluster(P, r, b, ids, noise, laser, params, rejected))
     return ExtractionResult(features=tuple(features), rejected=dict(sorted(rejected.items())))

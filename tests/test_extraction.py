@@ -302,6 +302,7 @@ def test_circle_cut_by_the_field_of_view_is_not_a_circle() -> None:
         ({"sigma_floor_m": 0.0}, "sigma_floor_m must be > 0"),
         ({"split_tol_sigma": math.nan}, "split_tol_sigma must be finite"),
         ({"min_circle_snr": "5"}, "min_circle_snr must be a number"),
+        ({"occluded_end_margin": 1}, "occluded_end_margin must be a bool"),
     ],
 )
 def test_bad_extraction_params_raise(kwargs: dict[str, object], message: str) -> None:
