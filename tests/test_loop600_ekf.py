@@ -3,6 +3,11 @@
 Where the EKF does not yet meet the issue's figure on a seed, the case is marked
 ``xfail`` with the measured value, so the gap stays visible in every test run (and
 an improvement shows up as XPASS).  Issue 3 stays open until none is left.
+
+The extracted features are unbiased (``tests/test_extraction_consistency.py``) and the
+odometry is white with its stated covariance, so what is left is the filter: with
+every input redrawn exactly from its logged Gaussian the EKF still has a mean NEES of
+2.6–4.8 over draws on one trajectory, and falls below 90 % within on some draws.
 """
 
 from __future__ import annotations
@@ -44,7 +49,7 @@ def test_ccda_accepts_only_correct_pairings(seed: int) -> None:
             # Seed 1's known map is off by 5.7 cm as a whole: aligning the *true* map to
             # it by weighted least squares (all 63 features) leaves 5.7 cm (NEES 16 on
             # 3 dof), so no estimator can do better from this draw of the survey noise.
-            1: "anchor error 5.6 cm (the known-map draw itself is 5.7 cm off)",
+            1: "anchor error 5.9 cm (the known-map draw itself is 5.7 cm off)",
         }
     ),
 )
@@ -56,7 +61,7 @@ def test_anchor_accuracy(seed: int) -> None:
 
 
 @pytest.mark.parametrize(
-    "seed", _seeds({2: "max error 0.160 m", 4: "max error 0.177 m (anchor 1.5 mrad off)"})
+    "seed", _seeds({2: "max error 0.158 m", 4: "max error 0.178 m (anchor 1.5 mrad off)"})
 )
 def test_fusion_bounds_the_error(seed: int) -> None:
     m = ekf_metrics(loop600_ekf(seed, True), loop600_log(seed))
@@ -70,7 +75,7 @@ def test_fusion_bounds_the_error(seed: int) -> None:
         pytest.param(s, f, marks=pytest.mark.xfail(reason=why, strict=False))
         if (
             why := {
-                (4, True): "86 % within (anchor heading 1.5 mrad, 2.5 σ, off)",
+                (4, True): "85 % within (anchor heading 1.5 mrad, 2.5 σ, off)",
             }.get((s, f))
         )
         else (s, f)
