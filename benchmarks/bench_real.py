@@ -1,7 +1,9 @@
 """Wall time and GPS error of the backends on the real datasets (prints JSON).
 
 Targets (issue 6): on Victoria Park, the EKF and iSAM2 each finish the whole 26-minute
-run in ≤ 180 s on the 2-core project machine.  The car park is timed too (every
+run in ≤ 180 s on the 2-core project machine (for iSAM2, ``graph_wall_s``: the graph
+alone, without the EKF run whose decisions it consumes).  Wall times depend on what
+else runs on the machine; ``*_cpu_s`` are this process's CPU time.  The car park is timed too (every
 backend, with and without fusion).  ``--data DIR`` is the real-data directory
 (``../shared/data`` by default); ``--steps N`` runs only the first N steps.
 """
@@ -26,6 +28,7 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
     t0 = time.perf_counter()
     c0 = time.process_time()
     ekf = run_ekf(log, default_ekf_config(log, fusion)) if backend != "ekf" else None
+    t1, c1 = time.perf_counter(), time.process_time()
     run = run_backend(log, backend, fusion=fusion, ekf_result=ekf)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     m = run.metrics
@@ -38,6 +41,7 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
         "wall_time_s": round(wall, 2),
         "cpu_time_s": round(cpu, 2),
         "backend_runtime_s": round(m["runtime_s"]["total"], 2),
+        "per_step_p50_ms": round(1e3 * m["runtime_s"]["per_step_p50"], 2),
         "per_step_p99_ms": round(1e3 * m["runtime_s"]["per_step_p99"], 2),
         "gps_median_m": round(pos.get("median", float("nan")), 3),
         "gps_rmse_m": round(pos.get("rmse", float("nan")), 3),
@@ -45,8 +49,16 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
         "map_features": m["map"]["features"],
     }
     if backend != "ekf":
-        # The graph consumed the EKF's decisions: its own time excludes the EKF's.
+        # The graph consumed the EKF's decisions: wall/cpu include the EKF run, the
+        # graph_* fields do not (they are what the ≤ 180 s target is about).
         row["includes_ekf_for_associations"] = True
+        row["ekf_wall_s"] = round(t1 - t0, 2)
+        row["ekf_cpu_s"] = round(c1 - c0, 2)
+        g = run.graph
+        assert g is not None
+        row["graph_wall_s"] = round(g.total_time_s, 2)
+        row["graph_cpu_s"] = round(g.total_cpu_s, 2)
+        row["graph_marginals_s"] = round(g.marginals_time_s, 2)
     return row
 
 

@@ -33,7 +33,9 @@ Factors
 * :func:`line_factor` (pose, line): ``observe(LINE, z, X, L)`` with the landmark's
   SPmap origin placed at the foot of the observed segment's midpoint on the
   landmark line (see :func:`line_observation_error`).
-* :func:`circle_factor` (pose, circle): ``observe(CIRCLE, z, X, C)``.
+* :func:`circle_factor` (pose, circle): ``observe(CIRCLE, z, X, C)``;
+  :func:`circle_centre_factor` (pose, centre) its first two rows, for a circle held as
+  a centre and a separate radius variable (``GraphOptions.split_circles``).
 * :func:`line_tie_factor`, :func:`circle_tie_factor` (anchor, landmark, known): the
   graph form of the paper's eq. 20, ``pairing(L, A ⊕ K) = 0``.
 
@@ -93,6 +95,7 @@ from mapfuse_core.se2 import FloatArray, wrap_scalar, wrap_scalar_half
 
 __all__ = [
     "JacobianShapeError",
+    "circle_centre_factor",
     "circle_factor",
     "circle_observation_error",
     "circle_tie_error",
@@ -563,6 +566,43 @@ def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
     return cb
 
 
+def _circle_centre_cb(z: FloatArray) -> Callable[..., FloatArray]:
+    """Callback of :func:`circle_centre_factor`: the first two rows of :func:`_circle_cb`
+    (the radius residual and its column are not there)."""
+    zx, zy = float(z[0]), float(z[1])
+    # Refilled on every call, as in _line_cb.
+    Jx = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    Jc = np.zeros((2, 2))
+
+    def cb(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = this.keys()
+        p = values.atPose2(keys[0])
+        x, y, th = p.x(), p.y(), p.theta()
+        cx, cy = values.atVector(keys[1]).tolist()
+        c, s = math.cos(th), math.sin(th)
+        dx, dy = cx - x, cy - y
+        lx = c * dx + s * dy
+        ly = -s * dx + c * dy
+        r = np.array([lx - zx, ly - zy])
+        if H is None:
+            return r
+        Jx[0, 2] = ly
+        Jx[1, 2] = -lx
+        Jc[0, 0] = c
+        Jc[0, 1] = s
+        Jc[1, 0] = -s
+        Jc[1, 1] = c
+        if _Checks.enabled:
+            _check("circle centre factor", r, (Jx, Jc), (3, 2))
+        H[0] = Jx
+        H[1] = Jc
+        return r
+
+    return cb
+
+
 def _as_measurement(z: FloatArray, name: str) -> FloatArray:
     arr = np.array(z, dtype=np.float64)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
@@ -594,6 +634,20 @@ def circle_factor(
     if noise.dim() != 3:
         raise ValueError(f"circle factor needs a 3-dim noise model, got {noise.dim()}")
     return gtsam.CustomFactor(noise, [pose_key, circle_key], _circle_cb(zz))
+
+
+def circle_centre_factor(
+    pose_key: int, centre_key: int, z: FloatArray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """Centre part of a circle observation, on (Pose2 ``pose_key``, centre ``(x, y)``
+    ``centre_key``): the first two rows of :func:`circle_observation_error` (the circle's
+    radius is then a separate variable, see ``GraphOptions.split_circles``).  ``z`` is the
+    whole observed circle; ``noise`` a 2-dim model of the centre block of its covariance.
+    """
+    zz = _as_measurement(z, "circle centre factor")
+    if noise.dim() != 2:
+        raise ValueError(f"circle centre factor needs a 2-dim noise model, got {noise.dim()}")
+    return gtsam.CustomFactor(noise, [pose_key, centre_key], _circle_centre_cb(zz))
 
 
 def observation_factor(

@@ -12,19 +12,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ekf_reference import EKFConfig, ekf_metrics, run_ekf, save_associations
 from ekf_reference.result import EKFResult
 from mapfuse_core.evaluation import pose_errors, truth_in_global, write_tum
+from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.se2 import FloatArray
 from mapfuse_core.simulate import simulate
+from mapfuse_graph.graph import GraphOptions
 from mapfuse_graph.solvers import GraphResult, ISAM2Options, graph_metrics, run_graph
 
 __all__ = [
     "BACKENDS",
     "RunOutput",
     "default_ekf_config",
+    "default_graph_options",
     "default_isam2_options",
     "prepare_log",
     "run_backend",
@@ -96,6 +101,29 @@ def default_ekf_config(log: MeasurementLog, fusion: bool = True) -> EKFConfig:
     return EKFConfig(fusion=fusion)
 
 
+def default_graph_options(
+    log: MeasurementLog, association: str = "ekf", robust: str | None = None
+) -> GraphOptions:
+    """The graph options ``mapfuse`` uses for ``log``: the defaults, except on Victoria
+    Park with a fixed association and no robust kernel, where circle landmarks are split
+    into a centre and a radius variable (:attr:`GraphOptions.split_circles`; its
+    detections' diameter noise is independent of the centre's, so the model is the same):
+    8–13 % less iSAM2 CPU over the whole run.  ``fusion`` and ``association`` themselves are
+    set by :func:`~mapfuse_graph.solvers.run_graph`."""
+    from mapfuse_core.datasets import VICTORIA_PARK_NAME
+
+    circles = log.feat_kind == int(FeatureKind.CIRCLE)
+    independent = not np.any(log.feat_cov[circles][:, :2, 2])
+    if (
+        log.scenario == VICTORIA_PARK_NAME
+        and association != "own"
+        and robust is None
+        and independent
+    ):
+        return GraphOptions(split_circles=True)
+    return GraphOptions()
+
+
 def default_isam2_options(log: MeasurementLog) -> ISAM2Options:
     """The iSAM2 settings ``mapfuse`` uses for ``log``: the defaults, except on Victoria
     Park, where relinearisation is checked every 10 updates instead of every one (GTSAM's
@@ -148,6 +176,7 @@ def run_backend(
         ekf_result=ekf_result,
         robust=robust,
         progress=progress,
+        options=default_graph_options(log, association, robust),
         isam2=default_isam2_options(log),
     )
     return RunOutput(

@@ -10,9 +10,11 @@ Python does not own (``docs/gtsam-notes.md``: GTSAM's own optimizers deep-copy t
   ``gtsam.Marginals`` on the final linearisation.
 * **isam2** — one ``ISAM2.update`` per step while holding a reference to
   ``isam.getLinearizationPoint()`` for the whole run (callbacks then get that object
-  instead of a copy).  After each update the newest pose's *filtered* estimate and
-  covariance are read (comparable with the EKF's); at the end a few extra updates
-  finish relinearisation and all poses' smoothed marginals are read.
+  instead of a copy).  Each update orders the newest pose last, so that its *filtered*
+  estimate and covariance (comparable with the EKF's) are the last rows of the root
+  clique (:func:`_newest_pose_marginal`); at the end a few extra updates finish
+  relinearisation and all smoothed marginals are read in one pass
+  (:func:`tree_marginals`).
 
 Covariances: GTSAM's Pose2 marginals are in the body tangent (``X ⊕ Exp(δ)``);
 mapfuse reports absolute ``(x, y, θ)`` covariances, ``G P Gᵀ`` with
@@ -50,6 +52,7 @@ from mapfuse_graph.graph import (
     anchor_key,
     landmark_key,
     pose_key,
+    radius_key,
 )
 
 if TYPE_CHECKING:
@@ -67,6 +70,7 @@ __all__ = [
     "graph_metrics",
     "levenberg_marquardt",
     "run_graph",
+    "tree_marginals",
 ]
 
 BACKENDS: tuple[str, ...] = ("batch", "isam2")
@@ -122,7 +126,8 @@ class ISAM2Options:
     dimension.  The defaults (5 cm, 5 mrad) keep the final estimate within 0.05 σ of the
     batch optimum on loop600 while relinearising half as many variables as 0.01 for
     all: a line landmark seen from hundreds of poses costs hundreds of Python
-    callbacks each time it is relinearised."""
+    callbacks each time it is relinearised.  With ``GraphOptions.split_circles`` the
+    ``c`` entries ``(x, y, r)`` go to the centre and the radius variables."""
     relinearize_skip: int = 1
     """Check for relinearisation every this many updates."""
     factorization: str = "CHOLESKY"
@@ -130,10 +135,12 @@ class ISAM2Options:
     final_updates: int = 5
     """Extra empty updates at the end so the final estimate is fully relinearised."""
     final_marginals: str = "isam2"
-    """Smoothed marginals from iSAM2's own Bayes tree (``"isam2"``: 0.25 s CPU for all
-    loop600 poses; within 2 % of the exact ones because a variable's linearisation
-    point may lag its estimate by up to the relinearisation threshold) or from a
-    fresh linearisation at the final estimate (``"relinearized"``: exact, 1.5 s)."""
+    """Smoothed marginals of iSAM2's own linear system (``"isam2"``: the graph linearised
+    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; within
+    2 % of the exact ones on loop600 because a variable's linearisation point may lag its
+    estimate by up to the relinearisation threshold) or of a fresh linearisation at the
+    final estimate (``"relinearized"``: exact, one more pass of the Python callbacks).
+    Both are read by :func:`tree_marginals`."""
 
     def __post_init__(self) -> None:
         th = self.relinearize_threshold
@@ -230,7 +237,8 @@ class GraphResult:
     covs: FloatArray
     """(N, 3, 3) smoothed marginal covariances, absolute ``(x, y, θ)`` (NaN if not computed)."""
     filtered_poses: FloatArray | None
-    """(N, 3) iSAM2 only: estimate of ``X_k`` right after update ``k`` (uses steps 0..k)."""
+    """(N, 3) iSAM2 only: estimate of ``X_k`` right after update ``k`` (uses steps 0..k):
+    its linearisation point moved by the exact solution of that update's linear system."""
     filtered_covs: FloatArray | None
     """(N, 3, 3) iSAM2 only: its absolute covariance."""
     step_time_s: FloatArray
@@ -327,6 +335,72 @@ class _ISAM2Estimate:
 def _key_dims(values: gtsam.Values) -> list[tuple[int, int]]:
     zero = values.zeroVectors()
     return [(int(k), int(zero.at(k).shape[0])) for k in list(values.keys())]
+
+
+def tree_marginals(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict[int, FloatArray]:
+    """Marginal covariance of every variable of the linear system ``lin`` (tangent space).
+
+    ``dims`` maps each key to its tangent dimension.  One multifrontal elimination, then
+    one pass down the Bayes tree: a clique's conditional ``R δ_F + S δ_S = d`` (whitened)
+    and the joint covariance ``Σ_SS`` of its separator, taken from its parent's joint
+    covariance, give ``Σ_FS = −R⁻¹ S Σ_SS`` and ``Σ_FF = R⁻¹ R⁻ᵀ − Σ_FS (R⁻¹ S)ᵀ``.
+    Exact, like ``gtsam.Marginals``, but each clique is handled once: asking GTSAM for
+    every variable's ``marginalCovariance`` re-eliminates the clique's conditional with
+    its separator marginal for each variable, which on Victoria Park (separators of up
+    to a few hundred dimensions) took 9.5 s of CPU on the first 3,000 scans against
+    0.8 s here, linearisation included, with the same result to 1e-11 relative (whole
+    run: 38 s → 2 s).
+    """
+    out: dict[int, FloatArray] = {}
+    bt = lin.eliminateMultifrontal()
+    roots = bt.roots()
+    # (clique, offset of each key in the parent's joint covariance, that covariance)
+    stack: list[tuple[Any, dict[int, int], FloatArray]] = [
+        (roots[i], {}, np.zeros((0, 0))) for i in range(len(roots))
+    ]
+    while stack:
+        clique, parent_at, parent_cov = stack.pop()
+        cond = clique.conditional()
+        keys = list(map(int, cond.keys()))
+        Ab = np.asarray(cond.augmentedJacobian())  # whitened [R S d]
+        nf = Ab.shape[0]  # R is square: one row per frontal dimension
+        Rinv = np.linalg.inv(Ab[:, :nf])
+        n_front, width = 0, 0
+        while width < nf:
+            width += dims[keys[n_front]]
+            n_front += 1
+        seps = keys[n_front:]
+        n_children = clique.nrChildren()
+        # Leaves need their frontal block only; parents the whole joint for their children.
+        size = Ab.shape[1] - 1 if n_children else nf
+        joint = np.empty((size, size))
+        if seps:
+            idx = [i for k in seps for i in range(parent_at[k], parent_at[k] + dims[k])]
+            cov_ss = parent_cov[idx][:, idx]
+            G = Rinv @ Ab[:, nf:-1]
+            cov_fs = -G @ cov_ss
+            joint[:nf, :nf] = Rinv @ Rinv.T - cov_fs @ G.T
+            if n_children:
+                joint[:nf, nf:] = cov_fs
+                joint[nf:, :nf] = cov_fs.T
+                joint[nf:, nf:] = cov_ss
+        else:
+            joint[:nf, :nf] = Rinv @ Rinv.T
+        at = 0
+        for k in keys[:n_front]:
+            d = dims[k]
+            block = joint[at : at + d, at : at + d]
+            out[k] = 0.5 * (block + block.T)
+            at += d
+        if n_children == 0:
+            continue
+        key_at: dict[int, int] = {}
+        at = 0
+        for k in keys:
+            key_at[k] = at
+            at += dims[k]
+        stack.extend((clique[i], key_at, joint) for i in range(n_children))
+    return out
 
 
 def levenberg_marquardt(
@@ -441,8 +515,14 @@ def _landmarks(
     for i, lmk in enumerate(lms):
         key = landmark_key(i, lmk.kind)
         v = np.asarray(values.atVector(key), dtype=float)
-        variables[i, : v.size] = v
         P = cov_of(key) if cov_of is not None else np.full((v.size, v.size), np.nan)
+        if builder.split_circles and lmk.kind == FeatureKind.CIRCLE:
+            # Centre and radius are independent: their joint covariance is block-diagonal.
+            r = np.asarray(values.atVector(radius_key(i)), dtype=float)
+            Pr = cov_of(radius_key(i)) if cov_of is not None else np.full((1, 1), np.nan)
+            v = np.concatenate([v, r])
+            P = np.block([[P, np.zeros((2, 1))], [np.zeros((1, 2)), Pr]])
+        variables[i, : v.size] = v
         if lmk.kind == FeatureKind.CIRCLE:
             params[i], covs[i] = v, P
             continue
@@ -567,6 +647,87 @@ def _run_batch(
     )
 
 
+def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
+    """iSAM2 ordering constraint of one update: the keys of its new factors last (GTSAM's
+    own default) and, among them, the newest pose the very last.
+
+    The newest pose then ends the root clique's conditional, where its marginal is read
+    off the last rows (:class:`_LastVariableMarginal`).  Without it the pose often sits in
+    a child of the root: on Victoria Park after 5,000 scans the root holds ~220 variables
+    (660 dimensions) and GTSAM's marginal through it cost 20–35 ms a step.  The groups
+    must stay below the number of variables re-eliminated (CCOLAMD's bound), which the
+    keys of the new factors are part of: two groups need three such keys.
+    """
+    if len(observed) < 2:
+        return None
+    groups = gtsam.KeyGroupMap()
+    low = 1 if len(observed) >= 3 else 0
+    for key in observed:
+        if key != newest:
+            groups.insert2(key, low)
+    groups.insert2(newest, low + 1)
+    return groups
+
+
+class _LastVariableMarginal:
+    """Elimination function for ``ISAM2.marginalFactor(key, ·)`` when ``key`` is the last
+    variable of the root clique.
+
+    GTSAM computes the marginal of a root variable by eliminating every other variable
+    of the root's conditional, O(D³) in its dimension D.  For the last variable of an
+    upper-triangular ``[R | d]`` that marginal is just its last rows ``[R_kk | d_k]``, so
+    when GTSAM hands over exactly that case (the root conditional alone, ``key`` last,
+    all other keys to eliminate, unit noise) this returns it directly; anything else goes
+    to ``gtsam.EliminateQR``.  The conditional it returns for the eliminated keys is the
+    root's own: GTSAM's ``marginalMultifrontalBayesNet`` discards that part.
+    """
+
+    def __init__(self, key: int, dim: int) -> None:
+        self.key, self.dim = key, dim
+        self.shortcut = False
+
+    def __call__(self, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Any:
+        if graph.size() == 1:
+            f = graph.at(0)
+            if isinstance(f, gtsam.GaussianConditional) and f.get_model() is None:
+                keys = f.keys()
+                d = self.dim
+                if keys[-1] == self.key and ordering.size() == len(keys) - 1:
+                    R, rhs = f.R(), f.d()  # views into the conditional
+                    if R.shape[0] == R.shape[1] == rhs.shape[0] and not R[-d:, :-d].any():
+                        self.shortcut = True
+                        marginal = gtsam.JacobianFactor(
+                            self.key,
+                            np.array(R[-d:, -d:]),
+                            np.array(rhs[-d:]),
+                            gtsam.noiseModel.Unit.Create(d),
+                        )
+                        return f, marginal
+        return gtsam.EliminateQR(graph, ordering)
+
+
+def _newest_pose_marginal(
+    isam: gtsam.ISAM2, linearization_point: gtsam.Values, key: int
+) -> tuple[FloatArray, FloatArray, bool]:
+    """Filtered estimate and body-tangent covariance of the pose just added, from one
+    marginal of iSAM2's Bayes tree; also whether the root shortcut applied.
+
+    The marginal Gaussian ``p(δ_k)`` gives both: its mean is the Gauss–Newton step of
+    ``X_k`` and its information the inverse covariance.  Asking instead for
+    ``calculateEstimatePose2`` runs the wildfire back-substitution over every clique
+    re-eliminated by the update, each step (5 ms a step on Victoria Park's first 3,000
+    scans); left alone, the next relinearisation check does that once per
+    ``relinearize_skip`` updates.  The mean is the exact linear solve, where the
+    wildfire one stops propagating changes below 1e-3: the two differ by < 0.1 mm there.
+    """
+    elim = _LastVariableMarginal(key, 3)
+    m = isam.marginalFactor(key, elim)
+    delta = m.solve(gtsam.VectorValues()).at(key)
+    x = pose_of(linearization_point.atPose2(key).retract(delta))
+    P: FloatArray = np.linalg.inv(np.asarray(m.information(), dtype=float))
+    return x, P, elim.shortcut
+
+
 def _run_isam2(
     builder: GraphBuilder,
     options: ISAM2Options | None,
@@ -578,6 +739,9 @@ def _run_isam2(
     params = gtsam.ISAM2Params()
     th = opts.relinearize_threshold
     if isinstance(th, dict):
+        if builder.split_circles and "c" in th:
+            # The circle's (x, y, r) thresholds go to its centre and radius variables.
+            th = {**th, "c": tuple(th["c"][:2]), "r": tuple(th["c"][2:])}
         tmap = gtsam.ISAM2ThresholdMap()
         for ch, v in th.items():
             tmap.insert((ch, np.asarray(v, dtype=float)))
@@ -595,16 +759,22 @@ def _run_isam2(
     est = _ISAM2Estimate(isam, f_covs)
     times = np.zeros(n)
     relin = 0
+    shortcuts = 0
     for k in range(n):
         t0 = time.perf_counter()
         sg = builder.step(k, est)
-        res = isam.update(sg.factors, sg.values)
+        xk = pose_key(k)
+        # Bound to a name first: iterating the temporary KeySet directly segfaults (the
+        # binding's iterator does not keep it alive).
+        new_keys = sg.factors.keys()
+        order = _newest_last([int(key) for key in new_keys], xk)
+        res = isam.update(sg.factors, sg.values, [], order)
         relin += int(res.getVariablesRelinearized())
         graph.push_back(sg.factors)
-        xk = pose_key(k)
-        x = pose_of(isam.calculateEstimatePose2(xk))
+        x, P, fast = _newest_pose_marginal(isam, linearization_point, xk)
+        shortcuts += fast
         f_poses[k] = x
-        f_covs[k] = body_to_abs_cov(np.asarray(isam.marginalCovariance(xk)), x[2])
+        f_covs[k] = body_to_abs_cov(P, x[2])
         est.last_pose = (k, x)
         times[k] = time.perf_counter() - t0
         if progress is not None:
@@ -618,17 +788,19 @@ def _run_isam2(
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     cov_of: Callable[[int], FloatArray] | None = None
-    if marginals and opts.final_marginals == "isam2":
-        cov_of = isam.marginalCovariance
-    elif marginals:
-        cov_of = gtsam.Marginals(graph.linearize(values), values).marginalCovariance
+    if marginals:
+        # iSAM2's linear system is the graph linearised at its linearisation point (each
+        # cached linear factor was made at the current values of its keys): its
+        # marginals are iSAM2's own, read in one pass instead of one query per variable.
+        at = linearization_point if opts.final_marginals == "isam2" else values
+        cov_of = tree_marginals(graph.linearize(at), dict(_key_dims(at))).__getitem__
     poses = _poses_from(values, n)
     covs = _pose_covs(poses, cov_of)
     landmarks = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
     marg = time.perf_counter() - t0
     del linearization_point
-    extra = {"variables_relinearized": relin}
+    extra = {"variables_relinearized": relin, "filtered_marginal_shortcuts": shortcuts}
     return (
         graph,
         values,

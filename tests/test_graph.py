@@ -25,10 +25,15 @@ from mapfuse_graph.graph import (
 from mapfuse_graph.solvers import (
     GraphResult,
     ISAM2Options,
+    _ISAM2Estimate,
+    _newest_last,
+    _newest_pose_marginal,
+    _ValuesEstimate,
     body_to_abs_cov,
     graph_metrics,
     levenberg_marquardt,
     run_graph,
+    tree_marginals,
 )
 from tests.synthetic import synthetic_log
 
@@ -114,6 +119,139 @@ def test_isam2_final_equals_batch(association: str) -> None:
     d = inc.anchor.x_Wknown_Wglobal - bat.anchor.x_Wknown_Wglobal
     assert np.all(np.abs(d) <= 0.05 * np.sqrt(np.diag(bat.anchor.cov)))
     assert inc.final_error == pytest.approx(bat.final_error, rel=1e-4)
+
+
+def test_filtered_estimate_is_isam2s_own_solve_and_marginal() -> None:
+    """The newest pose read off the root's last rows (fusion on: anchor, known features and
+    ties enter mid-run) equals iSAM2's full linear solve and its own marginal."""
+    log = synthetic_log(steps=60, seed=2)
+    n = log.n_steps
+    b = GraphBuilder(log, GraphOptions(association="truth"))
+    isam = gtsam.ISAM2()
+    lin_point = isam.getLinearizationPoint()
+    est = _ISAM2Estimate(isam, np.zeros((n, 3, 3)))
+    for k in range(n):
+        sg = b.step(k, est)
+        keys = sg.factors.keys()
+        isam.update(sg.factors, sg.values, [], _newest_last([int(q) for q in keys], pose_key(k)))
+        x, P, shortcut = _newest_pose_marginal(isam, lin_point, pose_key(k))
+        assert shortcut
+        best = fx.pose_of(isam.calculateBestEstimate().atPose2(pose_key(k)))
+        np.testing.assert_allclose(x, best, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(P, isam.marginalCovariance(pose_key(k)), rtol=1e-8, atol=1e-15)
+        est.last_pose = (k, x)
+    assert b.anchor_added
+    res = run_graph(log, "isam2", association="truth", marginals=False)
+    assert res.extra["filtered_marginal_shortcuts"] == n
+
+
+def test_tree_marginals_equal_gtsam_marginals() -> None:
+    """One pass down the Bayes tree gives GTSAM's marginal of every variable (poses, 2-dim
+    lines, 3-dim circles, anchor, known features)."""
+    log = synthetic_log(steps=50, seed=4)
+    b = GraphBuilder(log, GraphOptions(association="truth"))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    est = _ValuesEstimate(values)
+    for k in range(log.n_steps):
+        sg = b.step(k, est)
+        graph.push_back(sg.factors)
+        values.insert(sg.values)
+    lin = graph.linearize(values)
+    zero = values.zeroVectors()
+    keys = list(map(int, values.keys()))
+    dims = {q: int(zero.at(q).shape[0]) for q in keys}
+    assert {2, 3} <= set(dims.values())
+    got = tree_marginals(lin, dims)
+    ref = gtsam.Marginals(lin, values)
+    assert set(got) == set(keys)
+    for q in keys:
+        P = ref.marginalCovariance(q)
+        np.testing.assert_allclose(got[q], P, rtol=0, atol=1e-9 * np.abs(P).max())
+
+
+def test_circle_centre_factor_is_the_circle_factors_centre_rows() -> None:
+    rng = np.random.default_rng(5)
+    xk, ck = pose_key(0), landmark_key(0, FeatureKind.CIRCLE)
+    for theta in (0.3, math.pi - 1e-9, -math.pi + 1e-9, -2.0):
+        x = np.array([*rng.uniform(-20, 20, 2), theta])
+        z = np.array([*rng.uniform(-10, 10, 2), 0.4])
+        c = rng.uniform(-20, 20, 2)
+        v = gtsam.Values()
+        v.insert(xk, gtsam.Pose2(*x))
+        v.insert(ck, c)
+        lin = fx.circle_centre_factor(xk, ck, z, gtsam.noiseModel.Unit.Create(2)).linearize(v)
+        A, b = lin.jacobian()
+        xv = fx.pose_of(v.atPose2(xk))
+        r, Jx, Jc = fx.circle_observation_error(z, xv, np.array([*c, 0.7]))
+        np.testing.assert_allclose(-b, r[:2], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(A[:, :3], fx.to_body(Jx, float(xv[2]))[:2], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(A[:, 3:], Jc[:2, :2], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", ["batch", "isam2"])
+def test_split_circles_is_the_same_model(backend: str) -> None:
+    """Centre and radius variables ≡ one (x, y, r) variable when the observations' radius
+    noise is independent of the centre's (the synthetic logs' diagonal covariances)."""
+    log = synthetic_log(steps=120, seed=3)
+    joint = run_graph(log, backend, fusion=False, association="truth")
+    split = run_graph(
+        log, backend, fusion=False, association="truth", options=GraphOptions(split_circles=True)
+    )
+    circles = split.landmarks.kinds == int(FeatureKind.CIRCLE)
+    assert np.any(circles)
+    assert split.n_variables == joint.n_variables + int(circles.sum())
+    # Measured 6e-8 σ (batch) and 2e-6 σ (isam2, whose linearisation points lag a little
+    # differently when the radius has its own relinearisation threshold).
+    tol = 1e-6 if backend == "batch" else 1e-4
+    assert _rel_diff(split.poses, joint.poses, joint.covs).max() <= tol
+    assert split.final_error == pytest.approx(joint.final_error, rel=1e-6)
+    sig = np.sqrt(np.einsum("kii->ki", joint.landmarks.covs))
+    d = np.abs(split.landmarks.variables - joint.landmarks.variables)
+    assert np.nanmax(d[circles] / sig[circles]) <= tol
+    np.testing.assert_allclose(
+        split.landmarks.covs[circles], joint.landmarks.covs[circles], rtol=1e-6, atol=1e-15
+    )
+    assert np.all(split.landmarks.covs[circles][:, :2, 2] == 0.0)
+
+
+def test_split_circles_refuses_what_would_change_the_model(small_log: MeasurementLog) -> None:
+    split = GraphOptions(split_circles=True)
+    with pytest.raises(ValueError, match="fixed association"):
+        run_graph(small_log, "isam2", fusion=False, association="own", options=split)
+    with pytest.raises(ValueError, match="robust"):
+        run_graph(
+            small_log, "isam2", fusion=False, association="truth", robust="huber", options=split
+        )
+    with pytest.raises(ValueError, match="known map with circles"):
+        run_graph(small_log, "isam2", fusion=True, association="truth", options=split)
+    cov = small_log.feat_cov.copy()
+    j = int(np.nonzero(small_log.feat_kind == int(FeatureKind.CIRCLE))[0][0])
+    cov[j, 0, 2] = cov[j, 2, 0] = 0.1 * math.sqrt(cov[j, 0, 0] * cov[j, 2, 2])
+    with pytest.raises(ValueError, match=f"observation {j} correlates"):
+        run_graph(
+            _tampered(small_log, feat_cov=cov),
+            "isam2",
+            fusion=False,
+            association="truth",
+            options=split,
+        )
+
+
+def test_victoria_park_defaults_split_circles_only_when_it_is_the_same_model(
+    small_log: MeasurementLog,
+) -> None:
+    from mapfuse_core.datasets import VICTORIA_PARK_NAME
+    from mapfuse_graph.runner import default_graph_options
+
+    vp = dataclasses.replace(small_log, scenario=VICTORIA_PARK_NAME)
+    assert default_graph_options(vp).split_circles
+    assert not default_graph_options(small_log).split_circles
+    assert not default_graph_options(vp, association="own").split_circles
+    assert not default_graph_options(vp, robust="huber").split_circles
+    cov = vp.feat_cov.copy()
+    j = int(np.nonzero(vp.feat_kind == int(FeatureKind.CIRCLE))[0][0])
+    cov[j, 1, 2] = cov[j, 2, 1] = 1e-6
+    assert not default_graph_options(_tampered(vp, feat_cov=cov)).split_circles
 
 
 def _known_frame_solution(log: MeasurementLog) -> np.ndarray:
