@@ -4,6 +4,7 @@ Depends on :mod:`mapfuse_core` only; never imports gtsam.
 """
 
 from ekf_reference.config import EKFConfig
+from ekf_reference.loops import LoopClosureParams
 from ekf_reference.pipeline import run_ekf
 from ekf_reference.report import ekf_metrics
 from ekf_reference.result import (
@@ -18,6 +19,7 @@ __all__ = [
     "AnchorResult",
     "EKFConfig",
     "EKFResult",
+    "LoopClosureParams",
     "MapResult",
     "ekf_metrics",
     "load_associations",

@@ -25,6 +25,7 @@ from mapfuse_core.se2 import FloatArray, wrap_angle, wrap_angle_half
 __all__ = [
     "Candidate",
     "Query",
+    "chi2_gate",
     "evaluate",
     "exclusive",
     "jcbb",

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from ekf_reference.loops import LoopClosureParams
 from mapfuse_core.ccda import CCDAParams
 
 __all__ = ["EKFConfig"]
@@ -54,6 +55,17 @@ class EKFConfig:
     third of the features are trunks seen in a single scan: 2 drops them, which keeps
     the global map (and every join's O(F²) cost) to the trees that were tracked."""
 
+    loop_closure: LoopClosureParams | None = None
+    """*(choice)* Before the join's association, register the local map's circles to
+    the global map's (:mod:`ekf_reference.loops`); when that finds a loop closure the
+    filtered relative pose of the two maps missed, widen that relative pose by the
+    correction found and apply the registered pairings that then pass their gates.
+    ``None`` (default) is the paper's join."""
+    join_circle_sigma_m: float = 0.0
+    """*(choice)* σ (m) added to the centre and the radius of every local circle when its
+    local map is joined: the part of a trunk's detection error that depends on the side
+    it is seen from is common to the scans of one local map and does not average out."""
+
     def __post_init__(self) -> None:
         if self.local_map_steps < 1:
             raise ValueError(f"local_map_steps must be >= 1, got {self.local_map_steps}")
@@ -63,6 +75,8 @@ class EKFConfig:
             raise ValueError(f"gate_prob must be in (0, 1), got {self.gate_prob}")
         if self.association not in ("nn", "jcbb"):
             raise ValueError(f"association must be 'nn' or 'jcbb', got {self.association!r}")
+        if not (math.isfinite(self.join_circle_sigma_m) and self.join_circle_sigma_m >= 0.0):
+            raise ValueError(f"join_circle_sigma_m must be >= 0, got {self.join_circle_sigma_m}")
         for name in ("line_overlap_gap_m", "prefilter_m", "prefilter_rad"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0")

@@ -12,11 +12,13 @@ from ekf_reference.association import (
     Candidate,
     Query,
     apply,
+    chi2_gate,
     evaluate,
     individual_candidates,
     predict_all_targets,
 )
 from ekf_reference.config import EKFConfig
+from ekf_reference.loops import LoopClosureParams, accepted, register_circles
 from ekf_reference.maps import (
     CIContext,
     _wrap_diff,
@@ -81,6 +83,9 @@ class _Run:
         self.ccda_attempts = 0
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
+        self.loop_closures: list[tuple[int, int, int, int, int, FloatArray]] = []
+        """(step, inliers, inliers at identity, runner-up, pairings applied, correction)."""
+        self.step = -1
 
     # ------------------------------------------------------------------ per step
 
@@ -211,9 +216,15 @@ class _Run:
         loc.remove(drop)
 
     def join(self, k: int) -> None:
+        self.step = k
         if self.config.min_obs_to_join > 1:
             self.drop_rare_local_features()
         g, loc, ctx = self.global_map, self.local, self.ctx
+        sv = self.config.join_circle_sigma_m
+        if sv > 0.0:
+            for i, e in enumerate(loc.elements):
+                if e.role == Role.FEATURE and e.kind == ElementKind.CIRCLE:
+                    loc.cov[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += sv * sv * np.eye(3)
         joint = self._stack(g, loc, ctx)
         n_g = len(g) if ctx is None else len(g) - len(ctx.shared_global)
         lb = n_g + loc.find(Role.BASE)
@@ -226,15 +237,7 @@ class _Run:
             e.moving = False
         joint.bind_lines()
         # Pair the local map's features with the global ones (and the known ones).
-        queries = [
-            Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
-            for i, e in enumerate(joint.elements)
-            if e.role == Role.FEATURE and e.in_local
-        ]
-        targets = predict_all_targets(joint, lambda e: not e.in_local)
-        chosen = associate(joint, queries, targets, self.config)
-        pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
-        apply(joint, [c for _, c in pairs])
+        pairs = self._pair_at_join(joint)
         for q, c in pairs:
             f, t = joint.elements[q.element], joint.elements[c.target]
             self.tracks.merge(f.track, t.track)
@@ -251,6 +254,88 @@ class _Run:
         if self.config.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
         self.local, self.ctx = new_local_map(self.global_map)
+
+    def _pair_at_join(self, joint: GaussianMap) -> list[tuple[Query, Candidate]]:
+        """Pair the local features of ``joint`` with global (and known) ones and apply them.
+
+        With ``loop_closure`` set, the local map is first registered to the global one
+        (:meth:`_close_loop`); the features it pairs are left out of the usual association.
+        """
+        pairs: list[tuple[Query, Candidate]] = []
+        if self.config.loop_closure is not None:
+            pairs = self._close_loop(joint, self.config.loop_closure)
+        paired = {q.element for q, _ in pairs}
+        used = {c.target for _, c in pairs}
+        queries = [
+            Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            for i, e in enumerate(joint.elements)
+            if e.role == Role.FEATURE and e.in_local and i not in paired
+        ]
+        targets = predict_all_targets(joint, lambda e: not e.in_local)
+        if used:
+            for kind, (idx, preds) in list(targets.items()):
+                keep = [r for r, t in enumerate(idx) if t not in used]
+                targets[kind] = ([idx[r] for r in keep], preds[keep])
+        chosen = associate(joint, queries, targets, self.config)
+        new = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
+        apply(joint, [c for _, c in new])
+        return pairs + new
+
+    def _close_loop(
+        self, joint: GaussianMap, params: LoopClosureParams
+    ) -> list[tuple[Query, Candidate]]:
+        """Register the local circles to the global ones; on a loop closure the filter
+        missed, widen the maps' relative pose and apply the registered pairings that
+        pass their (widened) individual gates.  See :mod:`ekf_reference.loops`."""
+        if joint.has(Role.ANCHOR):
+            # Fused: every local map is held to the known map, as the global map is.
+            return []
+        kinds, roles = joint.kinds_roles()
+        circ = (kinds == int(ElementKind.CIRCLE)) & (roles == int(Role.FEATURE))
+        in_local = np.array([e.in_local for e in joint.elements], dtype=bool)
+        loc = np.nonzero(circ & in_local)[0]
+        glo = np.nonzero(circ & ~in_local)[0]
+        if loc.size < params.min_inliers or glo.size < params.min_inliers:
+            return []
+        n_obs = np.array([joint.elements[i].n_obs for i in loc.tolist()])
+        reg = register_circles(joint.mean[loc, :2], joint.mean[glo, :2], n_obs, params)
+        if reg is None or not accepted(reg, params):
+            return []
+        li = loc[[p[0] for p in reg.pairs]]
+        gi = glo[[p[1] for p in reg.pairs]]
+        # Correction the registration asks of the global elements (frame R), about the
+        # centroid of its global inliers: rotation −θ, then the centroids' difference.
+        c = joint.mean[gi, :2].mean(axis=0)
+        delta = np.array([*(joint.mean[li, :2].mean(axis=0) - c), -reg.T[2]])
+        sig = params.inflation * np.abs(delta)
+        sig = np.hypot(sig, [params.floor_m, params.floor_m, params.floor_rad])
+        frame = [
+            i
+            for i, e in enumerate(joint.elements)
+            if e.role == Role.BASE or (e.role == Role.FEATURE and not e.in_local)
+        ]
+        J = np.zeros((3 * len(joint), 3))
+        for i in frame:
+            J[3 * i : 3 * i + 2, 0:2] = np.eye(2)
+            J[3 * i, 2] = -(joint.mean[i, 1] - c[1])
+            J[3 * i + 1, 2] = joint.mean[i, 0] - c[0]
+            if joint.elements[i].kind != ElementKind.CIRCLE:
+                J[3 * i + 2, 2] = 1.0
+        joint.cov += (J * sig**2) @ J.T
+        joint.symmetrise()
+        gate = chi2_gate(self.config.gate_prob, 3)
+        pairs = []
+        for i, g in zip(li.tolist(), gi.tolist(), strict=True):
+            e = joint.elements[i]
+            q = Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            cand = evaluate(joint, q, g)
+            if cand.d2 <= gate:
+                pairs.append((q, cand))
+        self.loop_closures.append(
+            (self.step, reg.inliers, reg.at_identity, reg.runner_up, len(pairs), delta.copy())
+        )
+        apply(joint, [c_ for _, c_ in pairs])
+        return pairs
 
     def _stack(self, g: GaussianMap, loc: GaussianMap, ctx: CIContext | None) -> GaussianMap:
         """Joint Gaussian of the global-only elements and the local map.

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ekf_reference import EKFConfig, ekf_metrics, run_ekf, save_associations
+from ekf_reference.loops import LoopClosureParams
 from ekf_reference.result import EKFResult
 from mapfuse_core.evaluation import pose_errors, truth_in_global, write_tum
 from mapfuse_core.features import FeatureKind
@@ -93,11 +94,27 @@ def default_ekf_config(log: MeasurementLog, fusion: bool = True) -> EKFConfig:
     driving) make 5× fewer joins than the default 40, and features seen in a single scan
     of their local map are dropped before the join (``min_obs_to_join=2``): the whole
     run then keeps 1,689 features instead of 2,976 and takes 76 s of CPU instead of 237 s.
+
+    Loops are closed at the joins by registering the local map's trees to the global
+    map's (``loop_closure``, :mod:`ekf_reference.loops`), and every local tree gets
+    0.1 m of viewpoint error at its join (``join_circle_sigma_m``).  Without them the
+    filter's relative pose between a local map and the global map was up to 4° and 10 m
+    off (σ 0.5°) when the car came back from the park's western arm; the trees it saw
+    became a second copy of the park that the rest of the run followed (10–20 m off GPS
+    after t ≈ 1,150 s), and 1,513 pairs of features ended within 1 m of each other.
+    With them: median 1.76 m (RMSE 3.86 m) against GPS instead of 2.97 m (6.49 m),
+    963 features, 254 such pairs.
     """
     from mapfuse_core.datasets import VICTORIA_PARK_NAME
 
     if log.scenario == VICTORIA_PARK_NAME:
-        return EKFConfig(fusion=fusion, local_map_steps=200, min_obs_to_join=2)
+        return EKFConfig(
+            fusion=fusion,
+            local_map_steps=200,
+            min_obs_to_join=2,
+            loop_closure=LoopClosureParams(),
+            join_circle_sigma_m=0.1,
+        )
     return EKFConfig(fusion=fusion)
 
 

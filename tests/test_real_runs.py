@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig
+from ekf_reference.loops import LoopClosureParams
 from mapfuse_core.datasets import (
     VICTORIA_PARK_NAME,
     CarGeometry,
@@ -169,7 +170,11 @@ def test_dataset_specific_defaults() -> None:
     vp = dataclasses.replace(log, scenario=VICTORIA_PARK_NAME)
     assert default_ekf_config(log, True) == EKFConfig(fusion=True)
     assert default_ekf_config(vp, False) == EKFConfig(
-        fusion=False, local_map_steps=200, min_obs_to_join=2
+        fusion=False,
+        local_map_steps=200,
+        min_obs_to_join=2,
+        loop_closure=LoopClosureParams(),
+        join_circle_sigma_m=0.1,
     )
     assert default_isam2_options(log).relinearize_skip == 1
     assert default_isam2_options(vp).relinearize_skip == 10
