@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.evaluation import rigid_alignment
+from mapfuse_core.se2 import FloatArray, transform_point
 
 __all__ = ["LoopClosureParams", "Registration", "accepted", "register_circles"]
 
@@ -103,27 +104,6 @@ class Registration:
     """Inliers of the identity (the filtered relative pose)."""
     max_shift_m: float
     """Largest displacement of a local inlier centre by ``T``."""
-
-
-def _apply(T: FloatArray, P: FloatArray) -> FloatArray:
-    c, s = math.cos(T[2]), math.sin(T[2])
-    out: FloatArray = np.column_stack(
-        (T[0] + c * P[:, 0] - s * P[:, 1], T[1] + s * P[:, 0] + c * P[:, 1])
-    )
-    return out
-
-
-def _fit(src: FloatArray, dst: FloatArray) -> FloatArray:
-    """Least-squares rigid motion ``dst ≈ T ⊕ src`` (2-D Kabsch)."""
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - ms, dst - md
-    th = math.atan2(
-        float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
-        float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])),
-    )
-    c, s = math.cos(th), math.sin(th)
-    t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
-    return np.array([t[0], t[1], th])
 
 
 def _one_to_one(tree: cKDTree, P: FloatArray, tol: float) -> list[tuple[int, int]]:
@@ -220,24 +200,24 @@ def register_circles(
     for h in picked:
         T = H[h]
         for _ in range(3):
-            pairs = _one_to_one(tree, _apply(T, L), tol)
+            pairs = _one_to_one(tree, transform_point(T, L), tol)
             if len(pairs) < 2:
                 break
             li, gi = np.array(pairs).T
-            T = _fit(L[li], G[gi])
-        pairs = _one_to_one(tree, _apply(T, L), tol)
+            T = rigid_alignment(L[li], G[gi])
+        pairs = _one_to_one(tree, transform_point(T, L), tol)
         refined.append((len(pairs), T, pairs))
     refined.sort(key=lambda r: -r[0])
     best_n, best_T, best_pairs = refined[0]
-    best_moved = _apply(best_T, cen[None])[0]
+    best_moved = transform_point(best_T, cen[None])[0]
     runner = 0
     for n_in, T, _ in refined[1:]:
-        m = _apply(T, cen[None])[0]
+        m = transform_point(T, cen[None])[0]
         dth = abs(math.remainder(T[2] - best_T[2], 2 * math.pi))
         if math.hypot(*(m - best_moved)) > 2.0 * tol or dth * spread > 2.0 * tol:
             runner = max(runner, n_in)
     li = np.array([p[0] for p in best_pairs], dtype=np.int64)
-    shift = float(np.max(np.hypot(*(_apply(best_T, L[li]) - L[li]).T))) if li.size else 0.0
+    shift = float(np.max(np.hypot(*(transform_point(best_T, L[li]) - L[li]).T))) if li.size else 0.0
     return Registration(
         T=best_T,
         pairs=best_pairs,

@@ -901,9 +901,8 @@ def _circle_from_cluster(
     # through the fitted circle well before their measured range.  A short wall piece
     # or a building corner that happens to fit an arc fails this.
     if outside[0].size:
-        good = fit is not None and fit.cov is not None
-        x = fit.x if fit is not None and good else geo.x
-        cov = fit.cov if fit is not None and good else None
+        # Without a covariance (the refinement failed) the fitted circle itself is tested.
+        x, cov = (fit.x, fit.cov) if fit is not None and fit.cov is not None else (geo.x, None)
         if _crosses_silhouette(x, cov, outside, noise):
             return None
     # From here on the cluster is curved like a trunk: reject it rather than cut lines.

@@ -523,8 +523,10 @@ def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
     return cb
 
 
-def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
-    """Callback of :func:`circle_factor`: :func:`circle_observation_error` in closed form.
+def _circle_cb(z: FloatArray, with_radius: bool = True) -> Callable[..., FloatArray]:
+    """Callback of :func:`circle_factor`: :func:`circle_observation_error` in closed form;
+    with ``with_radius=False`` that of :func:`circle_centre_factor` (its first two rows,
+    on a 2-parameter centre).
 
     Exists for speed only, like :func:`_line_cb`.  The centre seen from ``X`` is
     ``l = R(θ)ᵀ (c − X_xy)``; the residual ``(l − z_xy, r − z_r)`` has the pose
@@ -533,9 +535,14 @@ def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
     Jacobian ``blockdiag(R(θ)ᵀ, 1)``.
     """
     zx, zy, zr = float(z[0]), float(z[1]), float(z[2])
+    n = 3 if with_radius else 2
+    name = "circle factor" if with_radius else "circle centre factor"
     # Refilled on every call, as in _line_cb.
-    Jx = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 0.0]])
-    Jc = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    Jx = np.zeros((n, 3))
+    Jx[0, 0] = Jx[1, 1] = -1.0
+    Jc = np.zeros((n, n))
+    if with_radius:
+        Jc[2, 2] = 1.0
 
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
@@ -543,12 +550,15 @@ def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
         keys = this.keys()
         p = values.atPose2(keys[0])
         x, y, th = p.x(), p.y(), p.theta()
-        cx, cy, cr = values.atVector(keys[1]).tolist()
+        v = values.atVector(keys[1])
         c, s = math.cos(th), math.sin(th)
-        dx, dy = cx - x, cy - y
+        dx, dy = float(v[0]) - x, float(v[1]) - y
         lx = c * dx + s * dy
         ly = -s * dx + c * dy
-        r = np.array([lx - zx, ly - zy, cr - zr])
+        if with_radius:
+            r = np.array([lx - zx, ly - zy, float(v[2]) - zr])
+        else:
+            r = np.array([lx - zx, ly - zy])
         if H is None:
             return r
         Jx[0, 2] = ly
@@ -558,44 +568,7 @@ def _circle_cb(z: FloatArray) -> Callable[..., FloatArray]:
         Jc[1, 0] = -s
         Jc[1, 1] = c
         if _Checks.enabled:
-            _check("circle factor", r, (Jx, Jc), (3, 3))
-        H[0] = Jx
-        H[1] = Jc
-        return r
-
-    return cb
-
-
-def _circle_centre_cb(z: FloatArray) -> Callable[..., FloatArray]:
-    """Callback of :func:`circle_centre_factor`: the first two rows of :func:`_circle_cb`
-    (the radius residual and its column are not there)."""
-    zx, zy = float(z[0]), float(z[1])
-    # Refilled on every call, as in _line_cb.
-    Jx = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    Jc = np.zeros((2, 2))
-
-    def cb(
-        this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
-    ) -> FloatArray:
-        keys = this.keys()
-        p = values.atPose2(keys[0])
-        x, y, th = p.x(), p.y(), p.theta()
-        cx, cy = values.atVector(keys[1]).tolist()
-        c, s = math.cos(th), math.sin(th)
-        dx, dy = cx - x, cy - y
-        lx = c * dx + s * dy
-        ly = -s * dx + c * dy
-        r = np.array([lx - zx, ly - zy])
-        if H is None:
-            return r
-        Jx[0, 2] = ly
-        Jx[1, 2] = -lx
-        Jc[0, 0] = c
-        Jc[0, 1] = s
-        Jc[1, 0] = -s
-        Jc[1, 1] = c
-        if _Checks.enabled:
-            _check("circle centre factor", r, (Jx, Jc), (3, 2))
+            _check(name, r, (Jx, Jc), (3, n))
         H[0] = Jx
         H[1] = Jc
         return r
@@ -647,7 +620,7 @@ def circle_centre_factor(
     zz = _as_measurement(z, "circle centre factor")
     if noise.dim() != 2:
         raise ValueError(f"circle centre factor needs a 2-dim noise model, got {noise.dim()}")
-    return gtsam.CustomFactor(noise, [pose_key, centre_key], _circle_centre_cb(zz))
+    return gtsam.CustomFactor(noise, [pose_key, centre_key], _circle_cb(zz, with_radius=False))
 
 
 def observation_factor(
