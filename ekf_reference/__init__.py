@@ -10,6 +10,7 @@ from ekf_reference.report import ekf_metrics
 from ekf_reference.result import (
     AnchorResult,
     EKFResult,
+    LoopClosure,
     MapResult,
     load_associations,
     save_associations,
@@ -19,6 +20,7 @@ __all__ = [
     "AnchorResult",
     "EKFConfig",
     "EKFResult",
+    "LoopClosure",
     "LoopClosureParams",
     "MapResult",
     "ekf_metrics",

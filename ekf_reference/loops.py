@@ -3,14 +3,17 @@
 *(choice, beyond the paper)*  The paper pairs a local map with the global map by the
 filter's own individual compatibility tests.  That works while the filter's relative
 covariance between the two maps is right.  After a long excursion it may not be: on
-Victoria Park the local map returning from the park's western arm (t ≈ 1,157 s) was
-4.3° and 5.7 m (at its centroid) off the global map while the filter's σ of their
-relative heading was 0.5°: 6 of its 93 trees were paired, although 70 of them lie on
-global trees once the local map is moved back; the missed ones became a second copy of
-those trees, which the rest of the run then followed (10–20 m off GPS).  With this
-step the whole run has 15 such loop closures, each turning the new local map by
-−0.5° to −2.1° onto the global map: the drift is systematic (one sign), which the
-filter's white-noise models cannot represent, hence its overconfidence.
+Victoria Park (first calibration) the local map returning from the park's western arm
+(t ≈ 1,157 s) was 4.3° and 5.7 m (at its centroid) off the global map while the
+filter's σ of their relative heading was 0.5°: 6 of its 93 trees were paired,
+although 70 of them lie on global trees once the local map is moved back; the missed
+ones became a second copy of those trees, which the rest of the run then followed
+(10–20 m off GPS).  With the laser yaw of the tracking fit all 15 loop closures of the
+whole run turned the new local map the same way (−0.5° to −2.1°): a systematic drift,
+which the filter's white-noise models cannot represent, hence its overconfidence.  That
+sign is what calibrates the laser yaw (``VICTORIA_PARK_CALIBRATION_NOTE``); with it,
+7 closures turning both ways (−0.95° to +0.67°).  They are in
+``EKFResult.loop_closures``.
 
 The registration here finds the rigid motion that puts the most local circle centres
 on global ones, without using the filter's covariance (as CCDA does for the known map,

@@ -32,7 +32,7 @@ from ekf_reference.maps import (
     shared_in_global_frame,
     vehicle_in_global,
 )
-from ekf_reference.result import AnchorResult, EKFResult, MapResult
+from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.ccda import ccda_match
 from mapfuse_core.features import transform_feature
@@ -83,8 +83,7 @@ class _Run:
         self.ccda_attempts = 0
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
-        self.loop_closures: list[tuple[int, int, int, int, int, FloatArray]] = []
-        """(step, inliers, inliers at identity, runner-up, pairings applied, correction)."""
+        self.loop_closures: list[LoopClosure] = []
         self.step = -1
 
     # ------------------------------------------------------------------ per step
@@ -331,8 +330,16 @@ class _Run:
             cand = evaluate(joint, q, g)
             if cand.d2 <= gate:
                 pairs.append((q, cand))
+        delta.setflags(write=False)
         self.loop_closures.append(
-            (self.step, reg.inliers, reg.at_identity, reg.runner_up, len(pairs), delta.copy())
+            LoopClosure(
+                step=self.step,
+                inliers=reg.inliers,
+                inliers_at_identity=reg.at_identity,
+                runner_up=reg.runner_up,
+                pairings=len(pairs),
+                correction=delta,
+            )
         )
         apply(joint, [c_ for _, c_ in pairs])
         return pairs
@@ -556,4 +563,5 @@ def _result(
         obs_landmark=roots.astype(np.int64),
         obs_known_id=obs_known,
         ccda_attempts=run.ccda_attempts,
+        loop_closures=tuple(run.loop_closures),
     )

@@ -46,6 +46,27 @@ class MapResult:
 
 
 @dataclass(frozen=True)
+class LoopClosure:
+    """A loop closure found at a join by registering the local map's circles to the
+    global map's (:mod:`ekf_reference.loops`; only with ``EKFConfig.loop_closure``)."""
+
+    step: int
+    """Step whose join found it."""
+    inliers: int
+    """Local circles the registration put on global ones."""
+    inliers_at_identity: int
+    """How many the filter's own relative pose of the two maps put on global ones."""
+    runner_up: int
+    """Inliers of the best distinct hypothesis."""
+    pairings: int
+    """Registered pairings that passed their (widened) gate and were applied."""
+    correction: FloatArray
+    """(3,) ``(dx, dy, dθ)``: how the registration moves the global map onto the local
+    one, in the join's frame, about the centroid of the global inliers (m, m, rad).
+    ``dθ`` of one sign on every closure means a systematic drift (e.g. a sensor's yaw)."""
+
+
+@dataclass(frozen=True)
 class EKFResult:
     """Per-step vehicle estimates, final map, anchor and association decisions."""
 
@@ -75,6 +96,8 @@ class EKFResult:
     """(M,) known-map id the observation's landmark was merged with, −1 otherwise."""
     ccda_attempts: int
     """How many CCDA matchings were run."""
+    loop_closures: tuple[LoopClosure, ...] = ()
+    """Loop closures found at the joins, in order (none unless ``config.loop_closure``)."""
 
 
 def save_associations(result: EKFResult, path: str | Path) -> Path:

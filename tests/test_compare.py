@@ -19,6 +19,7 @@ from mapfuse_graph.figures import (
     fig7_error_fusion,
     fig10_maps,
     nees_figure,
+    run_label,
     timing_figure,
 )
 from tests.synthetic import synthetic_log
@@ -228,3 +229,12 @@ def test_ccda_figure(log: MeasurementLog) -> None:
     _check_axes(fig, 2)
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert any(lab.startswith("pairings") for lab in labels)
+
+
+def test_runs_on_a_log_without_known_map_are_not_labelled_fused(log: MeasurementLog) -> None:
+    k = log.known_map
+    empty = KnownMapArrays(k.ids[:0], k.kinds[:0], k.params[:0], k.covs[:0])
+    no_map = compare(dataclasses.replace(log, known_map=empty), backends=("ekf",))
+    assert run_label(no_map.run("ekf", True)) == "ekf"
+    assert run_label(no_map.run("ekf", False)) == "ekf"
+    assert run_label(compare(log, backends=("ekf",)).run("ekf", True)) == "ekf with fusion"
