@@ -15,10 +15,12 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.stats import chi2
 
+from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
 from mapfuse_core.se2 import FloatArray, compose, inverse, transform_point, wrap_angle
 
 __all__ = [
     "CHI2_3_95",
+    "MapDrawOffset",
     "PoseErrors",
     "anchor_block",
     "anchor_metrics",
@@ -28,6 +30,7 @@ __all__ = [
     "gps_position_metrics",
     "integrated_autocorrelation_time",
     "interpolate_positions",
+    "known_map_draw_offset",
     "nees_mean_interval",
     "nees_series",
     "path_length",
@@ -338,6 +341,80 @@ def anchor_metrics(
         out["position_error_m"] = float(math.hypot(*(estimate[:2] - truth[:2])))
         out["heading_error_rad"] = float(abs(wrap_angle(estimate[2] - truth[2])))
     return out
+
+
+@dataclass(frozen=True)
+class MapDrawOffset:
+    """How far a noisy known map is, as a whole, from the true map it was drawn around.
+
+    A known map whose features are each off by independent noise is also off as a
+    whole: some rigid motion of its frame fits the truth better than none.  An anchor
+    estimated from that map inherits this offset whatever the estimator, so it is the
+    floor to hold an anchor error against (simulation only: it needs the true map).
+    """
+
+    offset: FloatArray
+    """(3,) ``(x, y, θ)`` (m, m, rad): the rigid motion that puts the true features
+    best onto the noisy ones (weighted least squares with the map's covariances)."""
+    cov: FloatArray
+    """(3, 3) covariance of :attr:`offset` under the map's stated noise."""
+    nees: float
+    """``offsetᵀ cov⁻¹ offset``: distributed χ²(3) if the noise is as stated."""
+
+
+def known_map_draw_offset(
+    kinds: np.ndarray,
+    params: FloatArray,
+    covs: FloatArray,
+    true_params: FloatArray,
+    max_iterations: int = 20,
+) -> MapDrawOffset:
+    """The rigid offset of a known-map draw (``params``) from its truth (``true_params``).
+
+    Features (``kinds`` codes, ``(x, y, θ)`` SPmap lines or ``(x, y, r)`` circles, all
+    in the map frame) are compared by their pairing residuals, so a line's position
+    along itself does not count.  Raises :class:`ValueError` on bad shapes, non-finite
+    values, or a map that does not fix a rigid frame (e.g. only parallel lines).
+    """
+    kinds = np.asarray(kinds)
+    params = np.asarray(params, dtype=np.float64)
+    covs = np.asarray(covs, dtype=np.float64)
+    true_params = np.asarray(true_params, dtype=np.float64)
+    m = kinds.shape[0] if kinds.ndim == 1 else -1
+    if m < 1 or params.shape != (m, 3) or true_params.shape != (m, 3) or covs.shape != (m, 3, 3):
+        raise ValueError(
+            "known_map_draw_offset needs kinds (M,), params and true_params (M, 3) and "
+            f"covs (M, 3, 3) with M ≥ 1; got {kinds.shape}, {params.shape}, "
+            f"{true_params.shape}, {covs.shape}"
+        )
+    for name, a in (("params", params), ("covs", covs), ("true_params", true_params)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"known_map_draw_offset: {name} holds NaN or inf")
+    feature_kinds = [FeatureKind(int(k)) for k in kinds]
+    T = np.zeros(3)
+    H = np.zeros((3, 3))
+    for _ in range(max_iterations):
+        H = np.zeros((3, 3))
+        g = np.zeros(3)
+        for kind, z, C, f in zip(feature_kinds, params, covs, true_params, strict=True):
+            moved, J_T, _ = transform_feature(kind, T, f)
+            r, J_z, J_moved = pairing_residual(kind, z, moved)
+            W = np.linalg.inv(J_z @ C @ J_z.T)
+            J = J_moved @ J_T
+            H += J.T @ W @ J
+            g += J.T @ W @ r
+        if np.linalg.cond(H) > 1e12:
+            raise ValueError(
+                "known_map_draw_offset: the features do not fix a rigid frame "
+                "(e.g. only parallel lines, or a single circle)"
+            )
+        step = np.linalg.solve(H, g)
+        T = T - step
+        if np.max(np.abs(step)) < 1e-12:
+            break
+    cov = np.linalg.inv(H)
+    cov = 0.5 * (cov + cov.T)
+    return MapDrawOffset(offset=T, cov=cov, nees=float(T @ H @ T))
 
 
 class AnchorLike(Protocol):

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.evaluation import known_map_draw_offset
+from mapfuse_core.features import FeatureKind, transform_feature
 from mapfuse_core.laser import cast_rays
 from mapfuse_core.scenario import (
     ControlSegment,
@@ -502,3 +503,48 @@ def test_loop600_walls_in_view_are_never_all_parallel(
         assert a.size >= 2, k
         diff = np.abs(wrap_angle(2.0 * (a[:, None] - a[None, :]))) / 2.0  # modulo π
         assert diff.max() >= math.radians(15.0), k
+
+
+def test_draw_offset_of_a_rigidly_moved_map_is_that_motion() -> None:
+    km = build_known_map(load_scenario("loop600"), np.random.default_rng(0))
+    T = np.array([0.3, -0.2, 0.01])
+    moved = np.array(
+        [
+            transform_feature(FeatureKind(int(k)), T, f)[0]
+            for k, f in zip(km.kinds, km.true_params, strict=True)
+        ]
+    )
+    off = known_map_draw_offset(km.kinds, moved, km.covs, km.true_params)
+    np.testing.assert_allclose(off.offset, T, atol=1e-9)
+    # 63 features at σ 0.1 m: about 0.1/√(≈48 effective) per axis.
+    assert 0.01 < math.sqrt(off.cov[0, 0]) < 0.02
+
+
+def test_draw_offset_is_chi2_over_draws_of_loop600() -> None:
+    """The map's stated σ is honest as a whole too: the offset's NEES over 200 draws
+    averages 3 (σ of the mean √(6/200) = 0.17; bounds ±3σ)."""
+    s = load_scenario("loop600")
+    rng = np.random.default_rng(7)
+    nees = [
+        known_map_draw_offset(km.kinds, km.params, km.covs, km.true_params).nees
+        for km in (build_known_map(s, rng) for _ in range(200))
+    ]
+    assert 2.48 <= float(np.mean(nees)) <= 3.52
+
+
+def test_draw_offset_rejects_bad_maps() -> None:
+    km = build_known_map(load_scenario("loop600"), np.random.default_rng(0))
+    # Walls at one angle only (either direction): nothing fixes the position along them.
+    walls = np.array([[0.0, 0.0, 0.0], [0.0, 5.0, 0.0], [3.0, -4.0, math.pi]])
+    kinds = np.zeros(3, dtype=np.int8)
+    covs = np.tile(np.diag([0.01, 0.01, 0.0025]), (3, 1, 1))
+    with pytest.raises(ValueError, match="do not fix a rigid frame"):
+        known_map_draw_offset(kinds, walls, covs, walls)
+    bad = km.params.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="params holds NaN"):
+        known_map_draw_offset(km.kinds, bad, km.covs, km.true_params)
+    with pytest.raises(ValueError, match="M ≥ 1"):
+        known_map_draw_offset(km.kinds[:0], km.params[:0], km.covs[:0], km.true_params[:0])
+    with pytest.raises(ValueError, match="M ≥ 1"):
+        known_map_draw_offset(km.kinds, km.params[:-1], km.covs, km.true_params)
