@@ -64,3 +64,15 @@ def test_smoothing_is_more_accurate_than_filtering_pooled() -> None:
     # 15 features in view per step leave the filter little to gain from the future),
     # so 0.7 is not expected; the bound guards against a regression.
     assert pooled <= 0.9
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
+    """The paper's 0.15 m fused maximum is within what each log's data allow: the batch
+    smoother with fusion meets it on every seed, also where the EKF does not (seeds 2
+    and 4, xfail in test_loop600_ekf.py): their misses are the filter's, not the data's.
+    """
+    m = _batch(seed).metrics["position_error_m"]
+    # Measured: 0.092, 0.073, 0.090, 0.099, 0.110 m (EKF 0.087, 0.119, 0.158, 0.103,
+    # 0.178); the largest is at the sparse north-east corner, steps 450–600.
+    assert m["max"] <= 0.15, m
