@@ -2,7 +2,8 @@
 
 Not a speed benchmark: the study behind ``VictoriaParkOptions.bearing_offset_rad``
 (see ``VICTORIA_PARK_CALIBRATION_NOTE``).  For each offset the whole run goes through
-the EKF as ``mapfuse run victoria-park`` runs it (``run_backend``), and the rotations of
+the EKF as ``mapfuse run victoria-park`` runs it (``run_backend``; without
+fusion, which is the same on a log with no known map), and the rotations of
 its loop closures (``EKFResult.loop_closures``) are summarised: a yaw error of the
 laser turns every map the car builds on new ground the same way, so when the car comes
 back the closures all rotate with one sign.  The offset is chosen where their mean is
@@ -43,7 +44,11 @@ def _row(data: str, offset: float) -> dict[str, Any]:
         "loop_closures": len(rot),
         "rotation_mean_deg": round(float(rot.mean()), 3) if rot.size else None,
         "rotation_median_deg": round(float(np.median(rot)), 3) if rot.size else None,
+        "rotation_std_error_deg": (
+            round(float(rot.std(ddof=1) / math.sqrt(rot.size)), 3) if rot.size > 1 else None
+        ),
         "rotations_positive": int((rot > 0).sum()),
+        "rotations_deg": [round(float(r), 3) for r in rot],
         "map_features": int(res.global_map.n_obs.size),
         "cpu_time_s": round(cpu, 1),
         "gps_median_m_for_the_record": round(gps.get("median", float("nan")), 3),

@@ -8,12 +8,12 @@ Victoria Park (first calibration) the local map returning from the park's wester
 filter's σ of their relative heading was 0.5°: 6 of its 93 trees were paired,
 although 70 of them lie on global trees once the local map is moved back; the missed
 ones became a second copy of those trees, which the rest of the run then followed
-(10–20 m off GPS).  With the laser yaw of the tracking fit all 15 loop closures of the
-whole run turned the new local map the same way (−0.5° to −2.1°): a systematic drift,
-which the filter's white-noise models cannot represent, hence its overconfidence.  That
-sign is what calibrates the laser yaw (``VICTORIA_PARK_CALIBRATION_NOTE``); with it,
-7 closures turning both ways (−0.95° to +0.67°).  They are in
-``EKFResult.loop_closures``.
+(10–20 m off GPS).  With the laser yaw of the tracking fit, every one of the 15 loop
+closures of the whole run turned the global map onto the returning local map the same
+way (``LoopClosure.correction`` θ of −0.5° to −2.1°): a systematic drift, which the
+filter's white-noise models cannot represent, hence its overconfidence.  That sign is
+what calibrates the laser yaw (``VICTORIA_PARK_CALIBRATION_NOTE``); with it, 7 closures
+turning both ways (−0.95° to +0.67°).  They are in ``EKFResult.loop_closures``.
 
 The registration here finds the rigid motion that puts the most local circle centres
 on global ones, without using the filter's covariance (as CCDA does for the known map,

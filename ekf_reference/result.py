@@ -10,7 +10,14 @@ import numpy as np
 from ekf_reference.config import EKFConfig
 from mapfuse_core.se2 import FloatArray
 
-__all__ = ["AnchorResult", "EKFResult", "MapResult", "load_associations", "save_associations"]
+__all__ = [
+    "AnchorResult",
+    "EKFResult",
+    "LoopClosure",
+    "MapResult",
+    "load_associations",
+    "save_associations",
+]
 
 
 @dataclass(frozen=True)
@@ -45,7 +52,7 @@ class MapResult:
     """(F,) number of observations fused."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LoopClosure:
     """A loop closure found at a join by registering the local map's circles to the
     global map's (:mod:`ekf_reference.loops`; only with ``EKFConfig.loop_closure``)."""
@@ -97,7 +104,8 @@ class EKFResult:
     ccda_attempts: int
     """How many CCDA matchings were run."""
     loop_closures: tuple[LoopClosure, ...] = ()
-    """Loop closures found at the joins, in order (none unless ``config.loop_closure``)."""
+    """Loop closures found at the joins, in order (none unless ``config.loop_closure``,
+    and none once the known map is fused: the local maps are then held to it)."""
 
 
 def save_associations(result: EKFResult, path: str | Path) -> Path:

@@ -15,8 +15,15 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
-from mapfuse_core.se2 import FloatArray, compose, inverse, transform_point, wrap_angle
+from mapfuse_core.features import FeatureKind, express_in, pairing_residual, transform_feature
+from mapfuse_core.se2 import (
+    FloatArray,
+    compose,
+    compose_jacobians,
+    inverse,
+    transform_point,
+    wrap_angle,
+)
 
 __all__ = [
     "CHI2_3_95",
@@ -343,23 +350,56 @@ def anchor_metrics(
     return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MapDrawOffset:
     """How far a noisy known map is, as a whole, from the true map it was drawn around.
 
     A known map whose features are each off by independent noise is also off as a
-    whole: some rigid motion of its frame fits the truth better than none.  An anchor
-    estimated from that map inherits this offset whatever the estimator, so it is the
-    floor to hold an anchor error against (simulation only: it needs the true map).
+    whole: its features are close to ``offset ⊕`` the true ones, for some rigid
+    ``offset``.  An estimator that matched the map perfectly would put any true pose
+    ``x`` of ``Wknown`` at ``offset ⊕ x`` (the anchor included), so ``offset ⊕
+    x_true`` is where an ideal anchor estimate is expected: the reference to hold an
+    anchor's error against when the map's own draw is unlucky.  It is an expectation,
+    not a strict bound (an estimate can land nearer the truth by chance).  Simulation
+    only: it needs the true map.
     """
 
     offset: FloatArray
-    """(3,) ``(x, y, θ)`` (m, m, rad): the rigid motion that puts the true features
-    best onto the noisy ones (weighted least squares with the map's covariances)."""
+    """(3,) ``(x, y, θ)`` (m, m, rad) in the map frame, rotation about its origin: the
+    rigid motion that puts the true features best onto the noisy ones (weighted least
+    squares with the map's covariances, linearised at the solution).  Read-only."""
     cov: FloatArray
-    """(3, 3) covariance of :attr:`offset` under the map's stated noise."""
+    """(3, 3) covariance of :attr:`offset` under the map's stated noise; far from the
+    origin its θ and (x, y) are strongly correlated.  Read-only."""
     nees: float
-    """``offsetᵀ cov⁻¹ offset``: distributed χ²(3) if the noise is as stated."""
+    """Normalised squared size of the offset, computed about the features' centroid
+    (where it does not depend on the map frame's origin): χ²(3) if the noise is as
+    stated."""
+
+
+def _check_draw_inputs(
+    kinds: np.ndarray, params: FloatArray, covs: FloatArray, true_params: FloatArray
+) -> None:
+    m = kinds.shape[0] if kinds.ndim == 1 else -1
+    if m < 1 or params.shape != (m, 3) or true_params.shape != (m, 3) or covs.shape != (m, 3, 3):
+        raise ValueError(
+            "known_map_draw_offset needs kinds (M,), params and true_params (M, 3) and "
+            f"covs (M, 3, 3) with M ≥ 1; got {kinds.shape}, {params.shape}, "
+            f"{true_params.shape}, {covs.shape}"
+        )
+    valid = {int(k) for k in FeatureKind}
+    if not np.issubdtype(kinds.dtype, np.integer) or not set(kinds.tolist()) <= valid:
+        raise ValueError(
+            f"known_map_draw_offset: kinds must be integer FeatureKind codes {sorted(valid)}, "
+            f"got {np.unique(kinds).tolist()}"
+        )
+    for name, a in (("params", params), ("covs", covs), ("true_params", true_params)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"known_map_draw_offset: {name} holds NaN or inf")
+    asym = np.abs(covs - covs.transpose(0, 2, 1)).max(axis=(1, 2))
+    bad = np.nonzero(asym > 1e-9 * (1.0 + np.abs(covs).max(axis=(1, 2))))[0]
+    if bad.size:
+        raise ValueError(f"known_map_draw_offset: covs[{int(bad[0])}] is not symmetric")
 
 
 def known_map_draw_offset(
@@ -373,48 +413,74 @@ def known_map_draw_offset(
 
     Features (``kinds`` codes, ``(x, y, θ)`` SPmap lines or ``(x, y, r)`` circles, all
     in the map frame) are compared by their pairing residuals, so a line's position
-    along itself does not count.  Raises :class:`ValueError` on bad shapes, non-finite
-    values, or a map that does not fix a rigid frame (e.g. only parallel lines).
+    along itself does not count.  Solved by Gauss–Newton about the features' centroid
+    (well conditioned wherever the map frame's origin is), then expressed about the
+    origin.  Raises :class:`ValueError` on bad shapes, kinds or covariances, non-finite
+    values, a map that does not fix a rigid frame (e.g. only parallel lines), or no
+    convergence within ``max_iterations``.
     """
     kinds = np.asarray(kinds)
     params = np.asarray(params, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
     true_params = np.asarray(true_params, dtype=np.float64)
-    m = kinds.shape[0] if kinds.ndim == 1 else -1
-    if m < 1 or params.shape != (m, 3) or true_params.shape != (m, 3) or covs.shape != (m, 3, 3):
-        raise ValueError(
-            "known_map_draw_offset needs kinds (M,), params and true_params (M, 3) and "
-            f"covs (M, 3, 3) with M ≥ 1; got {kinds.shape}, {params.shape}, "
-            f"{true_params.shape}, {covs.shape}"
-        )
-    for name, a in (("params", params), ("covs", covs), ("true_params", true_params)):
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"known_map_draw_offset: {name} holds NaN or inf")
+    _check_draw_inputs(kinds, params, covs, true_params)
+    if (
+        isinstance(max_iterations, bool)
+        or not isinstance(max_iterations, int)
+        or max_iterations < 1
+    ):
+        raise ValueError(f"max_iterations must be an int ≥ 1, got {max_iterations!r}")
     feature_kinds = [FeatureKind(int(k)) for k in kinds]
-    T = np.zeros(3)
+    # Work in a frame at the centroid: about a far origin the rotation column of the
+    # normal matrix grows with the lever arm and hides a degenerate map (or fakes one).
+    centre = np.array([*true_params[:, :2].mean(axis=0), 0.0])
+    lever = max(float(np.sqrt(np.mean(np.sum((true_params[:, :2] - centre[:2]) ** 2, 1)))), 1.0)
+    z_c, C_c, f_c = [], [], []
+    for kind, z, C, f in zip(feature_kinds, params, covs, true_params, strict=True):
+        zc, _, Jz = express_in(kind, centre, z)
+        z_c.append(zc)
+        C_c.append(Jz @ C @ Jz.T)
+        f_c.append(express_in(kind, centre, f)[0])
+    S = np.zeros(3)
     H = np.zeros((3, 3))
     for _ in range(max_iterations):
         H = np.zeros((3, 3))
         g = np.zeros(3)
-        for kind, z, C, f in zip(feature_kinds, params, covs, true_params, strict=True):
-            moved, J_T, _ = transform_feature(kind, T, f)
-            r, J_z, J_moved = pairing_residual(kind, z, moved)
-            W = np.linalg.inv(J_z @ C @ J_z.T)
-            J = J_moved @ J_T
-            H += J.T @ W @ J
-            g += J.T @ W @ r
-        if np.linalg.cond(H) > 1e12:
+        for i, kind in enumerate(feature_kinds):
+            moved, J_S, _ = transform_feature(kind, S, f_c[i])
+            r, J_z, J_moved = pairing_residual(kind, z_c[i], moved)
+            try:
+                L = np.linalg.cholesky(J_z @ C_c[i] @ J_z.T)
+            except np.linalg.LinAlgError:
+                raise ValueError(
+                    f"known_map_draw_offset: covs[{i}] is not positive definite in the "
+                    "components the features are compared on"
+                ) from None
+            J = np.linalg.solve(L, J_moved @ J_S)
+            H += J.T @ J
+            g += J.T @ np.linalg.solve(L, r)
+        scale = np.array([1.0, 1.0, lever])
+        if np.linalg.cond(H / np.outer(scale, scale)) > 1e10:
             raise ValueError(
                 "known_map_draw_offset: the features do not fix a rigid frame "
                 "(e.g. only parallel lines, or a single circle)"
             )
         step = np.linalg.solve(H, g)
-        T = T - step
-        if np.max(np.abs(step)) < 1e-12:
+        S = S - step
+        if np.max(np.abs(step * scale)) < 1e-10:
             break
-    cov = np.linalg.inv(H)
-    cov = 0.5 * (cov + cov.T)
-    return MapDrawOffset(offset=T, cov=cov, nees=float(T @ H @ T))
+    else:
+        raise ValueError(f"known_map_draw_offset: no convergence in {max_iterations} iterations")
+    # offset = centre ⊕ S ⊕ ⊖centre: the same rigid motion, about the map origin.
+    inv_c = inverse(centre)
+    right, J_S_right, _ = compose_jacobians(S, inv_c)
+    offset, _, J_right = compose_jacobians(centre, right)
+    J = J_right @ J_S_right
+    cov_S = np.linalg.inv(H)
+    cov = J @ (0.5 * (cov_S + cov_S.T)) @ J.T
+    offset.setflags(write=False)
+    cov.setflags(write=False)
+    return MapDrawOffset(offset=offset, cov=cov, nees=float(S @ H @ S))
 
 
 class AnchorLike(Protocol):

@@ -138,13 +138,17 @@ def compare(
     the EKF runs once per setting (also when ``"ekf"`` is not among ``backends``:
     its result is then used for the decisions but not reported).
     ``progress(label, k, n)`` is called as each run advances, ``label`` naming the run
-    (e.g. ``"isam2 without fusion"``).
+    (e.g. ``"isam2 without fusion"``).  A log without a known map (Victoria Park) has
+    nothing to fuse, so there each backend runs once, without fusion, whatever
+    ``fusions`` asks.
     """
     unknown = [b for b in backends if b not in BACKENDS]
     if unknown or not backends:
         raise ValueError(f"backends must be among {', '.join(BACKENDS)}, got {list(backends)}")
     if not fusions or len(set(fusions)) != len(fusions):
         raise ValueError(f"fusions must be distinct booleans, got {list(fusions)}")
+    if len(log.known_map) == 0:
+        fusions = (False,)
     t0 = time.perf_counter()
     runs: list[RunOutput] = []
     for fusion in fusions:

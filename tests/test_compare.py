@@ -231,10 +231,15 @@ def test_ccda_figure(log: MeasurementLog) -> None:
     assert any(lab.startswith("pairings") for lab in labels)
 
 
-def test_runs_on_a_log_without_known_map_are_not_labelled_fused(log: MeasurementLog) -> None:
+def test_a_log_without_known_map_is_compared_once_and_not_labelled_fused(
+    log: MeasurementLog,
+) -> None:
     k = log.known_map
     empty = KnownMapArrays(k.ids[:0], k.kinds[:0], k.params[:0], k.covs[:0])
-    no_map = compare(dataclasses.replace(log, known_map=empty), backends=("ekf",))
-    assert run_label(no_map.run("ekf", True)) == "ekf"
+    no_map = compare(dataclasses.replace(log, known_map=empty), backends=("ekf", "batch"))
+    assert [(m["backend"], m["fusion"]) for m in no_map.metrics] == [
+        ("ekf", False),
+        ("batch", False),
+    ]
     assert run_label(no_map.run("ekf", False)) == "ekf"
     assert run_label(compare(log, backends=("ekf",)).run("ekf", True)) == "ekf with fusion"

@@ -49,10 +49,10 @@ def test_ccda_accepts_only_correct_pairings(seed: int) -> None:
     "seed",
     _seeds(
         {
-            # Seed 1's known map is off by 5.7 cm as a whole (NEES 16 on 3 dof, a one in
-            # a thousand draw): no estimator can do better from this draw of the survey
-            # noise; see test_anchor_is_near_what_the_known_map_allows.
-            1: "anchor error 5.9 cm (the known-map draw itself is 5.7 cm off)",
+            # Seed 1's known map is off by 5.6 cm as a whole at the anchor (NEES 16 on 3
+            # dof, a one in a thousand draw): an ideal estimator is expected that far from
+            # the truth; see test_anchor_is_near_what_the_known_map_allows.
+            1: "anchor error 5.9 cm (the known-map draw itself puts it 5.6 cm off)",
         }
     ),
 )
@@ -65,24 +65,24 @@ def test_anchor_accuracy(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_anchor_is_near_what_the_known_map_allows(seed: int) -> None:
-    """The anchor against the floor its known-map draw sets (``known_map_draw_offset``:
-    where a perfect estimator would put the known map's frame)."""
+    """The anchor against where an ideal estimator is expected to put it, given the
+    seed's known-map draw (:func:`~mapfuse_core.evaluation.known_map_draw_offset`)."""
     log = loop600_log(seed)
     known = build_known_map(load_scenario("loop600"), np.random.default_rng(0))
     assert np.array_equal(known.ids, log.known_map.ids)
     k = log.known_map
     draw = known_map_draw_offset(k.kinds, k.params, k.covs, known.true_params)
     truth = anchor_truth(log.true_poses)
-    floor = compose(draw.offset, truth)
+    ideal = compose(draw.offset, truth)
     est = loop600_ekf(seed, True).anchor
     assert est is not None
-    # Measured against the floor: 1.7, 2.4, 0.7, 2.9, 3.6 cm; the issue's 4 cm and
+    # Measured against it: 1.7, 2.4, 0.7, 2.9, 3.6 cm; the issue's 4 cm and
     # 2 mrad, held against what the map allows instead of the truth.
-    assert math.hypot(*(est.x_Wknown_Wglobal[:2] - floor[:2])) <= 0.04
-    assert abs(wrap_angle(est.x_Wknown_Wglobal[2] - floor[2])) <= 0.002
+    assert math.hypot(*(est.x_Wknown_Wglobal[:2] - ideal[:2])) <= 0.04
+    assert abs(wrap_angle(est.x_Wknown_Wglobal[2] - ideal[2])) <= 0.002
     if seed == 1:
         # The draw behind the xfail of test_anchor_accuracy[1].
-        assert math.hypot(*(floor[:2] - truth[:2])) > 0.05
+        assert math.hypot(*(ideal[:2] - truth[:2])) > 0.05
         assert draw.nees > 12.0
 
 

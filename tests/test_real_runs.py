@@ -156,13 +156,14 @@ def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: Measure
     run = run_backend(victoria_head, "ekf", fusion=False)
     m = run.metrics["position_error_m"]
     assert m["alignment"] == "best_fit"
-    # Median 1.26 m over the 2,100 scans against GPS that itself jumps by metres; with the
-    # laser's raw bearings the run was 8–13 m off from t = 300 s on.
-    assert m["median"] < 2.0
+    # Median 0.77 m over the 2,100 scans (0.49 m over t = 300–450 s) against GPS that
+    # itself jumps by metres; with the laser's raw bearings the run was 8–13 m off from
+    # t = 300 s on.
+    assert m["median"] < 1.2
     t, e = gps_errors(run)
     late = (t >= 300.0) & (t <= 450.0)
     assert late.sum() > 100
-    assert np.median(e[late]) < 3.0
+    assert np.median(e[late]) < 1.0
 
 
 @pytest.mark.slow

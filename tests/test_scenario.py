@@ -25,7 +25,7 @@ from mapfuse_core.scenario import (
     load_scenario,
     simulate_drive,
 )
-from mapfuse_core.se2 import wrap_angle
+from mapfuse_core.se2 import compose, inverse, wrap_angle
 from mapfuse_core.simulate import simulate
 from mapfuse_core.vehicle import MotionResult, VehicleParams
 
@@ -520,6 +520,30 @@ def test_draw_offset_of_a_rigidly_moved_map_is_that_motion() -> None:
     assert 0.01 < math.sqrt(off.cov[0, 0]) < 0.02
 
 
+def test_draw_offset_does_not_depend_on_where_the_map_frame_is() -> None:
+    """Far from the origin (map coordinates in UTM, say) the same draw gives the same
+    rigid motion and NEES; an origin-dependent conditioning test once rejected it."""
+    km = build_known_map(load_scenario("loop600"), np.random.default_rng(1))
+    here = known_map_draw_offset(km.kinds, km.params, km.covs, km.true_params)
+    far = np.array([3.0e5, 6.2e6, 0.4])  # a frame 6,000 km away, turned
+    move = [
+        (
+            transform_feature(FeatureKind(int(k)), far, z),
+            transform_feature(FeatureKind(int(k)), far, f),
+        )
+        for k, z, f in zip(km.kinds, km.params, km.true_params, strict=True)
+    ]
+    params = np.array([z[0] for z, _ in move])
+    covs = np.array([z[2] @ C @ z[2].T for (z, _), C in zip(move, km.covs, strict=True)])
+    there = known_map_draw_offset(km.kinds, params, covs, np.array([f[0] for _, f in move]))
+    # The same rigid motion seen from the far frame: far ⊕ here ⊕ ⊖far.
+    expected = compose(compose(far, here.offset), inverse(far))
+    np.testing.assert_allclose(there.offset[2], expected[2], atol=1e-12)
+    np.testing.assert_allclose(there.offset[:2], expected[:2], atol=1e-6)
+    assert there.nees == pytest.approx(here.nees, rel=1e-6)
+    assert not there.offset.flags.writeable
+
+
 def test_draw_offset_is_chi2_over_draws_of_loop600() -> None:
     """The map's stated σ is honest as a whole too: the offset's NEES over 200 draws
     averages 3 (σ of the mean √(6/200) = 0.17; bounds ±3σ)."""
@@ -544,6 +568,20 @@ def test_draw_offset_rejects_bad_maps() -> None:
     bad[3, 1] = np.nan
     with pytest.raises(ValueError, match="params holds NaN"):
         known_map_draw_offset(km.kinds, bad, km.covs, km.true_params)
+    with pytest.raises(ValueError, match="FeatureKind codes"):
+        known_map_draw_offset(km.kinds.astype(float), km.params, km.covs, km.true_params)
+    with pytest.raises(ValueError, match="FeatureKind codes"):
+        known_map_draw_offset(km.kinds * 5, km.params, km.covs, km.true_params)
+    covs = km.covs.copy()
+    covs[2, 0, 1] = 0.001
+    with pytest.raises(ValueError, match=r"covs\[2\] is not symmetric"):
+        known_map_draw_offset(km.kinds, km.params, covs, km.true_params)
+    with pytest.raises(ValueError, match=r"covs\[0\] is not positive definite"):
+        known_map_draw_offset(km.kinds, km.params, -km.covs, km.true_params)
+    with pytest.raises(ValueError, match="max_iterations"):
+        known_map_draw_offset(km.kinds, km.params, km.covs, km.true_params, max_iterations=0)
+    with pytest.raises(ValueError, match="no convergence in 1 iterations"):
+        known_map_draw_offset(km.kinds, km.params, km.covs, km.true_params, max_iterations=1)
     with pytest.raises(ValueError, match="M ≥ 1"):
         known_map_draw_offset(km.kinds[:0], km.params[:0], km.covs[:0], km.true_params[:0])
     with pytest.raises(ValueError, match="M ≥ 1"):
