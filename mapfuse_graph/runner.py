@@ -169,7 +169,8 @@ def run_backend(
     """Run ``backend`` on ``log``.
 
     Graph backends with ``association="ekf"`` consume the EKF's saved decisions: the
-    EKF (same ``fusion``) is run first unless ``ekf_result`` is given.
+    EKF (same ``fusion``) is run first unless ``ekf_result`` is given.  On a log without
+    a known map there is nothing to fuse: the run is made, and reported, without fusion.
     """
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
@@ -177,6 +178,8 @@ def run_backend(
         raise ValueError(
             f"unknown association {association!r}; choose one of {', '.join(ASSOCIATIONS)}"
         )
+    if len(log.known_map) == 0:
+        fusion = False
     if backend == "ekf":
         res = run_ekf(log, default_ekf_config(log, fusion), progress=progress)
         return RunOutput(

@@ -22,6 +22,7 @@ from mapfuse_graph.figures import (
     run_label,
     timing_figure,
 )
+from mapfuse_graph.runner import run_backend
 from tests.synthetic import synthetic_log
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -242,4 +243,8 @@ def test_a_log_without_known_map_is_compared_once_and_not_labelled_fused(
         ("batch", False),
     ]
     assert run_label(no_map.run("ekf", False)) == "ekf"
+    # Asked for fusion on such a log, a run is made and reported without it.
+    alone = run_backend(no_map.log, "ekf", fusion=True)
+    assert alone.metrics["fusion"] is False
+    np.testing.assert_array_equal(alone.poses, no_map.run("ekf", False).poses)
     assert run_label(compare(log, backends=("ekf",)).run("ekf", True)) == "ekf with fusion"
