@@ -24,9 +24,10 @@ NOTEBOOKS = (
     "03_graph_vs_ekf",
     "04_ccda_matching",
     "05_real_data_carpark",
+    "06_victoria_park",
 )
 # Notebooks that read the real datasets: skipped, like the real-data tests, without them.
-NEEDS_DATA = ("05_real_data_carpark",)
+NEEDS_DATA = ("05_real_data_carpark", "06_victoria_park")
 # Per-cell timeout (s): a whole notebook targets two minutes; the margin is for loaded
 # machines, the timeout only catches a hung or runaway cell.
 TIMEOUT_S = 600
