@@ -269,9 +269,9 @@ local maps of 40 scans, no time offset or no speed scale change that by under 0.
 less negative laser yaw straightens it (−0.012 rad: within 1.8 m). The tracked pairs
 (median distance ten scans apart, per time window; no GPS) agree that the best yaw
 varies along the run: about −0.017 rad in each 300 s window up to 1,240 s, −0.008 rad
-or less negative in the arm (1,240–1,340 s), −0.029 rad or more negative after it. A
-yaw (or an odometry error that mimics one) varying along the run, estimated by the
-filter, would be the next thing to model.
+or less negative in the arm (1,240–1,340 s), −0.029 rad or more negative after it.
+Applying those values window by window, though, leaves the arm bent (median 5.4 m
+against 6.4 m there): what bends it is not the arm's own yaw, and is not identified.
 
 The speed scale is in tension with GPS: over 30 s windows the raw dead reckoning has
 GPS's length (median ratio 0.997; 0.973 with ×1.0216), yet the whole-run EKF trajectory
