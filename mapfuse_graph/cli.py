@@ -133,10 +133,11 @@ def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse_graph.baseline import record_baseline, save_baseline
 
     log = _log_from_args(args, args.scenario, args.seed)
-    entries = [
-        record_baseline(log, args.backend, fusion=f, note=args.note)
-        for f in ((True, False) if args.fusion is None else (args.fusion,))
-    ]
+    fusions: tuple[bool, ...] = (True, False) if args.fusion is None else (args.fusion,)
+    if len(log.known_map) == 0:
+        # Nothing to fuse: one entry, without fusion (run_backend would run both alike).
+        fusions = (False,)
+    entries = [record_baseline(log, args.backend, fusion=f, note=args.note) for f in fusions]
     save_baseline(entries, args.out)
     print(json.dumps({"baseline": str(args.out), "entries": len(entries)}))
     return 0
@@ -222,8 +223,9 @@ def _parser() -> argparse.ArgumentParser:
     cmp_ = sub.add_parser(
         "compare",
         help="EKF, batch and iSAM2, with and without fusion, on one log",
-        description="Run {ekf, batch, isam2} x {fusion, no fusion} on one measurement log and "
-        "write OUT/comparison.json, OUT/report.md and the paper's figures.",
+        description="Run {ekf, batch, isam2} x {fusion, no fusion} on one measurement log (no "
+        "fusion only, on a log without a known map) and write OUT/comparison.json, "
+        "OUT/report.md and the paper's figures.",
     )
     cmp_.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
     cmp_.add_argument("--seed", type=int, default=None, help="random seed for simulation")

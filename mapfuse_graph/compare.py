@@ -75,7 +75,8 @@ class Comparison:
     log: MeasurementLog
     """The log all runs consumed."""
     runs: tuple[RunOutput, ...]
-    """Runs ordered by fusion setting (as requested), then backend (ekf, batch, isam2)."""
+    """Runs ordered by fusion setting (as requested; only without fusion on a log without a
+    known map), then backend (ekf, batch, isam2)."""
     wall_time_s: float
     """Wall time of the whole :func:`compare` call (s)."""
 

@@ -959,7 +959,8 @@ def graph_metrics(
         scenario=result.scenario,
         seed=result.seed,
         backend=result.backend,
-        fusion=result.fusion,
+        # Nothing is fused without a known map, whatever the options asked.
+        fusion=result.fusion and len(log.known_map) > 0,
         poses=poses,
         covs=covs,
         true_poses=true_poses,

@@ -374,3 +374,25 @@ def test_helper_does_not_modify_its_input(tmp_path: Path) -> None:
     entry = record_baseline(m)
     entry["metrics"]["seed"] = 99
     assert m == before
+
+
+def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path) -> None:
+    from mapfuse_core.measlog import KnownMapArrays, save_log
+    from mapfuse_graph.cli import main
+
+    log = synthetic_log(60, 2)
+    k = log.known_map
+    empty = KnownMapArrays(k.ids[:0], k.kinds[:0], k.params[:0], k.covs[:0])
+    no_map = dataclasses.replace(log, known_map=empty)
+    path = save_log(no_map, tmp_path / "log.npz")
+    out = tmp_path / "base.json"
+    assert main(["baseline", "record", str(path), "--backend", "ekf", "--out", str(out)]) == 0
+    entries = load_baseline(out)
+    assert [e["metrics"]["fusion"] for e in entries] == [False]
+    # Unambiguous: a run asked to fuse is reported without fusion and matches the entry.
+    metrics = run_backend(no_map, "ekf", fusion=True).metrics
+    assert metrics["fusion"] is False
+    assert_no_worse_than_baseline(metrics, out)
+    assert record_baseline(no_map, "ekf", fusion=True)["metrics"]["fusion"] is False
+    # The metric functions themselves report the fusion that happened.
+    assert ekf_metrics(run_ekf(no_map, EKFConfig(fusion=True)), no_map)["fusion"] is False
