@@ -124,6 +124,17 @@ def _one_to_one(tree: cKDTree, P: FloatArray, tol: float) -> list[tuple[int, int
     return pairs
 
 
+def _distinct(
+    moved: FloatArray, th: float, moved2: FloatArray, th2: float, spread: float, tol: float
+) -> bool:
+    """Two motions are distinct hypotheses when they put the anchors' centroid (``moved``)
+    or turn the anchors (``th`` at lever ``spread``) more than ``2·tol`` apart."""
+    return (
+        math.hypot(*(moved - moved2)) > 2.0 * tol
+        or abs(math.remainder(th - th2, 2 * math.pi)) * spread > 2.0 * tol
+    )
+
+
 def register_circles(
     L: FloatArray, G: FloatArray, n_obs: np.ndarray, params: LoopClosureParams
 ) -> Registration | None:
@@ -193,11 +204,7 @@ def register_circles(
     for h in order.tolist():
         if len(picked) >= params.n_refine:
             break
-        if all(
-            math.hypot(*(moved[h] - moved[p])) > 2.0 * tol
-            or abs(math.remainder(H[h, 2] - H[p, 2], 2 * math.pi)) * spread > 2.0 * tol
-            for p in picked
-        ):
+        if all(_distinct(moved[h], H[h, 2], moved[p], H[p, 2], spread, tol) for p in picked):
             picked.append(h)
     refined = []
     for h in picked:
@@ -216,8 +223,7 @@ def register_circles(
     runner = 0
     for n_in, T, _ in refined[1:]:
         m = transform_point(T, cen[None])[0]
-        dth = abs(math.remainder(T[2] - best_T[2], 2 * math.pi))
-        if math.hypot(*(m - best_moved)) > 2.0 * tol or dth * spread > 2.0 * tol:
+        if _distinct(m, T[2], best_moved, best_T[2], spread, tol):
             runner = max(runner, n_in)
     li = np.array([p[0] for p in best_pairs], dtype=np.int64)
     shift = float(np.max(np.hypot(*(transform_point(best_T, L[li]) - L[li]).T))) if li.size else 0.0

@@ -84,7 +84,6 @@ class _Run:
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
-        self.step = -1
 
     # ------------------------------------------------------------------ per step
 
@@ -215,7 +214,6 @@ class _Run:
         loc.remove(drop)
 
     def join(self, k: int) -> None:
-        self.step = k
         if self.config.min_obs_to_join > 1:
             self.drop_rare_local_features()
         g, loc, ctx = self.global_map, self.local, self.ctx
@@ -236,7 +234,7 @@ class _Run:
             e.moving = False
         joint.bind_lines()
         # Pair the local map's features with the global ones (and the known ones).
-        pairs = self._pair_at_join(joint)
+        pairs = self._pair_at_join(joint, k)
         for q, c in pairs:
             f, t = joint.elements[q.element], joint.elements[c.target]
             self.tracks.merge(f.track, t.track)
@@ -254,7 +252,7 @@ class _Run:
             self.try_ccda(k)
         self.local, self.ctx = new_local_map(self.global_map)
 
-    def _pair_at_join(self, joint: GaussianMap) -> list[tuple[Query, Candidate]]:
+    def _pair_at_join(self, joint: GaussianMap, k: int) -> list[tuple[Query, Candidate]]:
         """Pair the local features of ``joint`` with global (and known) ones and apply them.
 
         With ``loop_closure`` set, the local map is first registered to the global one
@@ -262,7 +260,7 @@ class _Run:
         """
         pairs: list[tuple[Query, Candidate]] = []
         if self.config.loop_closure is not None:
-            pairs = self._close_loop(joint, self.config.loop_closure)
+            pairs = self._close_loop(joint, self.config.loop_closure, k)
         paired = {q.element for q, _ in pairs}
         used = {c.target for _, c in pairs}
         queries = [
@@ -281,7 +279,7 @@ class _Run:
         return pairs + new
 
     def _close_loop(
-        self, joint: GaussianMap, params: LoopClosureParams
+        self, joint: GaussianMap, params: LoopClosureParams, k: int
     ) -> list[tuple[Query, Candidate]]:
         """Register the local circles to the global ones; on a loop closure the filter
         missed, widen the maps' relative pose and apply the registered pairings that
@@ -333,7 +331,7 @@ class _Run:
         delta.setflags(write=False)
         self.loop_closures.append(
             LoopClosure(
-                step=self.step,
+                step=k,
                 inliers=reg.inliers,
                 inliers_at_identity=reg.at_identity,
                 runner_up=reg.runner_up,

@@ -18,8 +18,7 @@ def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
         scenario=log.scenario,
         seed=log.seed,
         backend="ekf",
-        # Nothing is fused without a known map, whatever the configuration asked.
-        fusion=result.config.fusion and len(log.known_map) > 0,
+        fusion=log.fuses(result.config.fusion),
         poses=result.poses,
         covs=result.covs,
         true_poses=log.true_poses,

@@ -281,7 +281,7 @@ def record_baseline(
             raise ValueError("record_baseline on a log needs a backend ('ekf', 'batch', 'isam2')")
         from mapfuse_graph.runner import run_backend
 
-        fusion = fusion and len(source.known_map) > 0
+        fusion = source.fuses(fusion)
         label = f"{backend} {'with' if fusion else 'without'} fusion"
         report = None if progress is None else functools.partial(progress, label)
         run = run_backend(source, backend, fusion=fusion, association=association, progress=report)

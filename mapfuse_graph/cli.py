@@ -130,14 +130,11 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
-    from mapfuse_graph.baseline import record_baseline, save_baseline
+    from mapfuse_graph.baseline import record_baselines, save_baseline
 
     log = _log_from_args(args, args.scenario, args.seed)
-    fusions: tuple[bool, ...] = (True, False) if args.fusion is None else (args.fusion,)
-    if len(log.known_map) == 0:
-        # Nothing to fuse: one entry, without fusion (run_backend would run both alike).
-        fusions = (False,)
-    entries = [record_baseline(log, args.backend, fusion=f, note=args.note) for f in fusions]
+    fusions = (True, False) if args.fusion is None else (args.fusion,)
+    entries = record_baselines(log, backends=(args.backend,), fusions=fusions, note=args.note)
     save_baseline(entries, args.out)
     print(json.dumps({"baseline": str(args.out), "entries": len(entries)}))
     return 0

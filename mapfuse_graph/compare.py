@@ -148,8 +148,8 @@ def compare(
         raise ValueError(f"backends must be among {', '.join(BACKENDS)}, got {list(backends)}")
     if not fusions or len(set(fusions)) != len(fusions):
         raise ValueError(f"fusions must be distinct booleans, got {list(fusions)}")
-    if len(log.known_map) == 0:
-        fusions = (False,)
+    # Settings that run alike (any, without a known map) run once.
+    fusions = tuple(dict.fromkeys(log.fuses(f) for f in fusions))
     t0 = time.perf_counter()
     runs: list[RunOutput] = []
     for fusion in fusions:

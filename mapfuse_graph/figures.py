@@ -83,7 +83,7 @@ def run_label(run: RunOutput) -> str:
     """``"ekf with fusion"``-style label of a run; just the backend on a log without a
     known map (Victoria Park), where there is nothing to fuse either way."""
     m = run.metrics
-    if len(run.log.known_map) == 0:
+    if not run.log.fuses(True):
         return str(m["backend"])
     return f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion"
 

@@ -87,6 +87,7 @@ __all__ = [
     "GraphOptions",
     "StepGraph",
     "anchor_key",
+    "centre_radius_correlated",
     "known_key",
     "landmark_key",
     "odometry_noise_cov",
@@ -116,6 +117,14 @@ def radius_key(i: int) -> int:
     """Key of circle landmark ``i``'s radius with :attr:`GraphOptions.split_circles`
     (its centre keeps :func:`landmark_key`)."""
     return int(gtsam.symbol("r", i))
+
+
+def centre_radius_correlated(log: MeasurementLog) -> int | None:
+    """First circle observation of ``log`` whose covariance correlates its centre and
+    radius (then :attr:`GraphOptions.split_circles` would change the model), else ``None``."""
+    circles = np.nonzero(log.feat_kind == int(FeatureKind.CIRCLE))[0]
+    bad = circles[np.any(log.feat_cov[circles][:, :2, 2] != 0.0, axis=1)]
+    return int(bad[0]) if bad.size else None
 
 
 def known_key(j: int, kind: FeatureKind) -> int:
@@ -400,12 +409,12 @@ class GraphBuilder:
             )
         if opts.fusion and np.any(self.known.kinds == int(FeatureKind.CIRCLE)):
             raise ValueError("split_circles cannot fuse a known map with circles")
-        for j, S in enumerate(self._noise.observation):
-            if int(log.feat_kind[j]) == int(FeatureKind.CIRCLE) and np.any(S[:2, 2] != 0.0):
-                raise ValueError(
-                    f"split_circles: observation {j} correlates its circle's centre and "
-                    "radius; the split would not be the same model"
-                )
+        j = centre_radius_correlated(log)
+        if j is not None:
+            raise ValueError(
+                f"split_circles: observation {j} correlates its circle's centre and "
+                "radius; the split would not be the same model"
+            )
 
     @property
     def split_circles(self) -> bool:

@@ -12,18 +12,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ekf_reference import EKFConfig, ekf_metrics, run_ekf, save_associations
 from ekf_reference.loops import LoopClosureParams
 from ekf_reference.result import EKFResult
 from mapfuse_core.evaluation import pose_errors, truth_in_global, write_tum
-from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.se2 import FloatArray
 from mapfuse_core.simulate import simulate
-from mapfuse_graph.graph import GraphOptions
+from mapfuse_graph.graph import GraphOptions, centre_radius_correlated
 from mapfuse_graph.solvers import GraphResult, ISAM2Options, graph_metrics, run_graph
 
 __all__ = [
@@ -134,13 +131,11 @@ def default_graph_options(
     set by :func:`~mapfuse_graph.solvers.run_graph`."""
     from mapfuse_core.datasets import VICTORIA_PARK_NAME
 
-    circles = log.feat_kind == int(FeatureKind.CIRCLE)
-    independent = not np.any(log.feat_cov[circles][:, :2, 2])
     if (
         log.scenario == VICTORIA_PARK_NAME
         and association != "own"
         and robust is None
-        and independent
+        and centre_radius_correlated(log) is None
     ):
         return GraphOptions(split_circles=True)
     return GraphOptions()
@@ -179,8 +174,7 @@ def run_backend(
         raise ValueError(
             f"unknown association {association!r}; choose one of {', '.join(ASSOCIATIONS)}"
         )
-    if len(log.known_map) == 0:
-        fusion = False
+    fusion = log.fuses(fusion)
     if backend == "ekf":
         res = run_ekf(log, default_ekf_config(log, fusion), progress=progress)
         return RunOutput(

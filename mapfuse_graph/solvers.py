@@ -959,8 +959,7 @@ def graph_metrics(
         scenario=result.scenario,
         seed=result.seed,
         backend=result.backend,
-        # Nothing is fused without a known map, whatever the options asked.
-        fusion=result.fusion and len(log.known_map) > 0,
+        fusion=log.fuses(result.fusion),
         poses=poses,
         covs=covs,
         true_poses=true_poses,
