@@ -8,6 +8,16 @@ The extracted features are unbiased (``tests/test_extraction_consistency.py``) a
 odometry is white with its stated covariance, so what is left is the filter: with
 every input redrawn exactly from its logged Gaussian the EKF still has a mean NEES of
 2.6–4.8 over draws on one trajectory, and falls below 90 % within on some draws.
+
+Against the relinearising filter on identical inputs (iSAM2's filtered estimates,
+``tests/test_loop600_graph.py``) the two remaining kinds of gap part ways: the NEES
+gap of seed 4 is that filter's too (84 % within), so it belongs to the draw; the
+max-error gaps of seeds 2 and 4 are not (the filter stays at 0.140 and 0.141 m), so
+they are what the EKF's linearisation costs.  Iterating every EKF update (three
+Gauss–Newton steps, tried in session 5, not kept) brings seed 2 to 0.135 m but leaves
+seed 4 at 0.178 m and the mean NEES of seeds 0–6 within 0.03 of the plain EKF's, so
+most of that cost is in linearisation points an update cannot revisit: past
+predictions and joins.
 """
 
 from __future__ import annotations
@@ -87,7 +97,13 @@ def test_anchor_is_near_what_the_known_map_allows(seed: int) -> None:
 
 
 @pytest.mark.parametrize(
-    "seed", _seeds({2: "max error 0.158 m", 4: "max error 0.178 m (anchor 1.5 mrad off)"})
+    "seed",
+    _seeds(
+        {
+            2: "max error 0.158 m (iSAM2's filter 0.140 m)",
+            4: "max error 0.178 m (iSAM2's filter 0.141 m)",
+        }
+    ),
 )
 def test_fusion_bounds_the_error(seed: int) -> None:
     m = ekf_metrics(loop600_ekf(seed, True), loop600_log(seed))
@@ -101,7 +117,8 @@ def test_fusion_bounds_the_error(seed: int) -> None:
         pytest.param(s, f, marks=pytest.mark.xfail(reason=why, strict=False))
         if (
             why := {
-                (4, True): "85 % within (anchor heading 1.5 mrad, 2.5 σ, off)",
+                (4, True): "85 % within; iSAM2's filter on the same inputs 84 % "
+                "(test_the_ekf_is_as_consistent_as_the_nonlinear_filter)",
             }.get((s, f))
         )
         else (s, f)

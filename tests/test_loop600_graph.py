@@ -76,3 +76,56 @@ def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
     # Measured: 0.092, 0.073, 0.090, 0.099, 0.110 m (EKF 0.087, 0.119, 0.158, 0.103,
     # 0.178); the largest is at the sparse north-east corner, steps 450–600.
     assert m["max"] <= 0.15, m
+
+
+# ------------------------------------------------------------ filter against filter
+# The smoother above sees the future; the fair yardstick for the EKF is a filter.
+# iSAM2's estimate of X_k right after update k uses steps 0..k only, relinearised
+# (GraphResult.filtered_poses): the nonlinear filter on the EKF's own inputs and
+# association decisions.
+
+
+@functools.lru_cache(maxsize=5)
+def _isam2(seed: int) -> RunOutput:
+    return run_backend(loop600_log(seed), "isam2", fusion=True, ekf_result=loop600_ekf(seed, True))
+
+
+def _filtered(seed: int) -> tuple[float, np.ndarray]:
+    """Max position error and NEES series of iSAM2's filtered estimates."""
+    g = _isam2(seed).graph
+    truth = loop600_log(seed).true_poses
+    assert g is not None
+    assert g.filtered_poses is not None
+    assert g.filtered_covs is not None
+    assert truth is not None
+    dx = pose_errors(g.filtered_poses, truth_in_global(truth)).dx
+    return float(np.hypot(dx[:, 0], dx[:, 1]).max()), nees_series(dx, g.filtered_covs)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_filter_on_the_same_inputs_meets_the_papers_fused_max_error(seed: int) -> None:
+    """Filtering alone (no future data) can meet 0.15 m on every seed: the EKF's misses
+    on seeds 2 and 4 are what its linearisation costs, not what filtering costs."""
+    worst, _ = _filtered(seed)
+    # Measured 0.079, 0.109, 0.140, 0.097, 0.141 m (EKF 0.087, 0.119, 0.158, 0.103,
+    # 0.178 m): the EKF's maximum is 6–26 % larger, at the same steps.
+    assert worst <= 0.15
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_ekf_is_as_consistent_as_the_nonlinear_filter(seed: int) -> None:
+    """Where the EKF's NEES leaves the χ² bound too often (seed 4), so does the
+    relinearising filter on identical inputs: that gap is the draw's, not the EKF's."""
+    _, nees = _filtered(seed)
+    ekf = ekf_metrics(loop600_ekf(seed, True), loop600_log(seed))["nees"]
+    within = float(np.mean(nees <= chi2.ppf(0.95, 3)))
+    print(
+        f"\nseed {seed}: within EKF {ekf['fraction_within_chi2_95']:.3f} filter {within:.3f};"
+        f" mean NEES EKF {ekf['mean']:.2f} filter {float(np.mean(nees)):.2f}"
+    )
+    # Measured fractions within 0.965/0.968, 0.983/0.982, 0.938/0.950, 0.982/0.980,
+    # 0.846/0.839 and mean NEES 2.66/2.55, 2.26/2.27, 3.78/3.63, 2.70/2.67, 5.42/5.52
+    # (EKF/filter): at most 0.012 and 4.3 % apart.  The bounds leave room for that
+    # and fail an EKF made 10 % more overconfident than the filter.
+    assert ekf["fraction_within_chi2_95"] >= within - 0.02
+    assert ekf["mean"] <= 1.10 * float(np.mean(nees))
