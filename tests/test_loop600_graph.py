@@ -105,7 +105,8 @@ def _filtered(seed: int) -> tuple[float, np.ndarray]:
 @pytest.mark.parametrize("seed", SEEDS)
 def test_a_filter_on_the_same_inputs_meets_the_papers_fused_max_error(seed: int) -> None:
     """Filtering alone (no future data) can meet 0.15 m on every seed: the EKF's misses
-    on seeds 2 and 4 are what its linearisation costs, not what filtering costs."""
+    on seeds 2 and 4 are what its independent local maps cost (see
+    test_loop600_ekf.py), not what filtering costs."""
     worst, _ = _filtered(seed)
     # Measured 0.079, 0.109, 0.140, 0.097, 0.141 m (EKF 0.087, 0.119, 0.158, 0.103,
     # 0.178 m): the EKF's maximum is 6–26 % larger, at the same steps.
