@@ -5,27 +5,32 @@ Where the EKF does not yet meet the issue's figure on a seed, the case is marked
 an improvement shows up as XPASS).  Issue 3 stays open until none is left.
 
 The extracted features are unbiased (``tests/test_extraction_consistency.py``) and the
-odometry is white with its stated covariance, so what is left is the filter: with
-every input redrawn exactly from its logged Gaussian the EKF still has a mean NEES of
-2.6–4.8 over draws on one trajectory, and falls below 90 % within on some draws.
+odometry is white with its stated covariance: with every input redrawn exactly from
+its logged Gaussian the EKF still has a mean NEES of 2.6–4.8 over draws on one
+trajectory, and falls below 90 % within on some draws.
 
-Against the relinearising filter on identical inputs (iSAM2's filtered estimates,
-``tests/test_loop600_graph.py``) the two remaining kinds of gap part ways: the NEES
-gap of seed 4 is that filter's too (84 % within), so it belongs to the draw; the
-max-error gaps of seeds 2 and 4 are not (the filter stays at 0.140 and 0.141 m).
+``tests/test_loop600_graph.py`` compares the EKF with iSAM2's filtered estimates on
+the same inputs.  That filter is given the EKF's *final* association decisions from
+each feature's first sighting.  The two remaining kinds of gap then part ways:
 
-They come from the multi-map design itself, not from linearisation.  A new local map
-starts without the global map's features: a wall seen again is a new local feature
-until the next join pairs it (only the known map is reachable at every step, through
-the anchor).  The filter links it to the global landmark at once.  In the sparse
-north-east corner this matters.  On seed 4 the local map closed at step 479 holds
-two walls that are not in the known map, 19 and 26.  From step 480, wall 26 (seen in
-every scan) is a new local feature again: the filter, linking it to the global
-landmark, moves 2.7 cm by step 482, and the EKF stays 3.6–3.9 cm from the filter
-until the join at step 519.  Over the run, the
-EKF–filter difference changes by 5.7 mm on average at the first step of a local map
-and by 0.5–1.3 mm inside one (without fusion 20 mm and 1.4–2.4 mm).  Iterating every
-EKF update (three Gauss–Newton steps, tried and not kept) leaves seed 4 at 0.178 m.
+* the NEES gap of seed 4 is the filter's too (84 % within against 85 %), so it is not
+  specific to the EKF's linearisation or its local maps;
+* the max-error gaps of seeds 2 and 4 are not (the filter stays at 0.140 and
+  0.141 m).
+
+On seed 4 the max-error gap opens where the multi-map design predicts one.  A new
+local map starts without the global map's features, so a wall seen again is a new
+local feature until the next join pairs it; only the known map is reachable at every
+step, through the anchor.  The filter, given the join's decision in advance, uses the
+global landmark at once.  The local map joined at step 479 holds two walls that are
+not in the known map, 19 and 26, and wall 26 is seen at every step from 478 on.  The
+EKF–filter difference is at most 0.7 cm up to step 479, 3.1 cm at step 482 and
+3.6–3.9 cm over steps 485–518; after the join at step 519 it falls to 2.7 cm and then
+to 1.1–2.6 cm.  Over the run the difference changes by 5.7 mm on average at the first
+step of a local map and by 0.5–1.3 mm inside one (without fusion 20 mm and
+1.4–2.4 mm).  Iterating every EKF update (three Gauss–Newton steps, tried and not
+kept) leaves seed 4 at 0.178 m but brings seed 2 to 0.135 m, so on seed 2
+linearisation has a share too.  The cause is located, not proven.
 """
 
 from __future__ import annotations

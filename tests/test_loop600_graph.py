@@ -16,7 +16,13 @@ import pytest
 from scipy.stats import chi2
 
 from ekf_reference import ekf_metrics
-from mapfuse_core.evaluation import nees_mean_interval, nees_series, pose_errors, truth_in_global
+from mapfuse_core.evaluation import (
+    CHI2_3_95,
+    nees_mean_interval,
+    nees_series,
+    pose_errors,
+    truth_in_global,
+)
 from mapfuse_graph.runner import RunOutput, run_backend
 from tests.loop600 import SEEDS, loop600_ekf, loop600_log
 
@@ -44,7 +50,7 @@ def test_pooled_smoothed_nees_is_within_its_interval() -> None:
     per_seed = [round(float(v.mean()), 2) for v in series]
     print(f"\nsmoothed NEES per seed {per_seed}, pooled {mean:.2f} in [{lo:.2f}, {hi:.2f}]")
     # Measured 3.11 in [2.88, 3.12], just inside (seeds 0–4; seed 4 alone 5.19, the seed on
-    # which the EKF is overconfident).
+    # which both filters, the EKF and iSAM2's, are overconfident).
     assert lo <= mean <= hi
 
 
@@ -70,7 +76,7 @@ def test_smoothing_is_more_accurate_than_filtering_pooled() -> None:
 def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
     """The paper's 0.15 m fused maximum is within what each log's data allow: the batch
     smoother with fusion meets it on every seed, also where the EKF does not (seeds 2
-    and 4, xfail in test_loop600_ekf.py): their misses are the filter's, not the data's.
+    and 4, xfail in test_loop600_ekf.py): their misses are the EKF's, not the data's.
     """
     m = _batch(seed).metrics["position_error_m"]
     # Measured: 0.092, 0.073, 0.090, 0.099, 0.110 m (EKF 0.087, 0.119, 0.158, 0.103,
@@ -79,10 +85,11 @@ def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
 
 
 # ------------------------------------------------------------ filter against filter
-# The smoother above sees the future; the fair yardstick for the EKF is a filter.
-# iSAM2's estimate of X_k right after update k uses steps 0..k only, relinearised
-# (GraphResult.filtered_poses): the nonlinear filter on the EKF's own inputs and
-# association decisions.
+# The smoother above sees the future; a filter is the closer yardstick for the EKF.
+# iSAM2's estimate of X_k right after update k (GraphResult.filtered_poses) uses the
+# measurements of steps 0..k, relinearised, with the EKF's inputs.  Its associations
+# are the EKF's *final* decisions applied from each feature's first sighting, so it
+# knows at once what the EKF learns only at its next join.
 
 
 @functools.lru_cache(maxsize=5)
@@ -91,7 +98,10 @@ def _isam2(seed: int) -> RunOutput:
 
 
 def _filtered(seed: int) -> tuple[float, np.ndarray]:
-    """Max position error and NEES series of iSAM2's filtered estimates."""
+    """Max position error and NEES series of iSAM2's filtered estimates.
+
+    Step 0 and non-finite values are left out of the NEES as ``ekf_metrics`` does (the
+    EKF's step-0 covariance is zero; the graph's is its tiny prior's)."""
     g = _isam2(seed).graph
     truth = loop600_log(seed).true_poses
     assert g is not None
@@ -99,34 +109,39 @@ def _filtered(seed: int) -> tuple[float, np.ndarray]:
     assert g.filtered_covs is not None
     assert truth is not None
     dx = pose_errors(g.filtered_poses, truth_in_global(truth)).dx
-    return float(np.hypot(dx[:, 0], dx[:, 1]).max()), nees_series(dx, g.filtered_covs)
+    nees = nees_series(dx, g.filtered_covs)[1:]
+    return float(np.hypot(dx[:, 0], dx[:, 1]).max()), nees[np.isfinite(nees)]
 
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_a_filter_on_the_same_inputs_meets_the_papers_fused_max_error(seed: int) -> None:
-    """Filtering alone (no future data) can meet 0.15 m on every seed: the EKF's misses
-    on seeds 2 and 4 are what its independent local maps cost (see
-    test_loop600_ekf.py), not what filtering costs."""
+    """A filter that links a re-seen feature to its landmark at once meets 0.15 m on
+    every seed.  The EKF links it only at its next join and misses on seeds 2 and 4
+    (see test_loop600_ekf.py)."""
     worst, _ = _filtered(seed)
     # Measured 0.079, 0.109, 0.140, 0.097, 0.141 m (EKF 0.087, 0.119, 0.158, 0.103,
-    # 0.178 m): the EKF's maximum is 6–26 % larger, at the same steps.
+    # 0.178 m): the EKF's maximum is 6–26 % larger.  The largest, 0.141 m, leaves 9 mm;
+    # the runs are deterministic per seed, so the margin only has to absorb library
+    # round-off.
     assert worst <= 0.15
 
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_the_ekf_is_as_consistent_as_the_nonlinear_filter(seed: int) -> None:
     """Where the EKF's NEES leaves the χ² bound too often (seed 4), so does the
-    relinearising filter on identical inputs: that gap is the draw's, not the EKF's."""
+    relinearising filter on the same inputs and associations: that gap is not specific
+    to the EKF's linearisation or its local maps."""
     _, nees = _filtered(seed)
     ekf = ekf_metrics(loop600_ekf(seed, True), loop600_log(seed))["nees"]
-    within = float(np.mean(nees <= chi2.ppf(0.95, 3)))
+    within = float(np.mean(nees <= CHI2_3_95))
     print(
         f"\nseed {seed}: within EKF {ekf['fraction_within_chi2_95']:.3f} filter {within:.3f};"
         f" mean NEES EKF {ekf['mean']:.2f} filter {float(np.mean(nees)):.2f}"
     )
     # Measured fractions within 0.965/0.968, 0.983/0.982, 0.938/0.950, 0.982/0.980,
-    # 0.846/0.839 and mean NEES 2.66/2.55, 2.26/2.27, 3.78/3.63, 2.70/2.67, 5.42/5.52
-    # (EKF/filter): at most 0.012 and 4.3 % apart.  The bounds leave room for that
-    # and fail an EKF made 10 % more overconfident than the filter.
+    # 0.847/0.839 and mean NEES 2.66/2.55, 2.26/2.27, 3.78/3.63, 2.70/2.67, 5.42/5.53
+    # (EKF/filter): at most 0.012 and 4.3 % apart.  The runs are deterministic per
+    # seed, so the bounds need not cover noise: 0.02 and 10 % sit just above the gaps
+    # measured and fail an EKF that becomes clearly less consistent than the filter.
     assert ekf["fraction_within_chi2_95"] >= within - 0.02
     assert ekf["mean"] <= 1.10 * float(np.mean(nees))
