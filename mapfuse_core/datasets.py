@@ -280,13 +280,33 @@ tried), suggest that the best yaw varies: about −0.017 rad in the first four w
 the least negative tried (−0.008) in the arm, the most negative tried (−0.029) after it.
 These are not comparable with the four-parameter half-run fits above. Applying them
 window by window, though, leaves the arm bent (median 5.4 m against 6.4 m there): what
-bends it is not the arm's own yaw, and is not identified (the state the filter enters
-the arm with, or an odometry–laser inconsistency that a yaw only mimics, are the
-candidates). Nor is it where the range points on the trunk: putting each centre a
-fraction of its radius farther (the detector's range read as the trunk's front) moves
-the arm's mean error east by 5.9, 6.1, 7.1 and 8.2 m for −0.5, 0, +0.5 and +1 radius,
-and +1 radius raises the whole-run median from 1.17 to 1.48 m (1.51 m with the speed
-scale at ×1).
+bends it is not the arm's own yaw. Nor is it where the range points on the trunk.
+Putting each centre a fraction of its radius farther (the detector's range read as the
+trunk's front) leaves the arm's mean error 5.9, 6.1, 7.1 and 8.2 m east for −0.5, 0,
++0.5 and +1 radius, and +1 radius raises the whole-run median from 1.17 to 1.48 m
+(1.51 m with the speed scale at ×1).
+
+Nor is it the state the filter enters the arm with. An EKF started afresh at
+t = 1,150 s (no map, no history), aligned to GPS on 1,150–1,245 s alone, bends the arm
+the same way: 6.9 m east at the tip (t = 1,290–1,340 s), against 5.8 m for the whole
+run aligned the same way. What the arm's estimate depends on is which trees it uses.
+Dropping the detections beyond a range moves the tip's mean east error as follows:
+
+| Detections kept | East error at the tip |
+|---|---|
+| within 10 m | −5.4 m |
+| within 15 m | −1.4 m |
+| within 20 m | +3.0 m |
+| within 25 m | +8.9 m |
+| within 30 m | +8.4 m |
+| within 40 m | +7.6 m |
+| all | +6.9 m |
+
+Meanwhile the fresh EKF's own σ of position at the tip, relative to its start, is
+1.1 m (major axis). So some detections or associations there lie far outside the
+measurement model. A range cut is no cure for the whole run: at 15 m the median error
+becomes 1.46 m (arm 3.6 m east), at 20 m 1.65 m (arm 9.3 m), against 1.17 m (arm 6.1 m)
+with all detections, and the loop closures then turn +0.5° to +0.6° on average.
 
 The speed scale is in tension with GPS: over 30 s windows the raw dead reckoning has
 GPS's length (median ratio 0.997; 0.973 with ×1.0216), yet the whole-run EKF trajectory
