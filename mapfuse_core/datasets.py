@@ -282,9 +282,9 @@ These are not comparable with the four-parameter half-run fits above. Applying t
 window by window, though, leaves the arm bent (median 5.4 m against 6.4 m there): what
 bends it is not the arm's own yaw. Nor is it where the range points on the trunk.
 Putting each centre a fraction of its radius farther (the detector's range read as the
-trunk's front) leaves the arm's mean error 5.9, 6.1, 7.1 and 8.2 m east for −0.5, 0,
-+0.5 and +1 radius, and +1 radius raises the whole-run median from 1.17 to 1.48 m
-(1.51 m with the speed scale at ×1).
+trunk's front) leaves the arm's mean error (whole-run best fit, t = 1,285–1,335 s) at
+5.9, 6.1, 7.1 and 8.2 m east for −0.5, 0, +0.5 and +1 radius, and +1 radius raises
+the whole-run median from 1.17 to 1.48 m (1.51 m with the speed scale at ×1).
 
 Nor is it the state the filter enters the arm with. An EKF started afresh at
 t = 1,150 s (no map, no history), aligned to GPS on 1,150–1,245 s alone, bends the arm
@@ -303,13 +303,14 @@ Dropping the detections beyond a range moves the tip's mean east error as follow
 | all | +6.9 m |
 
 Meanwhile the fresh EKF's own σ of position at the tip, relative to its start, is
-1.1 m (major axis). Nor are there outliers to reject. The batch smoother on the same
-stretch, with the EKF's associations, puts the tip 6.6 m east, and 6.9 and 6.7 m with
-Cauchy and Huber kernels. The detections agree with each other within each subset and
-disagree between subsets, which points to an error that depends on range, unmodelled
-and not identified. A range cut is no cure for the whole run: at 15 m the median error
-becomes 1.46 m (arm 3.6 m east), at 20 m 1.65 m (arm 9.3 m), against 1.17 m (arm 6.1 m)
-with all detections, and the loop closures then turn +0.5° to +0.6° on average.
+1.1 m (major axis). Robust kernels find nothing to reject: the batch smoother on the
+same stretch, with the EKF's associations, puts the tip 6.6 m east, and 6.9 and 6.7 m
+with Cauchy and Huber kernels. The detections agree with each other within each subset
+and disagree between subsets, which suggests an unmodelled error that depends on range
+(not identified). A range cut is no cure for the whole run: at 15 m the median error
+becomes 1.46 m (arm 3.6 m east, whole-run fit as above), at 20 m 1.65 m (arm 9.3 m),
+against 1.17 m (arm 6.1 m) with all detections, and the loop closures then turn +0.5°
+to +0.6° on average.
 
 The speed scale is in tension with GPS: over 30 s windows the raw dead reckoning has
 GPS's length (median ratio 0.997; 0.973 with ×1.0216), yet the whole-run EKF trajectory
