@@ -12,8 +12,9 @@ ones became a second copy of those trees, which the rest of the run then followe
 closures of the whole run turned the global map onto the returning local map the same
 way (``LoopClosure.correction`` θ of −0.5° to −2.1°): a systematic drift, which the
 filter's white-noise models cannot represent, hence its overconfidence.  That sign is
-what calibrates the laser yaw (``VICTORIA_PARK_CALIBRATION_NOTE``); with it, 7 closures
-turning both ways (−0.95° to +0.67°).  They are in ``EKFResult.loop_closures``.
+what calibrates the odometry's sideways slip (``VICTORIA_PARK_ODOMETRY_NOISE``; it once
+calibrated a laser yaw, which the slip replaced): with it, 6 closures turning both ways
+(−0.88° to +0.65°).  They are in ``EKFResult.loop_closures``.
 
 The registration here finds the rigid motion that puts the most local circle centres
 on global ones, without using the filter's covariance (as CCDA does for the known map,
