@@ -240,14 +240,15 @@ def test_odometry_covariance_is_the_propagated_control_error(which: int) -> None
         np.testing.assert_allclose(cov[k], 0.01 * gk @ gk.T, atol=1e-10, rtol=1e-5)
 
 
-def test_slip_covariance_matches_sampled_sideways_slips() -> None:
-    """The slip term against Monte Carlo: each 25 ms sample shifts the rear axle across
-    its heading by N(0, σ²·|Δs|); the laser increment's sample covariance over 4,000
-    draws matches the propagated one (a sample variance of 4,000 draws is within 10 %
-    with probability ≫ 0.999)."""
+def test_slip_covariance_is_the_propagated_sideways_slip() -> None:
+    """The slip term against its definition: each 25 ms control sample shifts the rear
+    axle across its heading by ``e_i ~ N(0, σ²·|Δs_i|)``, so the laser increment's slip
+    covariance is ``J·diag(σ²·|Δs_i|)·Jᵀ`` with ``J`` the numerical derivative of an
+    independent composition of the samples with respect to the ``e_i``.  Tight steering
+    makes the rear-axle speed (which the arc lengths use) 25 % above the encoder's."""
     g = CarGeometry()
     ct = np.arange(0.0, 1.0, 0.025)
-    v, alpha = 3.0, 0.3
+    v, alpha = 3.0, 0.6
     ts = np.array([0.0, 0.3])
     quiet = {
         "sigma_speed_mps": 0.0,
@@ -258,29 +259,31 @@ def test_slip_covariance_matches_sampled_sideways_slips() -> None:
     }
     sigma = 0.04
     args = (ct, np.full(ct.size, v), np.full(ct.size, alpha), ts, g)
-    odo, cov = integrate_odometry(*args, OdometryNoise(sigma_slip_m_per_sqrt_m=sigma, **quiet))
+    odo, cov = integrate_odometry(*args, OdometryNoise(**quiet, sigma_slip_m_per_sqrt_m=sigma))
     _, cov0 = integrate_odometry(*args, OdometryNoise(**quiet))
     vc = float(rear_axle_speed(np.array([v]), np.array([alpha]), g)[0])
+    assert vc > 1.2 * v
     delta, _ = car_increment(vc, alpha, 0.025, g.wheelbase_m)
-    rng = np.random.default_rng(7)
-    slips = rng.normal(0.0, sigma * math.sqrt(vc * 0.025), size=(4000, 12))
     mount = g.laser_mount
-    incs = []
-    for row in slips:
+
+    def laser_increment(slips: np.ndarray) -> np.ndarray:
         D = np.zeros(3)
-        for e in row:
-            D = compose(compose(D, np.array([0.0, e, 0.0])), delta)
-        incs.append(compose(compose(inverse(mount), D), mount))
-    emp = np.cov(np.array(incs).T)
-    np.testing.assert_allclose(np.array(incs).mean(axis=0), odo[1], atol=3e-3)
-    np.testing.assert_allclose(emp[:2, :2], (cov - cov0)[1, :2, :2], rtol=0.1, atol=2e-6)
-    assert cov[1, 2, 2] == pytest.approx(cov0[1, 2, 2])  # slip does not turn the car
+        for e in slips:
+            D = compose(compose(D, np.array([0.0, float(e), 0.0])), delta)
+        return np.asarray(compose(compose(inverse(mount), D), mount))
+
+    n = 12  # 0.3 s of 25 ms samples
+    np.testing.assert_allclose(laser_increment(np.zeros(n)), odo[1], atol=1e-12)
+    J = numerical_jacobian(laser_increment, np.zeros(n), angle_rows=(2,))
+    expected = J @ np.diag(np.full(n, sigma**2 * vc * 0.025)) @ J.T
+    np.testing.assert_allclose((cov - cov0)[1], expected, atol=1e-9)
+    np.testing.assert_array_equal((cov - cov0)[:, 2], 0.0)  # slip does not turn the car
     # Standing still, nothing slips.
-    _, still = integrate_odometry(
-        ct, np.zeros(ct.size), np.zeros(ct.size), ts, g, OdometryNoise(sigma_slip_m_per_sqrt_m=1.0)
+    still = (ct, np.zeros(ct.size), np.zeros(ct.size), ts, g)
+    np.testing.assert_array_equal(
+        integrate_odometry(*still, OdometryNoise(sigma_slip_m_per_sqrt_m=1.0))[1],
+        integrate_odometry(*still, OdometryNoise())[1],
     )
-    _, still0 = integrate_odometry(ct, np.zeros(ct.size), np.zeros(ct.size), ts, g, OdometryNoise())
-    np.testing.assert_allclose(still, still0)
 
 
 def test_integrate_odometry_rejects_bad_inputs() -> None:
@@ -305,8 +308,9 @@ def test_options_are_validated() -> None:
         OdometryNoise(floor_sigma_xy_m_per_sqrt_s=0.0)
     with pytest.raises(ValueError, match="sigma_slip_m_per_sqrt_m"):
         OdometryNoise(sigma_slip_m_per_sqrt_m=-0.01)
-    with pytest.raises(ValueError, match="sigma_slip_m_per_sqrt_m"):
-        OdometryNoise(sigma_slip_m_per_sqrt_m=math.nan)
+    for bad in (math.nan, math.inf, True):
+        with pytest.raises(ValueError, match="sigma_slip_m_per_sqrt_m"):
+            OdometryNoise(sigma_slip_m_per_sqrt_m=bad)
     with pytest.raises(ValueError, match="wheelbase"):
         CarGeometry(wheelbase_m=math.nan)
     with pytest.raises(ValueError, match="sigma_range_m"):
@@ -522,7 +526,7 @@ def test_carpark_odometry_covariance_is_consistent(
     assert np.mean(nees_arr > 7.815) < 0.15
     # Mean square of the lateral part 1.19 without slip (1 expected; 0.54 with Victoria
     # Park's 4 cm/√m): the car park needs no slip term.
-    assert 0.5 < float(np.mean(np.square(lateral))) < 2.0
+    assert 0.8 < float(np.mean(np.square(lateral))) < 2.0
 
 
 # --------------------------------------------------------------------------- Victoria Park (real)
