@@ -244,9 +244,9 @@ north-west arm still bent 6–7.5 m away from GPS.  With slip and the raw bearin
 value is the one at which the EKF's loop closures stop turning one way (no GPS used):
 their mean rotation is +1.77° at 1 cm/√m (16 of 17 positive), −0.07° at 4 cm/√m (3 of
 6) and −0.57° at 8 cm/√m (1 of 7); within one standard error of zero from about 3 to
-5 cm/√m.  See :data:`VICTORIA_PARK_CALIBRATION_NOTE`.  The car
-park needs none: its odometry against the surveyed-beacon pose fits is consistent
-across the direction of travel without it (``tests/test_datasets.py``)."""
+5 cm/√m.  See :data:`VICTORIA_PARK_CALIBRATION_NOTE`.  The car park needs none: its
+odometry against the surveyed-beacon pose fits is consistent across the direction of
+travel without it (``tests/test_datasets.py``)."""
 
 
 VICTORIA_PARK_CALIBRATION_NOTE = """How the Victoria Park calibration was obtained.

@@ -524,7 +524,7 @@ def test_carpark_odometry_covariance_is_consistent(
     assert nees_arr.size > 50
     assert 1.5 < nees_arr.mean() < 5.0
     assert np.mean(nees_arr > 7.815) < 0.15
-    # Mean square of the lateral part 1.19 without slip (1 expected; 0.54 with Victoria
+    # Mean square of the lateral part 1.19 without slip (1 expected; 0.38 with Victoria
     # Park's 4 cm/√m): the car park needs no slip term.
     assert 0.8 < float(np.mean(np.square(lateral))) < 2.0
 

@@ -170,9 +170,9 @@ def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: Measure
 def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir: Path) -> None:
     """The whole run (about 50 s): with the odometry's sideways slip chosen by the loop
     closures (VICTORIA_PARK_ODOMETRY_NOISE) they turn both ways; with 1 cm/√m sixteen of
-    seventeen turn the same way (mean +1.77°), and without slip it took a laser yaw to
-    make them.  The park's north-west arm, 6.4 m (median) off GPS without slip, follows
-    it."""
+    seventeen turn the same way (mean +1.77°), and without slip only a laser yaw of
+    −0.017 rad made them turn both ways.  The park's north-west arm, 6.4 m (median) off
+    GPS without slip, now follows GPS."""
     run = run_backend(load_victoria_park(data_dir), "ekf", fusion=False)
     assert run.ekf is not None
     closures = run.ekf.loop_closures
