@@ -116,7 +116,7 @@ def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | Non
     cov[3 * first :, 3 * first :] = Pss
     loc.cov = cov
     s_dofs = global_map.dofs(shared)
-    A = global_map.cov[:, s_dofs] @ np.linalg.pinv(Pss, rcond=1e-10, hermitian=True)
+    A = global_map.cov[:, s_dofs] @ psd_pinv(Pss)
     gb = global_map.find(Role.BASE)
     P_sb = global_map.cov[s_dofs, 3 * gb : 3 * gb + 3]
     kinds = [global_map.elements[i].kind for i in shared]
@@ -130,6 +130,22 @@ def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | Non
         base_cond_cov=global_map.block(gb) - A[3 * gb : 3 * gb + 3] @ P_sb,
     )
     return loc, ctx
+
+
+def psd_pinv(P: FloatArray, rcond: float = 1e-10) -> FloatArray:
+    """Pseudo-inverse of a symmetric positive semi-definite matrix (bound lines make
+    the shared covariance singular).
+
+    The symmetric eigensolver is the fast path.  numpy's (LAPACK ``syevd``) can fail
+    to converge on a finite PSD matrix: it did on loop600 seed 11's 192 ×
+    192 shared covariance at step 1519, whose entries span 1e-2 to 1e-55.  The SVD
+    gives the same pseudo-inverse there and is the fallback.
+    """
+    try:
+        out = np.linalg.pinv(P, rcond=rcond, hermitian=True)
+    except np.linalg.LinAlgError:
+        out = np.linalg.pinv(P, rcond=rcond, hermitian=False)
+    return np.asarray(out, dtype=np.float64)
 
 
 def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from ekf_reference import EKFConfig, run_ekf
+from ekf_reference import EKFConfig, maps, run_ekf
 from ekf_reference.association import Query, predict_all_targets
 from ekf_reference.maps import associate, predict
 from ekf_reference.pipeline import _Run
@@ -302,3 +302,25 @@ def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
     np.testing.assert_array_equal(same.poses, base.poses)
     with pytest.raises(ValueError, match="min_obs_to_join"):
         EKFConfig(min_obs_to_join=0)
+
+
+def test_shared_covariance_pseudo_inverse_survives_an_eigensolver_failure(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """numpy's symmetric eigensolver failed to converge on a finite PSD matrix in a
+    loop600 run (seed 11, step 1519); the SVD fallback must give the same result."""
+    rng = np.random.default_rng(0)
+    B = rng.normal(size=(9, 6))
+    P = B @ B.T  # rank 6 of 9: singular, as bound lines make the shared covariance
+    expected = maps.psd_pinv(P)
+    real_pinv = np.linalg.pinv
+
+    def failing(a: np.ndarray, rcond: float = 1e-15, hermitian: bool = False) -> np.ndarray:
+        if hermitian:
+            raise np.linalg.LinAlgError("Eigenvalues did not converge")
+        return real_pinv(a, rcond=rcond, hermitian=False)
+
+    monkeypatch.setattr(np.linalg, "pinv", failing)
+    got = maps.psd_pinv(P)
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    np.testing.assert_allclose(P @ got @ P, P, atol=1e-10)
