@@ -37,7 +37,7 @@ from ekf_reference.association import (
 )
 from ekf_reference.config import EKFConfig
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.features import transform_feature
+from mapfuse_core.features import express_in, transform_feature
 from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian, relative, wrap_angle
 
 __all__ = [
@@ -63,9 +63,14 @@ class CIContext:
     """What a fused local map remembers of the global map it was started from."""
 
     shared_global: list[int]
-    """Global-map indices of the shared elements: the anchor, then the known features."""
+    """Global-map indices of the shared elements: the anchor, the known features, then
+    the carried features (``EKFConfig.carry_seen_steps``)."""
     shared_local: list[int]
     """Local-map indices of the same elements, in the same order."""
+    moving: list[bool]
+    """Per shared element: held in the vehicle frame ``R`` by the local map (the anchor
+    and carried features, globally ``⊖x^R_Wlocal ⊕ x``) rather than as the global map
+    holds it (known features, static in ``Wknown``)."""
     mu_s: FloatArray
     """(k, 3) global mean of the shared elements when the local map started."""
     A: FloatArray
@@ -88,28 +93,45 @@ def new_global_map() -> GaussianMap:
     return g
 
 
-def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | None]:
-    """A local map based at the current vehicle pose, with the shared known-map part."""
+def new_local_map(
+    global_map: GaussianMap, carry: Sequence[int] = ()
+) -> tuple[GaussianMap, CIContext | None]:
+    """A local map based at the current vehicle pose, with the shared part of the global map.
+
+    Shared are the anchor and the known features (fusion), and the global features
+    ``carry`` (indices into ``global_map``).  A new local map starts at the frame the
+    global map has just been expressed in, so a carried feature's ``x^R_F`` starts
+    equal to its global ``x^Wlocal_F``; it then moves with the vehicle like a local
+    feature, and the join takes it back through the base.
+    """
     loc = GaussianMap()
     loc.add(
         Element(ElementKind.POSE, Role.BASE, moving=True, track=-1), np.zeros(3), np.zeros((3, 3))
     )
-    if not global_map.has(Role.ANCHOR):
+    shared = []
+    if global_map.has(Role.ANCHOR):
+        shared = [global_map.find(Role.ANCHOR), *global_map.indices(Role.KNOWN)]
+    for gi in carry:
+        if global_map.elements[gi].role != Role.FEATURE:
+            raise AssertionError(f"only estimated features are carried, not element {gi}")
+    shared += list(carry)
+    if not shared:
         return loc, None
-    shared = [global_map.find(Role.ANCHOR), *global_map.indices(Role.KNOWN)]
     Pss = global_map.marginal(shared)
     first = len(loc)
+    moving = [global_map.elements[gi].role in (Role.ANCHOR, Role.FEATURE) for gi in shared]
     # Filled in one go: GaussianMap.add reallocates the covariance per element.
     loc.elements += [
         Element(
             e.kind,
             e.role,
-            moving=e.role == Role.ANCHOR,
+            moving=mv,
             track=e.track,
             extent=e.extent,
             true_id=e.true_id,
+            n_obs=e.n_obs if e.role == Role.FEATURE else 0,
         )
-        for e in (global_map.elements[gi] for gi in shared)
+        for e, mv in zip((global_map.elements[gi] for gi in shared), moving, strict=True)
     ]
     loc.mean = np.vstack([loc.mean, global_map.mean[shared]])
     cov = np.zeros((3 * len(loc), 3 * len(loc)))
@@ -123,6 +145,7 @@ def new_local_map(global_map: GaussianMap) -> tuple[GaussianMap, CIContext | Non
     ctx = CIContext(
         shared_global=shared,
         shared_local=list(range(first, len(loc))),
+        moving=moving,
         mu_s=global_map.mean[shared].copy(),
         A=A,
         angle_dofs=_angle_dofs(kinds),
@@ -146,6 +169,15 @@ def psd_pinv(P: FloatArray, rcond: float = 1e-10) -> FloatArray:
     except np.linalg.LinAlgError:
         out = np.linalg.pinv(P, rcond=rcond, hermitian=False)
     return np.asarray(out, dtype=np.float64)
+
+
+def _seen_from_base(loc: GaussianMap, i: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``⊖x^R_Wlocal ⊕ x^R_i`` for a moving element ``i``, with Jacobians (base, element)."""
+    lb = loc.find(Role.BASE)
+    e = loc.elements[i]
+    if e.kind == ElementKind.POSE:
+        return relative(loc.mean[lb], loc.mean[i])
+    return express_in(e.kind.feature_kind(), loc.mean[lb], loc.mean[i])
 
 
 def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
@@ -218,16 +250,19 @@ def vehicle_in_global(
         b = global_map.mean[gb].copy()
         Pbb = global_map.block(gb).copy()
     else:
-        a = ctx.shared_local[0]
-        # shared_in_global_frame without its dense Jacobian: only the anchor's rows mix
-        # elements, so M = A_b Js is assembled from them directly.
+        # shared_in_global_frame without its dense Jacobian: only the moving elements'
+        # rows mix elements (with the base), so M = A_b Js is assembled from them.
         s_L = loc.mean[ctx.shared_local].copy()
-        s_L[0], Jb, Ja = relative(loc.mean[lb], loc.mean[a])
-        d = _wrap_flat((s_L - ctx.mu_s).reshape(-1), ctx.angle_dofs)
         A_b = ctx.A[3 * gb : 3 * gb + 3]
         M = np.zeros((3, 3 * (len(ctx.shared_local) + 1)))
-        M[:, 0:6] = A_b[:, 0:3] @ np.hstack([Jb, Ja])
-        M[:, 6:] = A_b[:, 3:]
+        M[:, 3:] = A_b
+        for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
+            if mv:
+                s_L[r], Jb, Je = _seen_from_base(loc, i)
+                Ab_r = A_b[:, 3 * r : 3 * r + 3]
+                M[:, 0:3] += Ab_r @ Jb
+                M[:, 3 * r + 3 : 3 * r + 6] = Ab_r @ Je
+        d = _wrap_flat((s_L - ctx.mu_s).reshape(-1), ctx.angle_dofs)
         dofs = _leading_dofs([lb, *ctx.shared_local])
         P_L = loc.cov[:dofs, :dofs]
         b = ctx.base_mean + A_b @ d
@@ -273,21 +308,22 @@ def shared_in_global_frame(
 ) -> tuple[FloatArray, FloatArray, list[int]]:
     """Shared elements of a local map as the global map holds them.
 
-    The anchor is ``x^R_Wknown`` locally and ``x^Wlocal_Wknown = ⊖x^R_Wlocal ⊕ x^R_Wknown``
-    globally; known features are identical.  Returns their values (k, 3), the Jacobian
-    w.r.t. the local elements ``[base, shared…]`` and those local indices.
+    A moving element (the anchor ``x^R_Wknown``, a carried feature ``x^R_F``) is
+    ``⊖x^R_Wlocal ⊕ x`` globally; known features are identical.  Returns their values
+    (k, 3), the Jacobian w.r.t. the local elements ``[base, shared…]`` and those local
+    indices.
     """
     lb = loc.find(Role.BASE)
     idx = [lb, *ctx.shared_local]
     k = len(ctx.shared_local)
     J = np.zeros((3 * k, 3 * (k + 1)))
+    J[:, 3:] = np.eye(3 * k)
     vals = loc.mean[ctx.shared_local].copy()
-    a = ctx.shared_local[0]
-    v, Jb, Ja = relative(loc.mean[lb], loc.mean[a])
-    vals[0] = v
-    J[0:3, 0:3] = Jb
-    J[0:3, 3:6] = Ja
-    J[3:, 6:] = np.eye(3 * (k - 1))
+    for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
+        if mv:
+            vals[r], Jb, Je = _seen_from_base(loc, i)
+            J[3 * r : 3 * r + 3, 0:3] = Jb
+            J[3 * r : 3 * r + 3, 3 * r + 3 : 3 * r + 6] = Je
     return vals, J, idx
 
 

@@ -154,7 +154,8 @@ class _Run:
             # Only features touched at this step can have become pairable with a known
             # feature; the others were tested when last seen (saves ~80 % of the tests).
             seen = {int(t) for t in self.obs_track[sl.start : sl.stop]}
-            self.constrain_to_known(loc, lambda e: e.moving and e.track in seen)
+            # Carried features are shared with the global map and stay until the join.
+            self.constrain_to_known(loc, lambda e: e.in_local and e.track in seen)
 
     def _same_step_twin(self, loc: GaussianMap, q: Query, born: list[int]) -> Candidate | None:
         """Best individually compatible line among those created at this step.
@@ -227,7 +228,10 @@ class _Run:
         lb = n_g + loc.find(Role.BASE)
         frame_elems = [i for i in range(n_g) if joint.elements[i].role != Role.KNOWN]
         if ctx is not None:
-            frame_elems.append(n_g + ctx.shared_local[0])  # x^Wlocal_Wknown after CI
+            # x^Wlocal_Wknown and carried x^Wlocal_F after the CI correction.
+            frame_elems += [
+                n_g + i for i, mv in zip(ctx.shared_local, ctx.moving, strict=True) if mv
+            ]
         compose_into(joint, lb, frame_elems)
         joint.remove([lb])
         for e in joint.elements:
@@ -250,7 +254,23 @@ class _Run:
         self.global_map = joint
         if self.config.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
-        self.local, self.ctx = new_local_map(self.global_map)
+        self.local, self.ctx = new_local_map(self.global_map, self._carried(k))
+
+    def _carried(self, k: int) -> list[int]:
+        """Global features the next local map holds from its start: those seen in steps
+        ``k − carry_seen_steps + 1 … k`` (none by default, as in the paper)."""
+        m = self.config.carry_seen_steps
+        if m == 0:
+            return []
+        obs = self.obs_track[
+            self.log.feature_slice(max(0, k - m + 1)).start : self.log.feature_slice(k).stop
+        ]
+        seen = {self.tracks.root(int(t)) for t in obs if t >= 0}
+        return [
+            i
+            for i, e in enumerate(self.global_map.elements)
+            if e.role == Role.FEATURE and self.tracks.root(e.track) in seen
+        ]
 
     def _pair_at_join(self, joint: GaussianMap, k: int) -> list[tuple[Query, Candidate]]:
         """Pair the local features of ``joint`` with global (and known) ones and apply them.
@@ -358,15 +378,18 @@ class _Run:
             joint.cov[n1:, n1:] = loc.cov
             joint.elements = g.elements + loc.elements
             return joint
-        # Local map with the anchor expressed as the global map holds it (x^Wlocal_Wknown).
+        # Local map with its moving shared elements expressed as the global map holds
+        # them (x^Wlocal_Wknown, x^Wlocal_F).
         s_L, Js, idx_L = shared_in_global_frame(loc, ctx)
         T = np.eye(3 * len(loc))
-        a = ctx.shared_local[0]
-        rows = loc.dofs([a])
-        T[rows] = 0.0
-        T[np.ix_(rows, loc.dofs(idx_L))] = Js[0:3]
+        moved = [i for i, mv in zip(ctx.shared_local, ctx.moving, strict=True) if mv]
         loc_mean = loc.mean.copy()
-        loc_mean[a] = s_L[0]
+        for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
+            if mv:
+                rows = loc.dofs([i])
+                T[rows] = 0.0
+                T[np.ix_(rows, loc.dofs(idx_L))] = Js[3 * r : 3 * r + 3]
+                loc_mean[i] = s_L[r]
         loc_cov = T @ loc.cov @ T.T
         g_only = [i for i in range(len(g)) if i not in set(ctx.shared_global)]
         gd = g.dofs(g_only)
@@ -386,7 +409,8 @@ class _Run:
         joint.cov = np.block([[P_gg, P_gl], [P_gl.T, loc_cov]])
         joint.mean = np.vstack([mean_g, loc_mean])
         joint.elements = [g.elements[i] for i in g_only] + loc.elements
-        joint.elements[len(g_only) + a].moving = False
+        for i in moved:
+            joint.elements[len(g_only) + i].moving = False
         joint.symmetrise()
         joint.wrap()
         return joint

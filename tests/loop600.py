@@ -22,3 +22,9 @@ def loop600_log(seed: int) -> MeasurementLog:
 def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
     """The EKF reference on the loop600 log of ``seed``."""
     return run_ekf(loop600_log(seed), EKFConfig(fusion=fusion))
+
+
+@functools.lru_cache(maxsize=5)
+def loop600_ekf_carry(seed: int) -> EKFResult:
+    """The fused EKF with ``carry_seen_steps=1`` on the loop600 log of ``seed``."""
+    return run_ekf(loop600_log(seed), EKFConfig(fusion=True, carry_seen_steps=1))

@@ -113,6 +113,43 @@ def test_robotcentric_local_map_agrees_with_absolute_ekf() -> None:
     )
 
 
+def test_carried_features_make_local_maps_agree_with_absolute_ekf() -> None:
+    """With ``carry_seen_steps=1`` a run split into local maps of 10 steps gives the
+    absolute-frame EKF's pose and covariance at every step, not only at the joins, up
+    to the first re-sighting of a feature the local map did not carry (the loop
+    closing near the end of the lap, linked only at the next join)."""
+    n, size = 60, 10
+    log = circles_only_log(steps=n)
+    ref_poses, ref_covs = absolute_ekf(log)
+    ids = [set(log.feat_true_id[log.feature_slice(k)].tolist()) for k in range(n)]
+    seen: set[int] = set()
+    covered = []
+    for k in range(n):
+        start = k - k % size
+        held = (ids[start - 1] if start > 0 else set()).union(*ids[start:k])
+        covered.append(all(i in held or i not in seen for i in ids[k]))
+        seen |= ids[k]
+    until = covered.index(False)
+    assert until >= 45, until
+    sig = np.sqrt(np.diagonal(ref_covs, axis1=1, axis2=2))[1:until]
+    var = np.diagonal(ref_covs, axis1=1, axis2=2)[1:until]
+    cfg = EKFConfig(fusion=False, local_map_steps=size, carry_seen_steps=1)
+    res = run_ekf(log, cfg)
+    assert res.global_map.params.shape[0] == len({int(t) for t in log.feat_true_id})
+    d = res.poses[1:until] - ref_poses[1:until]
+    d[:, 2] = wrap_angle(d[:, 2])
+    # Same tolerances as the single local map above: CI local maps lose nothing in a
+    # near-linear problem, so only the linearisation points differ.
+    assert np.all(np.abs(d) <= 0.02 * sig)
+    np.testing.assert_allclose(np.diagonal(res.covs, axis1=1, axis2=2)[1:until], var, rtol=0.01)
+    # The paper's local maps start empty: between joins the vehicle ignores the
+    # landmarks it keeps seeing, so its variance is far above the EKF's (the check
+    # above would catch a carry that did nothing).
+    paper = run_ekf(log, EKFConfig(fusion=False, local_map_steps=size))
+    ratio = np.diagonal(paper.covs, axis1=1, axis2=2)[1:until] / var
+    assert ratio.max() > 1.5
+
+
 def test_prediction_moves_features_by_the_inverse_increment() -> None:
     m = GaussianMap()
     m.add(Element(ElementKind.POSE, Role.BASE, True, -1), np.zeros(3), np.zeros((3, 3)))
@@ -128,9 +165,10 @@ def test_prediction_moves_features_by_the_inverse_increment() -> None:
     np.testing.assert_allclose(m.mean[0], [0.0, 1.0, -math.pi / 2], atol=1e-12)
 
 
-def test_joining_keeps_covariance_symmetric_positive_definite() -> None:
+@pytest.mark.parametrize("carry", [False, True], ids=["paper", "carry"])
+def test_joining_keeps_covariance_symmetric_positive_definite(carry: bool) -> None:
     log = synthetic_log(steps=240, seed=2)
-    config = EKFConfig(fusion=True, local_map_steps=20)
+    config = EKFConfig(fusion=True, local_map_steps=20, carry_seen_steps=int(carry))
     run = _Run(log, config)
     checked = 0
     for k in range(log.n_steps):
@@ -151,10 +189,11 @@ def test_joining_keeps_covariance_symmetric_positive_definite() -> None:
     assert checked == 12
 
 
+@pytest.mark.parametrize("carry", [False, True], ids=["paper", "carry"])
 @pytest.mark.parametrize("fusion", [False, True])
-def test_consistent_and_accurate_on_synthetic_ring(fusion: bool) -> None:
+def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) -> None:
     log = synthetic_log(steps=400, seed=0)
-    res = run_ekf(log, EKFConfig(fusion=fusion))
+    res = run_ekf(log, EKFConfig(fusion=fusion, carry_seen_steps=int(carry)))
     err = pose_errors(res.poses, truth_in_global(log.true_poses))
     nees = nees_series(err.dx, res.covs)[1:]
     # A consistent 3-dof filter: ≥ 90 % of steps under χ²(3, 0.95) = 7.815 (the issue's
@@ -209,6 +248,9 @@ def test_bad_config_is_refused() -> None:
         EKFConfig(local_map_steps=0)
     with pytest.raises(ValueError, match="association"):
         EKFConfig(association="magic")  # type: ignore[arg-type]
+    for bad in (-1, True, 1.5):
+        with pytest.raises(ValueError, match="carry_seen_steps"):
+            EKFConfig(carry_seen_steps=bad)  # type: ignore[arg-type]
 
 
 def test_jcbb_gives_same_associations_on_clean_data() -> None:
