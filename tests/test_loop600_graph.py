@@ -18,11 +18,13 @@ from scipy.stats import chi2
 from ekf_reference import ekf_metrics
 from mapfuse_core.evaluation import (
     CHI2_3_95,
+    anchor_truth,
     nees_mean_interval,
     nees_series,
     pose_errors,
     truth_in_global,
 )
+from mapfuse_core.se2 import wrap_angle
 from mapfuse_graph.runner import RunOutput, run_backend
 from tests.loop600 import SEEDS, loop600_ekf, loop600_log
 
@@ -145,3 +147,47 @@ def test_the_ekf_is_as_consistent_as_the_nonlinear_filter(seed: int) -> None:
     # measured and fail an EKF that becomes clearly less consistent than the filter.
     assert ekf["fraction_within_chi2_95"] >= within - 0.02
     assert ekf["mean"] <= 1.10 * float(np.mean(nees))
+
+
+# ------------------------------------------------------------------ anchor consistency
+# One anchor per run: pool the five seeds' 3-dof NEES.  A consistent anchor has a
+# pooled sum ~ χ²(15); the bound is its 97.5 % quantile, as a mean (5.50).
+ANCHOR_NEES_MEAN_BOUND = float(chi2.ppf(0.975, 3 * len(SEEDS))) / len(SEEDS)
+
+
+def _anchor_nees(x: np.ndarray, cov: np.ndarray, seed: int) -> float:
+    truth = loop600_log(seed).true_poses
+    assert truth is not None
+    e = x - anchor_truth(truth)
+    e[2] = float(wrap_angle(e[2]))
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def test_batch_anchor_covariance_is_consistent_pooled() -> None:
+    values = []
+    for s in SEEDS:
+        g = _batch(s).graph
+        assert g is not None
+        a = g.anchor
+        assert a is not None
+        values.append(_anchor_nees(a.x_Wknown_Wglobal, a.cov, s))
+    print(f"\nbatch anchor NEES per seed {[round(v, 1) for v in values]}")
+    # Measured 2.8, 6.3, 0.8, 5.3, 3.7 (mean 3.8); over 40 seeds the mean is 3.05
+    # (benchmarks/mc_loop600.py).
+    assert float(np.mean(values)) <= ANCHOR_NEES_MEAN_BOUND
+
+
+@pytest.mark.xfail(
+    reason="EKF anchor NEES mean 6.7 over seeds 0–4 (6.1 over 40 seeds; the batch "
+    "smoother on the same inputs 3.8 and 3.05): the EKF's anchor is overconfident",
+    strict=False,
+)
+def test_ekf_anchor_covariance_is_consistent_pooled() -> None:
+    values = []
+    for s in SEEDS:
+        a = loop600_ekf(s, True).anchor
+        assert a is not None
+        values.append(_anchor_nees(a.x_Wknown_Wglobal, a.cov, s))
+    print(f"\nEKF anchor NEES per seed {[round(v, 1) for v in values]}")
+    # Measured 1.1, 11.8, 1.1, 2.9, 16.8.
+    assert float(np.mean(values)) <= ANCHOR_NEES_MEAN_BOUND
