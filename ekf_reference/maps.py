@@ -67,10 +67,11 @@ class CIContext:
     the carried features (``EKFConfig.carry_seen_steps``)."""
     shared_local: list[int]
     """Local-map indices of the same elements, in the same order."""
-    moving: list[bool]
-    """Per shared element: held in the vehicle frame ``R`` by the local map (the anchor
-    and carried features, globally ``⊖x^R_Wlocal ⊕ x``) rather than as the global map
-    holds it (known features, static in ``Wknown``)."""
+    moving: list[int]
+    """Positions (into the two lists above) of the shared elements the local map holds
+    in the vehicle frame ``R``: the anchor and carried features, globally
+    ``⊖x^R_Wlocal ⊕ x``.  The others (known features) are held as the global map holds
+    them, static in ``Wknown``."""
     mu_s: FloatArray
     """(k, 3) global mean of the shared elements when the local map started."""
     A: FloatArray
@@ -119,7 +120,7 @@ def new_local_map(
         return loc, None
     Pss = global_map.marginal(shared)
     first = len(loc)
-    moving = [global_map.elements[gi].role in (Role.ANCHOR, Role.FEATURE) for gi in shared]
+    moving = [global_map.elements[gi].role != Role.KNOWN for gi in shared]
     # Filled in one go: GaussianMap.add reallocates the covariance per element.
     loc.elements += [
         Element(
@@ -145,7 +146,7 @@ def new_local_map(
     ctx = CIContext(
         shared_global=shared,
         shared_local=list(range(first, len(loc))),
-        moving=moving,
+        moving=[r for r, mv in enumerate(moving) if mv],
         mu_s=global_map.mean[shared].copy(),
         A=A,
         angle_dofs=_angle_dofs(kinds),
@@ -171,9 +172,8 @@ def psd_pinv(P: FloatArray, rcond: float = 1e-10) -> FloatArray:
     return np.asarray(out, dtype=np.float64)
 
 
-def _seen_from_base(loc: GaussianMap, i: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``⊖x^R_Wlocal ⊕ x^R_i`` for a moving element ``i``, with Jacobians (base, element)."""
-    lb = loc.find(Role.BASE)
+def _seen_from_base(loc: GaussianMap, lb: int, i: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``⊖x^R_Wlocal ⊕ x^R_i`` (``lb`` the base) with Jacobians (base, element)."""
     e = loc.elements[i]
     if e.kind == ElementKind.POSE:
         return relative(loc.mean[lb], loc.mean[i])
@@ -256,12 +256,11 @@ def vehicle_in_global(
         A_b = ctx.A[3 * gb : 3 * gb + 3]
         M = np.zeros((3, 3 * (len(ctx.shared_local) + 1)))
         M[:, 3:] = A_b
-        for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
-            if mv:
-                s_L[r], Jb, Je = _seen_from_base(loc, i)
-                Ab_r = A_b[:, 3 * r : 3 * r + 3]
-                M[:, 0:3] += Ab_r @ Jb
-                M[:, 3 * r + 3 : 3 * r + 6] = Ab_r @ Je
+        for r in ctx.moving:
+            s_L[r], Jb, Je = _seen_from_base(loc, lb, ctx.shared_local[r])
+            Ab_r = A_b[:, 3 * r : 3 * r + 3]
+            M[:, 0:3] += Ab_r @ Jb
+            M[:, 3 * r + 3 : 3 * r + 6] = Ab_r @ Je
         d = _wrap_flat((s_L - ctx.mu_s).reshape(-1), ctx.angle_dofs)
         dofs = _leading_dofs([lb, *ctx.shared_local])
         P_L = loc.cov[:dofs, :dofs]
@@ -319,11 +318,10 @@ def shared_in_global_frame(
     J = np.zeros((3 * k, 3 * (k + 1)))
     J[:, 3:] = np.eye(3 * k)
     vals = loc.mean[ctx.shared_local].copy()
-    for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
-        if mv:
-            vals[r], Jb, Je = _seen_from_base(loc, i)
-            J[3 * r : 3 * r + 3, 0:3] = Jb
-            J[3 * r : 3 * r + 3, 3 * r + 3 : 3 * r + 6] = Je
+    for r in ctx.moving:
+        vals[r], Jb, Je = _seen_from_base(loc, lb, ctx.shared_local[r])
+        J[3 * r : 3 * r + 3, 0:3] = Jb
+        J[3 * r : 3 * r + 3, 3 * r + 3 : 3 * r + 6] = Je
     return vals, J, idx
 
 

@@ -229,9 +229,7 @@ class _Run:
         frame_elems = [i for i in range(n_g) if joint.elements[i].role != Role.KNOWN]
         if ctx is not None:
             # x^Wlocal_Wknown and carried x^Wlocal_F after the CI correction.
-            frame_elems += [
-                n_g + i for i, mv in zip(ctx.shared_local, ctx.moving, strict=True) if mv
-            ]
+            frame_elems += [n_g + ctx.shared_local[r] for r in ctx.moving]
         compose_into(joint, lb, frame_elems)
         joint.remove([lb])
         for e in joint.elements:
@@ -382,14 +380,13 @@ class _Run:
         # them (x^Wlocal_Wknown, x^Wlocal_F).
         s_L, Js, idx_L = shared_in_global_frame(loc, ctx)
         T = np.eye(3 * len(loc))
-        moved = [i for i, mv in zip(ctx.shared_local, ctx.moving, strict=True) if mv]
+        moved = [ctx.shared_local[r] for r in ctx.moving]
         loc_mean = loc.mean.copy()
-        for r, (i, mv) in enumerate(zip(ctx.shared_local, ctx.moving, strict=True)):
-            if mv:
-                rows = loc.dofs([i])
-                T[rows] = 0.0
-                T[np.ix_(rows, loc.dofs(idx_L))] = Js[3 * r : 3 * r + 3]
-                loc_mean[i] = s_L[r]
+        for r, i in zip(ctx.moving, moved, strict=True):
+            rows = loc.dofs([i])
+            T[rows] = 0.0
+            T[np.ix_(rows, loc.dofs(idx_L))] = Js[3 * r : 3 * r + 3]
+            loc_mean[i] = s_L[r]
         loc_cov = T @ loc.cov @ T.T
         g_only = [i for i in range(len(g)) if i not in set(ctx.shared_global)]
         gd = g.dofs(g_only)

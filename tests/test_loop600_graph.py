@@ -24,7 +24,6 @@ from mapfuse_core.evaluation import (
     pose_errors,
     truth_in_global,
 )
-from mapfuse_core.se2 import wrap_angle
 from mapfuse_graph.runner import RunOutput, run_backend
 from tests.loop600 import SEEDS, loop600_ekf, loop600_log
 
@@ -158,9 +157,8 @@ ANCHOR_NEES_MEAN_BOUND = float(chi2.ppf(0.975, 3 * len(SEEDS))) / len(SEEDS)
 def _anchor_nees(x: np.ndarray, cov: np.ndarray, seed: int) -> float:
     truth = loop600_log(seed).true_poses
     assert truth is not None
-    e = x - anchor_truth(truth)
-    e[2] = float(wrap_angle(e[2]))
-    return float(e @ np.linalg.solve(cov, e))
+    dx = pose_errors(x[None], anchor_truth(truth)[None]).dx
+    return float(nees_series(dx, cov[None])[0])
 
 
 def test_batch_anchor_covariance_is_consistent_pooled() -> None:
