@@ -41,8 +41,10 @@ class EKFConfig:
     anchor_prior_sigma: tuple[float, float, float] = (100.0, 100.0, math.pi)
     """*(choice)* Prior σ of the anchor when CCDA accepts a match.  The anchor is then
     constrained by the CCDA pairings themselves (hard constraints through the known
-    features), so the information of the matched features is counted once.  The
-    paper instead inserts CCDA's own covariance, which counts it twice."""
+    features, an iterated update since this prior is flat:
+    :func:`ekf_reference.association.apply_iterated`), so the information of the
+    matched features is counted once.  The paper instead inserts CCDA's own
+    covariance, which counts it twice."""
     ccda: CCDAParams = field(default_factory=lambda: CCDAParams(min_pairings=8))
     """CCDA matching parameters.  *(choice)* At least 8 pairings (the paper: more than
     three): on loop600 seed 3 a 6-pairing, all-line match 97 m off passed every gate at

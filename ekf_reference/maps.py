@@ -36,7 +36,7 @@ from ekf_reference.association import (
     nearest_neighbour,
 )
 from ekf_reference.config import EKFConfig
-from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.features import express_in, transform_feature
 from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian, relative, wrap_angle
 
@@ -48,14 +48,6 @@ __all__ = [
     "predict",
     "vehicle_in_global",
 ]
-
-
-def bind_line_cov(line: FloatArray, cov: FloatArray) -> FloatArray:
-    """Covariance of an SPmap line with its along-line component projected out."""
-    c, s = math.cos(line[2]), math.sin(line[2])
-    P = np.array([[1 - c * c, -c * s, 0.0], [-c * s, 1 - s * s, 0.0], [0.0, 0.0, 1.0]])
-    out: FloatArray = P @ cov @ P.T
-    return out
 
 
 @dataclass

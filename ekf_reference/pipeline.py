@@ -12,7 +12,9 @@ from ekf_reference.association import (
     Candidate,
     Query,
     apply,
+    apply_iterated,
     chi2_gate,
+    element_pairings,
     evaluate,
     individual_candidates,
     predict_all_targets,
@@ -458,16 +460,15 @@ class _Run:
                 known.params[j],
                 cov,
             )
-        cands = []
+        pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
+        # The anchor's prior is flat: iterate, or the anchor depends on where the
+        # pairings happened to be linearised (CCDA's estimate).
+        apply_iterated(g, lambda state: element_pairings(state, pairs))
         pairings = []
-        for ia, jb in res.pairings:
-            gi = feats[ia]
+        for (gi, kj), (_, jb) in zip(pairs, res.pairings, strict=True):
             e = g.elements[gi]
-            q = Query(e.kind, g.mean[gi], np.zeros((3, 3)), e.extent, element=gi)
-            cands.append(evaluate(g, q, known_index[jb]))
             pairings.append((e.true_id, int(known.ids[jb])))
-            self.tracks.merge(e.track, g.elements[known_index[jb]].track)
-        apply(g, cands)
+            self.tracks.merge(e.track, g.elements[kj].track)
         g.remove([feats[ia] for ia, _ in res.pairings])
         g.bind_lines()
         self.anchor_step = k

@@ -242,10 +242,11 @@ def line_observation_error(
     observed segment's midpoint ``X ⊕ z_xy``.  The lateral residual is then measured
     where the observation actually is, so it carries only the observation's lateral
     noise (no lever arm times its angle noise), which makes the noise model
-    :func:`residual_noise_cov` exact at the solution.  The EKF measures it at the
-    landmark's own reference point; the two differ by (angle error × along-line
-    distance), second order at the solution.  ``t*`` depends on ``X`` and ``α``, and
-    the Jacobians include that dependence.
+    :func:`residual_noise_cov` exact at the solution.  The EKF measures it at an
+    estimated landmark's own reference point (the two differ by angle error ×
+    along-line distance, second order at the solution), and at the observed segment
+    for a known wall (:func:`ekf_reference.association.evaluate` says why).  ``t*``
+    depends on ``X`` and ``α``, and the Jacobians include that dependence.
     """
     rho, alpha = float(ra[0]), float(ra[1])
     ca, sa = math.cos(alpha), math.sin(alpha)

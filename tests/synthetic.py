@@ -6,6 +6,7 @@ the true feature in the sensor frame plus noise drawn from its stated covariance
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -151,3 +152,17 @@ def synthetic_log(
         world=world,
         true_poses=poses,
     )
+
+
+def with_known(log: MeasurementLog, keep: list[int]) -> MeasurementLog:
+    """``log`` with its known map cut to the features at indices ``keep``."""
+    k = log.known_map
+    sel = np.array(keep, dtype=np.int64)
+    known = KnownMapArrays(
+        k.ids[sel],
+        k.kinds[sel],
+        k.params[sel].reshape(-1, 3),
+        k.covs[sel].reshape(-1, 3, 3),
+        None if k.extents is None else k.extents[sel].reshape(-1, 2),
+    )
+    return dataclasses.replace(log, known_map=known)

@@ -16,9 +16,9 @@ from ekf_reference.pipeline import _Run
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.features import FeatureKind, canonical_line, observe, transform_feature
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError
+from mapfuse_core.measlog import MeasurementLog, MeasurementLogError
 from mapfuse_core.se2 import compose_jacobians, wrap_angle
-from tests.synthetic import ring_world, synthetic_log
+from tests.synthetic import ring_world, synthetic_log, with_known
 
 
 def absolute_ekf(log: MeasurementLog) -> tuple[np.ndarray, np.ndarray]:
@@ -246,22 +246,9 @@ def test_no_fusion_has_no_anchor() -> None:
     assert np.all(np.isnan(res.poses_in_known))
 
 
-def _with_known(log: MeasurementLog, keep: list[int]) -> MeasurementLog:
-    k = log.known_map
-    sel = np.array(keep, dtype=np.int64)
-    known = KnownMapArrays(
-        k.ids[sel],
-        k.kinds[sel],
-        k.params[sel].reshape(-1, 3),
-        k.covs[sel].reshape(-1, 3, 3),
-        None if k.extents is None else k.extents[sel].reshape(-1, 2),
-    )
-    return dataclasses.replace(log, known_map=known)
-
-
 @pytest.mark.parametrize("keep", [[], [0]], ids=["empty", "one-feature"])
 def test_too_small_known_map_is_a_documented_no_match(keep: list[int]) -> None:
-    log = _with_known(synthetic_log(steps=120, seed=4), keep)
+    log = with_known(synthetic_log(steps=120, seed=4), keep)
     res = run_ekf(log, EKFConfig(fusion=True))
     assert res.anchor is None  # "no match": SLAM without fusion, reported as such
     assert np.all(np.isfinite(res.poses))
