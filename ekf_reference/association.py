@@ -160,8 +160,9 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     wall then pile up information about the anchor's along-wall position that no wall
     holds.  On loop600 seed 12 with a known map of walls only, that put the anchor
     10 cm off with σ 23–30 % below the batch smoother's (NEES 74.0, the batch's 0.6);
-    with this residual its NEES is 1.2 and its σ within 5 % of the batch's.  Over 40
-    seeds with the full known map the anchor NEES averaged 6.1 and now 3.25 (the
+    with this residual its NEES is 1.2 and its σ 3–5 % below the batch's.  Over 40
+    seeds with the full known map the anchor NEES averaged 6.1; with this residual and
+    the iterated update when CCDA accepts (:func:`apply_iterated`) it is 3.25 (the
     batch's 3.06; ``benchmarks/mc_loop600.py``).  The query's own along-line pseudo-variance
     (extraction: ``L²/12``) would now leak into the lateral variance as
     ``(L²/12) sin²Δθ``; it is not a noise of the segment's reference point, so it is
@@ -250,6 +251,12 @@ def _prefilter(
         return [targets[k] for k in np.nonzero(d < max_dist)[0].tolist()]
     c, s = math.cos(q.params[2]), math.sin(q.params[2])
     lateral = -s * (preds[:, 0] - q.params[0]) + c * (preds[:, 1] - q.params[1])
+    known = state.kinds_roles()[1][np.asarray(targets)] == int(Role.KNOWN)
+    if known.any():
+        # The offset that evaluate() takes for a known wall: the query from the wall.
+        cp, sp = np.cos(preds[known, 2]), np.sin(preds[known, 2])
+        d = q.params[:2] - preds[known, :2]
+        lateral[known] = -sp * d[:, 0] + cp * d[:, 1]
     dang = np.abs(wrap_angle_half(preds[:, 2] - q.params[2]))
     ok = (np.abs(lateral) < max_dist) & (dang < max_ang)
     return [
@@ -405,20 +412,21 @@ def apply_iterated(
     pairings: Callable[[GaussianMap], list[Candidate]],
     max_iterations: int = 10,
     tol: float = 1e-9,
-) -> int:
-    """Iterated EKF update (Gauss–Newton on prior and pairings); returns the iterations.
+) -> tuple[int, bool]:
+    """Iterated EKF update (Gauss–Newton on prior and pairings): (iterations, converged).
 
     ``pairings(state)`` evaluates the same pairings at ``state.mean``.  Each iteration
     relinearises them at the last estimate ``x`` and updates the prior ``(x0, P0)`` with
     the residual ``r(x) + H (x0 − x)``; it stops when no mean moves by more than
-    ``tol`` (metres or radians).  For a prior much looser than its pairings (the anchor
-    when CCDA accepts) one linearisation at the prior's mean is not the maximum of the
-    posterior, and the posterior then depends on the form of the pairing residual: on
-    loop600 the anchor's σ differed by up to 7 % between two first-order-equivalent
-    forms of the line pairing.
+    ``tol`` (metres or radians); if it has not after ``max_iterations``, the last
+    iterate is kept and ``converged`` is false.  For a prior much looser than its
+    pairings (the anchor when CCDA accepts) one linearisation at the prior's mean is
+    not the maximum of the posterior, and the posterior then depends on the form of
+    the pairing residual: on loop600 the anchor's σ differed by up to 7 % between two
+    first-order-equivalent forms of the line pairing, and iterated they agree.
     """
     if not pairings(state):
-        return 0
+        return 0, True
     x0, P0 = state.mean.copy(), state.cov.copy()
     angles = state.kinds_roles()[0] != int(ElementKind.CIRCLE)
     for it in range(1, max_iterations + 1):
@@ -433,5 +441,5 @@ def apply_iterated(
         step = state.mean - x
         step[angles, 2] = wrap_angle(step[angles, 2])
         if float(np.abs(step).max()) <= tol:
-            return it
-    return max_iterations
+            return it, True
+    return max_iterations, False

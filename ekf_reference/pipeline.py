@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -463,7 +464,14 @@ class _Run:
         pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
         # The anchor's prior is flat: iterate, or the anchor depends on where the
         # pairings happened to be linearised (CCDA's estimate).
-        apply_iterated(g, lambda state: element_pairings(state, pairs))
+        its, converged = apply_iterated(g, lambda state: element_pairings(state, pairs))
+        if not converged:
+            warnings.warn(
+                f"step {k}: the update with CCDA's {len(pairs)} pairings did not converge in "
+                f"{its} iterations; the anchor is its last iterate",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         pairings = []
         for (gi, kj), (_, jb) in zip(pairs, res.pairings, strict=True):
             e = g.elements[gi]

@@ -12,10 +12,12 @@ from hypothesis import strategies as st
 from ekf_reference.association import (
     Candidate,
     Query,
+    _prefilter,
     apply,
     apply_iterated,
     element_pairings,
     evaluate,
+    predict_all_targets,
 )
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
@@ -116,6 +118,18 @@ def test_known_wall_noise_ignores_the_along_line_pseudo_variance(
     assert LINE_SIGMA[0] ** 2 * 0.99 < c.R[0, 0] < LINE_SIGMA[0] ** 2 * 1.01 + 1e-10
 
 
+def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:
+    # A segment 40 m from the wall's reference point, 0.1 rad off its direction and on
+    # it at its own midpoint: the reference point is 4 m from the segment's line,
+    # beyond the 3 m pre-gate, yet the residual's offset is zero.
+    m = _map_with_known_wall(np.array([1.0, 2.0, 0.3]), np.array([5.0, -3.0, 1.2]))
+    q = _measurement(m, 40.0, 0.0, 0.1)
+    targets, preds = predict_all_targets(m, lambda e: True)[ElementKind.LINE]
+    assert targets == [1]
+    assert _prefilter(q, preds, targets, m, 3.0, 0.3, math.inf) == [1]
+    assert abs(evaluate(m, q, 1).residual[0]) < 1e-9
+
+
 def _known_wall_residual(x: np.ndarray, z: np.ndarray) -> np.ndarray:
     pred = transform_feature(FeatureKind.LINE, x[:3], x[3:6])[0]
     return pairing_residual(FeatureKind.LINE, pred, z)[0]
@@ -143,14 +157,24 @@ def test_known_wall_jacobian_matches_numerical_derivative(
     np.testing.assert_allclose(ce.H[:, 3:], J, atol=ATOL, rtol=RTOL)
 
 
-def _flat_anchor_map(anchor_guess: np.ndarray) -> tuple[GaussianMap, list[tuple[int, int]]]:
-    """A global map with four circles and a wall, the known map and a flat anchor prior.
+TRUTH = np.array([3.0, -2.0, 0.4])
+FLAT = np.diag([1e4, 1e4, 10.0])
+HALF_TURN = np.array([0.0, 0.0, math.pi])
 
-    The truth: ``Wknown`` sits at (3, −2, 0.4) in ``Wglobal``; the estimated features
-    are offset from it by a few centimetres (fixed, not random: the test compares two
-    updates of one map).
+
+def _anchor_map(
+    anchor_guess: np.ndarray,
+    truth: np.ndarray = TRUTH,
+    prior: np.ndarray = FLAT,
+    turned: bool = False,
+) -> tuple[GaussianMap, list[tuple[int, int]]]:
+    """A global map with four circles and a wall, the known map and an anchor prior.
+
+    ``Wknown`` sits at ``truth`` in ``Wglobal``; the estimated features are offset from
+    it by a few centimetres (fixed, not random: the tests compare updates of one map).
+    ``turned`` states the same problem with ``Wknown`` turned by π: the anchor becomes
+    ``x ⊕ (0, 0, π)`` and every known feature ``(0, 0, −π) ⊕ f``.
     """
-    truth = np.array([3.0, -2.0, 0.4])
     known = [
         (ElementKind.CIRCLE, np.array([10.0, 2.0, 0.3])),
         (ElementKind.CIRCLE, np.array([-6.0, 8.0, 0.4])),
@@ -160,8 +184,9 @@ def _flat_anchor_map(anchor_guess: np.ndarray) -> tuple[GaussianMap, list[tuple[
     ]
     offs = [(0.03, -0.02), (-0.04, 0.01), (0.02, 0.05), (-0.01, -0.03), (0.04, 0.006)]
     m = GaussianMap()
-    flat = np.diag([1e4, 1e4, 10.0])
-    m.add(Element(ElementKind.POSE, Role.ANCHOR, False, -1), anchor_guess, flat)
+    guess = compose(anchor_guess, HALF_TURN) if turned else anchor_guess
+    # Composing with a pure rotation on the right leaves the covariance unchanged.
+    m.add(Element(ElementKind.POSE, Role.ANCHOR, False, -1), guess, prior)
     pairs: list[tuple[int, int]] = []
     for (kind, f), (a, b) in zip(known, offs, strict=True):
         fk = kind.feature_kind()
@@ -174,6 +199,9 @@ def _flat_anchor_map(anchor_guess: np.ndarray) -> tuple[GaussianMap, list[tuple[
             cov = np.diag([0.03**2, 0.03**2, 0.01**2])
         fi = m.add(Element(kind, Role.FEATURE, False, len(pairs)), seen, cov)
         kcov = np.diag([1e-4, 1e-4, 1e-6 if kind == ElementKind.LINE else 1e-4])
+        if turned:
+            f, Jf = transform_feature(fk, -HALF_TURN, f)[::2]
+            kcov = Jf @ kcov @ Jf.T
         if kind == ElementKind.LINE:
             kcov = bind_line_cov(f, kcov)
         ki = m.add(Element(kind, Role.KNOWN, False, 100 + len(pairs)), f, kcov)
@@ -191,11 +219,12 @@ def test_iterated_update_does_not_depend_on_the_flat_priors_mean() -> None:
     guesses = (np.array([3.2, -2.1, 0.42]), np.array([2.9, -1.8, 0.37]))
     once, iterated = [], []
     for guess in guesses:
-        m, pairs = _flat_anchor_map(guess)
+        m, pairs = _anchor_map(guess)
         apply(m, _pairings(pairs)(m))
         once.append((m.mean[0].copy(), m.block(0).copy()))
-        m, pairs = _flat_anchor_map(guess)
-        its = apply_iterated(m, _pairings(pairs))
+        m, pairs = _anchor_map(guess)
+        its, converged = apply_iterated(m, _pairings(pairs))
+        assert converged
         assert 1 < its < 10
         iterated.append((m.mean[0].copy(), m.block(0).copy()))
         # The pairings hold at the solution: every residual is (numerically) zero.
@@ -204,16 +233,41 @@ def test_iterated_update_does_not_depend_on_the_flat_priors_mean() -> None:
     assert np.abs(once[0][0] - once[1][0]).max() > 1e-4
     np.testing.assert_allclose(iterated[0][0], iterated[1][0], atol=1e-9)
     np.testing.assert_allclose(iterated[0][1], iterated[1][1], rtol=1e-6, atol=1e-14)
-    # Near the truth, whatever the guess.
-    d = iterated[0][0] - np.array([3.0, -2.0, 0.4])
+    # Near the truth, whatever the guess (measured: 8 mm and 1.2 mrad; features a few
+    # centimetres off, at 10–50 m from the origin).
+    d = iterated[0][0] - TRUTH
     d[2] = wrap_angle(d[2])
-    assert np.abs(d[:2]).max() < 0.1
-    assert abs(d[2]) < 0.01
+    assert np.abs(d[:2]).max() < 0.02
+    assert abs(d[2]) < 0.003
+
+
+def test_iterated_update_is_the_same_across_the_angle_wrap() -> None:
+    # A prior tight enough to matter, its mean just below +π and the solution just above
+    # −π: x0 − x must be wrapped, or the prior pulls by 2π.
+    truth = np.array([3.0, -2.0, 0.001])
+    guess = np.array([3.1, -2.05, -0.003])
+    prior = np.diag([0.1**2, 0.1**2, 0.002**2])
+    out = []
+    for turned in (False, True):
+        m, pairs = _anchor_map(guess, truth, prior, turned)
+        its, converged = apply_iterated(m, _pairings(pairs))
+        assert converged
+        out.append((m.mean[0].copy(), m.block(0).copy(), its))
+    (x, P, _), (x_t, P_t, _) = out
+    assert x_t[2] < -math.pi + 0.01  # crossed from +π to −π on the way
+    np.testing.assert_allclose(compose(x, HALF_TURN), x_t, atol=1e-9)
+    np.testing.assert_allclose(P_t, P, rtol=1e-6, atol=1e-14)
+
+
+def test_iterated_update_reports_when_it_did_not_converge() -> None:
+    m, pairs = _anchor_map(np.array([3.3, -2.3, 0.45]))
+    its, converged = apply_iterated(m, _pairings(pairs), max_iterations=1)
+    assert (its, converged) == (1, False)
 
 
 def test_iterated_update_without_pairings_changes_nothing() -> None:
-    m, _ = _flat_anchor_map(np.zeros(3))
+    m, _ = _anchor_map(np.zeros(3))
     mean, cov = m.mean.copy(), m.cov.copy()
-    assert apply_iterated(m, lambda state: []) == 0
+    assert apply_iterated(m, lambda state: []) == (0, True)
     np.testing.assert_array_equal(m.mean, mean)
     np.testing.assert_array_equal(m.cov, cov)
