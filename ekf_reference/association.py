@@ -425,13 +425,15 @@ def apply_iterated(
     the pairing residual: on loop600 the anchor's σ differed by up to 7 % between two
     first-order-equivalent forms of the line pairing, and iterated they agree.
     """
-    if not pairings(state):
+    chosen = pairings(state)
+    if not chosen:
         return 0, True
     x0, P0 = state.mean.copy(), state.cov.copy()
     angles = state.kinds_roles()[0] != int(ElementKind.CIRCLE)
     for it in range(1, max_iterations + 1):
         x = state.mean.copy()
-        chosen = pairings(state)
+        if it > 1:
+            chosen = pairings(state)
         r, H, R, idx = stack(state, chosen)
         dx = x0 - x
         dx[angles, 2] = wrap_angle(dx[angles, 2])

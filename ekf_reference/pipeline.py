@@ -473,10 +473,10 @@ class _Run:
                 stacklevel=2,
             )
         pairings = []
-        for (gi, kj), (_, jb) in zip(pairs, res.pairings, strict=True):
-            e = g.elements[gi]
+        for ia, jb in res.pairings:
+            e = g.elements[feats[ia]]
             pairings.append((e.true_id, int(known.ids[jb])))
-            self.tracks.merge(e.track, g.elements[kj].track)
+            self.tracks.merge(e.track, g.elements[known_index[jb]].track)
         g.remove([feats[ia] for ia, _ in res.pairings])
         g.bind_lines()
         self.anchor_step = k

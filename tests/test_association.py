@@ -70,18 +70,24 @@ def _measurement(m: GaussianMap, along: float, lat: float, ang: float) -> Query:
     return Query(ElementKind.LINE, z, _line_cov(z, PSEUDO), (-5.0, 5.0))
 
 
+@st.composite
+def known_wall_cases(draw: st.DrawFn) -> tuple[GaussianMap, Query]:
+    """A map with an anchor and a known wall, and a measured segment of that wall."""
+    m = _map_with_known_wall(draw(poses()), draw(poses()))
+    return m, _measurement(m, draw(slides), draw(offsets), draw(offsets))
+
+
 @settings(max_examples=60, deadline=None)
-@given(poses(), poses(), slides, slides, offsets, offsets)
+@given(known_wall_cases(), slides)
 def test_known_wall_pairing_ignores_where_the_walls_reference_point_lies(
-    anchor: np.ndarray, wall: np.ndarray, along: float, s: float, lat: float, ang: float
+    case: tuple[GaussianMap, Query], s: float
 ) -> None:
     # The anchor's translation is uncertain along the wall: a residual measured at the
     # wall's reference point would change with s (by s·sin Δθ) and pass information
     # about that translation to the anchor.
-    m1 = _map_with_known_wall(anchor, wall)
-    q = _measurement(m1, along, lat, ang)
-    m2 = _map_with_known_wall(anchor, wall)
-    m2.mean[1], m2.cov[3:6, 3:6] = _slid(wall, m1.block(1), s)
+    m1, q = case
+    m2 = _map_with_known_wall(m1.mean[0], m1.mean[1])
+    m2.mean[1], m2.cov[3:6, 3:6] = _slid(m1.mean[1], m1.block(1), s)
     c1, c2 = evaluate(m1, q, 1), evaluate(m2, q, 1)
     np.testing.assert_allclose(c2.residual, c1.residual, atol=1e-9)
     # The anchor's columns and the innovation's χ² do not depend on s either.
@@ -90,13 +96,11 @@ def test_known_wall_pairing_ignores_where_the_walls_reference_point_lies(
 
 
 @settings(max_examples=60, deadline=None)
-@given(poses(), poses(), slides, offsets, offsets)
-def test_known_wall_residual_has_no_along_wall_jacobian(
-    anchor: np.ndarray, wall: np.ndarray, along: float, lat: float, ang: float
-) -> None:
-    m = _map_with_known_wall(anchor, wall)
-    c = evaluate(m, _measurement(m, along, lat, ang), 1)
-    pred = transform_feature(FeatureKind.LINE, anchor, wall)[0]
+@given(known_wall_cases())
+def test_known_wall_residual_has_no_along_wall_jacobian(case: tuple[GaussianMap, Query]) -> None:
+    m, q = case
+    c = evaluate(m, q, 1)
+    pred = transform_feature(FeatureKind.LINE, m.mean[0], m.mean[1])[0]
     u = np.array([math.cos(pred[2]), math.sin(pred[2])])
     # Translating the anchor along the wall moves the wall onto itself.
     assert abs(float(c.H[0, :2] @ u)) < 1e-12
@@ -104,12 +108,11 @@ def test_known_wall_residual_has_no_along_wall_jacobian(
 
 
 @settings(max_examples=40, deadline=None)
-@given(poses(), poses(), slides, offsets, offsets)
+@given(known_wall_cases())
 def test_known_wall_noise_ignores_the_along_line_pseudo_variance(
-    anchor: np.ndarray, wall: np.ndarray, along: float, lat: float, ang: float
+    case: tuple[GaussianMap, Query],
 ) -> None:
-    m = _map_with_known_wall(anchor, wall)
-    q = _measurement(m, along, lat, ang)
+    m, q = case
     loose = Query(q.kind, q.params, _line_cov(q.params, 1e4 * PSEUDO), q.extent)
     c, c_loose = evaluate(m, q, 1), evaluate(m, loose, 1)
     np.testing.assert_allclose(c_loose.R, c.R, atol=1e-12)
@@ -136,15 +139,12 @@ def _known_wall_residual(x: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 @settings(max_examples=60, deadline=None)
-@given(poses(), poses(), slides, offsets, offsets)
-def test_known_wall_jacobian_matches_numerical_derivative(
-    anchor: np.ndarray, wall: np.ndarray, along: float, lat: float, ang: float
-) -> None:
-    m = _map_with_known_wall(anchor, wall)
-    q = _measurement(m, along, lat, ang)
+@given(known_wall_cases())
+def test_known_wall_jacobian_matches_numerical_derivative(case: tuple[GaussianMap, Query]) -> None:
+    m, q = case
     c = evaluate(m, q, 1)
     assert c.indices == [0, 1]
-    x = np.concatenate([anchor, wall])
+    x = np.concatenate([m.mean[0], m.mean[1]])
     J = numerical_jacobian(lambda v: _known_wall_residual(v, q.params), x, angle_rows=(1,))
     np.testing.assert_allclose(c.H, J, atol=ATOL, rtol=RTOL)
     # A map feature as the query: its own columns come first.

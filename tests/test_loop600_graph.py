@@ -26,8 +26,6 @@ from mapfuse_core.evaluation import (
 )
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.simulate import simulate
 from mapfuse_graph.runner import RunOutput, run_backend
 from tests.loop600 import SEEDS, loop600_ekf, loop600_log
 from tests.synthetic import with_known
@@ -213,7 +211,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     measured there, the EKF's anchor σ was 23–30 % below the batch's, NEES 34.3 and
     74.0 on seeds 4 and 12 (the batch's 4.2 and 0.6).  See
     :func:`ekf_reference.association.evaluate`."""
-    log = loop600_log(seed) if seed in SEEDS else simulate(load_scenario("loop600"), seed=seed).log
+    log = loop600_log(seed)
     walls = np.flatnonzero(log.known_map.kinds == int(FeatureKind.LINE)).tolist()
     log = with_known(log, walls)
     ekf = run_ekf(log, EKFConfig(fusion=True))
