@@ -2,6 +2,9 @@
 
 Target (issue 3): EKF with fusion on loop600 ≤ 10 s on the 2-core project machine.
 ``--sweep`` also times other local-map sizes (how the default was chosen).
+Each configuration runs ``--repeat`` times (the results are identical); the figure
+is the fastest run, as timeit reports, since on a shared virtual machine the
+slower runs measure the neighbours; all wall times are printed.
 """
 
 from __future__ import annotations
@@ -20,21 +23,26 @@ def main() -> None:
     ap.add_argument("--scenario", default="loop600")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sweep", action="store_true", help="also try other local-map sizes")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per configuration")
     args = ap.parse_args()
     log = simulate(load_scenario(args.scenario), seed=args.seed).log
     sizes = [20, 40, 80, 160] if args.sweep else [EKFConfig().local_map_steps]
     rows = []
     for fusion in (True, False):
         for size in sizes:
-            t0 = time.perf_counter()
-            res = run_ekf(log, EKFConfig(fusion=fusion, local_map_steps=size))
-            wall = time.perf_counter() - t0
+            walls = []
+            for _ in range(max(1, args.repeat)):
+                t0 = time.perf_counter()
+                res = run_ekf(log, EKFConfig(fusion=fusion, local_map_steps=size))
+                walls.append(time.perf_counter() - t0)
+            wall = min(walls)
             m = ekf_metrics(res, log)
             rows.append(
                 {
                     "fusion": fusion,
                     "local_map_steps": size,
                     "wall_time_s": round(wall, 3),
+                    "wall_times_s": [round(w, 3) for w in walls],
                     "per_step_p99_ms": round(1e3 * m["runtime_s"]["per_step_p99"], 2),
                     # The step after whose join CCDA first accepts a match (step 39 on
                     # loop600): its matching makes it the slowest step by far.

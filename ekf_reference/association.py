@@ -89,10 +89,14 @@ def line_gap(
     """Gap (m) between two collinear-ish segments along the target line; 0 if they overlap."""
     if not all(math.isfinite(v) for v in (*q_extent, *t_extent)):
         return 0.0
-    uq = np.array([math.cos(q_line[2]), math.sin(q_line[2])])
-    ut = np.array([math.cos(t_line[2]), math.sin(t_line[2])])
-    s = [float((q_line[:2] + t * uq - t_line[:2]) @ ut) for t in q_extent]
-    lo, hi = min(s), max(s)
+    # Plain floats: this runs for every pre-gated pairing, where numpy's per-call
+    # overhead on 2-vectors was most of its time.
+    qx, qy, qth = (float(v) for v in q_line)
+    tx, ty, tth = (float(v) for v in t_line)
+    cq, sq = math.cos(qth), math.sin(qth)
+    ct, st = math.cos(tth), math.sin(tth)
+    s0, s1 = ((qx + t * cq - tx) * ct + (qy + t * sq - ty) * st for t in q_extent)
+    lo, hi = min(s0, s1), max(s0, s1)
     return max(lo - t_extent[1], t_extent[0] - hi, 0.0)
 
 

@@ -140,6 +140,9 @@ BoolArray = NDArray[np.bool_]
 #: Information below this (1/m², 1/rad²) is treated as none: the direction is free.
 _INFO_FLOOR = 1e-12
 
+#: The shortest step (fraction of the Gauss–Newton step) the line search tries.
+_MIN_STEP = 2.0**-20
+
 _LINE = int(FeatureKind.LINE)
 _CIRCLE = int(FeatureKind.CIRCLE)
 
@@ -846,6 +849,12 @@ def _cov_of(H: FloatArray) -> FloatArray:
     return cov
 
 
+def _step(T: FloatArray, dx: FloatArray, step: float) -> FloatArray:
+    Tn = T + step * dx
+    Tn[2] = float(wrap_angle(Tn[2]))
+    return Tn
+
+
 def _gauss_newton(
     A: _Prep, B: _Prep, ii: IntArray, jj: IntArray, x0: FloatArray
 ) -> tuple[FloatArray, FloatArray, float]:
@@ -854,17 +863,32 @@ def _gauss_newton(
     H, g, cost = _normal_equations(P, T)
     for _ in range(100):
         dx = _solve(H, g)
-        step = 1.0
+        # −g·dx is the decrease the Gauss–Newton model predicts.  Once it is at
+        # round-off level no step can be told from none.
+        if -float(g @ dx) <= 1e-12 * max(cost, 1.0):
+            break
         # Halve the step until the cost does not increase (the angle makes the
-        # problem nonlinear far from the solution).  At convergence that is some
-        # twenty halvings, so the trials compute the cost alone.
-        while True:
-            Tn = T + step * dx
-            Tn[2] = float(wrap_angle(Tn[2]))
-            cn = _cost(P, Tn)
-            if cn <= cost * (1.0 + 1e-12) + 1e-12 or step < 1e-6:
+        # problem nonlinear far from the solution).  The trials compute the cost
+        # alone.  S depends on T (a line's angle noise grows with the other
+        # feature's distance along it), which the model ignores: on a wrong
+        # hypothesis the step can increase the true cost at every length, and
+        # halving it to nothing took most of the matching time.  So when the
+        # full step fails, the shortest step is tried next: if even that does
+        # not decrease the cost, Gauss–Newton can do no more from here.
+        step = 1.0
+        Tn = _step(T, dx, step)
+        if not _cost(P, Tn) <= cost * (1.0 + 1e-12) + 1e-12:
+            if not _cost(P, _step(T, dx, _MIN_STEP)) <= cost * (1.0 + 1e-12) + 1e-12:
                 break
-            step *= 0.5
+            step = 0.5
+            while step > _MIN_STEP:
+                Tn = _step(T, dx, step)
+                if _cost(P, Tn) <= cost * (1.0 + 1e-12) + 1e-12:
+                    break
+                step *= 0.5
+            else:
+                step = _MIN_STEP
+                Tn = _step(T, dx, step)
         Hn, gn, cn = _normal_equations(P, Tn)
         converged = np.max(np.abs(step * dx)) < 1e-12 or cost - cn <= 1e-14 * max(cost, 1.0)
         T, H, g, cost = Tn, Hn, gn, cn

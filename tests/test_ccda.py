@@ -603,6 +603,34 @@ def test_line_pseudo_variance_along_the_line_is_ignored() -> None:
     np.testing.assert_allclose(cov1, cov0, rtol=1e-5)
 
 
+def test_gauss_newton_never_ends_above_its_start() -> None:
+    """On wrong pairings the residual covariance's dependence on ``T`` can make the
+    Gauss–Newton step raise the true cost at every length; the fit must then stop
+    where it is, not take a step uphill, and report the cost of what it returns."""
+    stuck = 0
+    for seed in range(60):
+        rng = np.random.default_rng(500 + seed)
+        A, B = mixed_map(rng, 2, 6), mixed_map(rng, 2, 6)
+        pa = ccda._prepare(A, "map_a", CCDAParams())
+        pb = ccda._prepare(B, "map_b", CCDAParams())
+        # Unrelated maps paired kind by kind: a wrong hypothesis.
+        ii = np.arange(8)
+        jj = np.concatenate([rng.permutation(2), 2 + rng.permutation(6)])
+        x0 = np.array([*rng.uniform(-30, 30, size=2), rng.uniform(-math.pi, math.pi)])
+        P = ccda._pair_set(pa, pb, ii, jj)
+        T, _, cost = ccda._gauss_newton(pa, pb, ii, jj, x0)
+        assert cost <= ccda._cost(P, x0) * (1 + 1e-12) + 1e-12
+        assert cost == pytest.approx(ccda._cost(P, T), rel=1e-12)
+        H, g, _ = ccda._normal_equations(P, T)
+        dx = ccda._solve(H, g)
+        if -float(g @ dx) > 1e-12 * max(cost, 1.0):
+            stuck += 1  # stopped on a step no length of which was cheaper
+            for step in 2.0 ** -np.arange(0, 21, 4):
+                assert ccda._cost(P, ccda._step(T, dx, step)) > cost
+    # Most of these fits stop on such a step (58 of the 60): the case is exercised.
+    assert stuck >= 30, stuck
+
+
 @pytest.mark.parametrize("seed", range(12))
 def test_clique_search_is_exact(seed: int) -> None:
     rng = np.random.default_rng(seed)
