@@ -161,8 +161,12 @@ def run_backend(
     robust: str | None = None,
     ekf_result: EKFResult | None = None,
     progress: Callable[[int, int], None] | None = None,
+    joint_stride: int | None = None,
 ) -> RunOutput:
     """Run ``backend`` on ``log``.
+
+    ``joint_stride`` (batch) also keeps the joint covariance of every
+    ``joint_stride``-th pose (``run.graph.joint_pose_cov``).
 
     Graph backends with ``association="ekf"`` consume the EKF's saved decisions: the
     EKF (same ``fusion``) is run first unless ``ekf_result`` is given.  On a log without
@@ -197,6 +201,7 @@ def run_backend(
         progress=progress,
         options=default_graph_options(log, association, robust),
         isam2=default_isam2_options(log),
+        joint_stride=joint_stride,
     )
     return RunOutput(
         metrics=graph_metrics(g, log),

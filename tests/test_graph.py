@@ -429,6 +429,32 @@ def _tampered(log: MeasurementLog, **arrays: np.ndarray) -> MeasurementLog:
     return out
 
 
+def test_joint_pose_covariance_is_the_marginals_in_the_absolute_frame() -> None:
+    log = synthetic_log(steps=200, seed=1)
+    res = run_graph(log, "batch", fusion=True, association="truth", joint_stride=20)
+    J = res.joint_pose_cov
+    assert J is not None
+    assert J.steps.tolist() == list(range(20, 200, 20))
+    n = J.steps.size
+    blocks = J.cov.reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]
+    # Its diagonal blocks are the per-pose marginals (also turned into the absolute frame).
+    np.testing.assert_allclose(blocks, res.covs[J.steps], rtol=1e-8, atol=1e-14)
+    # A coarser stride picks the same sub-blocks: GTSAM's block order is the keys' order.
+    coarse = run_graph(log, "batch", fusion=True, association="truth", joint_stride=40)
+    assert coarse.joint_pose_cov is not None
+    pick = np.flatnonzero(np.isin(J.steps, coarse.joint_pose_cov.steps))
+    rows = (3 * pick[:, None] + np.arange(3)).ravel()
+    np.testing.assert_allclose(
+        J.cov[np.ix_(rows, rows)], coarse.joint_pose_cov.cov, rtol=1e-8, atol=1e-14
+    )
+    # The poses share the anchor and the map: errors 160 steps apart are still correlated.
+    sd = np.sqrt(np.diag(J.cov))
+    corr = J.cov[0:3, 3 * n - 3 :] / np.outer(sd[0:3], sd[3 * n - 3 :])
+    print(f"\ncorrelation of steps 20 and 180: max {np.abs(corr).max():.2f}")
+    assert np.abs(corr).max() > 0.3
+    assert run_graph(log, "batch", fusion=True, association="truth").joint_pose_cov is None
+
+
 @pytest.fixture(scope="module")
 def small_log() -> MeasurementLog:
     return synthetic_log(steps=20, seed=0)
@@ -495,6 +521,11 @@ def test_rejects_bad_arguments(small_log: MeasurementLog) -> None:
         run_graph(small_log, "isam2", association="truth", steps=0)
     with pytest.raises(ValueError, match="relinearize_threshold"):
         ISAM2Options(relinearize_threshold={"x": (0.1, 0.1)})
+    for kw in ({"joint_stride": 0}, {"joint_stride": 2.5}, {"joint_stride": 5, "marginals": False}):
+        with pytest.raises(ValueError, match="joint_stride"):
+            run_graph(small_log, "batch", association="truth", **kw)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="joint_stride"):
+        run_graph(small_log, "isam2", association="truth", joint_stride=5)
 
 
 def test_builder_refuses_out_of_order_steps(small_log: MeasurementLog) -> None:
