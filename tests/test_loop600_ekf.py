@@ -40,6 +40,13 @@ the filter (4, 7, 12, 18, 19, 26, 37); the max error fails on 8 seeds for the EK
 with carried features, 3 for the filter and 2 for the batch smoother.  The anchor
 criterion fails on 5 seeds for the EKF (1, 10, 12, 26, 32) and on 3 for the batch
 smoother (1, 12, 26); the EKF's anchor NEES averages 3.25, the batch's 3.06.
+
+The errors of all poses share the anchor's and the known map's, which last the whole
+run.  Errors drawn from the batch smoother's own joint covariance (a smoother
+consistent by construction) have fewer than 90 % of the steps within the χ² bound on
+10.8–11.1 % of each of seeds 0–4 (``benchmarks/consistency_loop600.py``): all five
+pass with probability 0.56.  The batch itself has 89.1 % within on seed 4.  Its
+maximum error, by contrast, exceeds 0.15 m on only 1–2 % of such draws.
 """
 
 from __future__ import annotations
