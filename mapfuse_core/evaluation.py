@@ -246,8 +246,8 @@ def nees_mean_distribution(
     interval of probability ``p``.
 
     Each pose's NEES uses its own marginal, the diagonal block.  With ``W`` the joint
-    covariance whitened by those blocks, the mean NEES is ``eᵀ W e / T`` for
-    ``e ~ N(0, W)``: mean ``tr W / T = dof`` and variance ``2 ‖W‖_F² / T²``.  The
+    covariance whitened by those blocks, the mean NEES is ``‖z‖² / T`` for
+    ``z ~ N(0, W)``: mean ``tr W / T = dof`` and variance ``2 ‖W‖_F² / T²``.  The
     interval is that of the scaled χ² with these moments (Satterthwaite), which is
     close when the run is worth a few independent poses or more (checked against
     draws in the tests).

@@ -624,11 +624,41 @@ def test_gauss_newton_never_ends_above_its_start() -> None:
         H, g, _ = ccda._normal_equations(P, T)
         dx = ccda._solve(H, g)
         if -float(g @ dx) > 1e-12 * max(cost, 1.0):
-            stuck += 1  # stopped on a step no length of which was cheaper
+            stuck += 1  # stopped on a step none of whose sampled lengths is cheaper
             for step in 2.0 ** -np.arange(0, 21, 4):
                 assert ccda._cost(P, ccda._step(T, dx, step)) > cost
     # Most of these fits stop on such a step (58 of the 60): the case is exercised.
     assert stuck >= 30, stuck
+
+
+@pytest.mark.parametrize("seed", [253, 387])
+def test_gauss_newton_finds_a_dip_between_the_longest_and_shortest_steps(seed: int) -> None:
+    """Correct pairings from a start metres and a radian off, where the full step and
+    the shortest one both raise the cost but a quarter step lowers it: the fit must go
+    on to the solution (a line search that probed only the two ends stopped at the
+    start, cost ~10⁴)."""
+    rng = np.random.default_rng(seed)
+    B_true = mixed_map(rng, int(rng.integers(0, 5)), int(rng.integers(2, 7)))
+    T = np.array([*rng.uniform(-50, 50, size=2), rng.uniform(-math.pi, math.pi)])
+    A_true = moved_copy(B_true, T)
+    kinds = [int(k) for k in B_true.kinds]
+    maps = []
+    for truth in (B_true, A_true):
+        noisy = [
+            perturb(rng, k, f, S * float(rng.uniform(1, 30)))
+            for k, f, S in zip(kinds, truth.params, truth.covs, strict=True)
+        ]
+        maps.append(make_map(kinds, [f for f, _ in noisy], [S for _, S in noisy]))
+    B, A = maps
+    pa = ccda._prepare(A, "map_a", CCDAParams())
+    pb = ccda._prepare(B, "map_b", CCDAParams())
+    ii = jj = np.arange(len(kinds))
+    x0s = [T + np.array([*rng.normal(0, 10, 2), rng.normal(0, 0.7)]) for _ in range(3)]
+    best = ccda._estimate(pa, pb, ii, jj, None)[0]
+    P = ccda._pair_set(pa, pb, ii, jj)
+    for x0 in x0s:
+        x, _, cost = ccda._gauss_newton(pa, pb, ii, jj, x0)
+        assert cost == pytest.approx(ccda._cost(P, best), rel=1e-6), (x0, x)
 
 
 @pytest.mark.parametrize("seed", range(12))

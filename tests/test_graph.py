@@ -26,6 +26,7 @@ from mapfuse_graph.solvers import (
     GraphResult,
     ISAM2Options,
     _ISAM2Estimate,
+    _joint_pose_cov,
     _newest_last,
     _newest_pose_marginal,
     _ValuesEstimate,
@@ -455,6 +456,33 @@ def test_joint_pose_covariance_is_the_marginals_in_the_absolute_frame() -> None:
     assert run_graph(log, "batch", fusion=True, association="truth").joint_pose_cov is None
 
 
+def test_joint_pose_covariance_turns_every_block_by_both_headings() -> None:
+    """Off-diagonal blocks are G_s P_st G_tᵀ, each side with its own pose's heading."""
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.05, 0.02]))
+    graph.add(gtsam.PriorFactorPose2(pose_key(0), gtsam.Pose2(0, 0, 0), noise))
+    heading = [0.0, 0.7, 2.0, -2.9]
+    for k, th in enumerate(heading):
+        values.insert(pose_key(k), gtsam.Pose2(float(k), 0.5 * k, th))
+        if k:
+            rel = gtsam.Pose2(k - 1.0, 0.5 * (k - 1), heading[k - 1]).between(
+                gtsam.Pose2(float(k), 0.5 * k, th)
+            )
+            graph.add(gtsam.BetweenFactorPose2(pose_key(k - 1), pose_key(k), rel, noise))
+    m = gtsam.Marginals(graph, values)
+    poses = np.array([[float(k), 0.5 * k, th] for k, th in enumerate(heading)])
+    got = _joint_pose_cov(m, poses, 1)
+    assert got.steps.tolist() == [1, 2, 3]
+    keys = gtsam.KeyVector([pose_key(k) for k in (1, 2, 3)])
+    P = m.jointMarginalCovariance(keys).fullMatrix()
+    G = np.zeros((9, 9))
+    for i, k in enumerate((1, 2, 3)):
+        c, s = math.cos(heading[k]), math.sin(heading[k])
+        G[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    np.testing.assert_allclose(got.cov, G @ P @ G.T, rtol=1e-12, atol=1e-15)
+
+
 @pytest.fixture(scope="module")
 def small_log() -> MeasurementLog:
     return synthetic_log(steps=20, seed=0)
@@ -521,7 +549,12 @@ def test_rejects_bad_arguments(small_log: MeasurementLog) -> None:
         run_graph(small_log, "isam2", association="truth", steps=0)
     with pytest.raises(ValueError, match="relinearize_threshold"):
         ISAM2Options(relinearize_threshold={"x": (0.1, 0.1)})
-    for kw in ({"joint_stride": 0}, {"joint_stride": 2.5}, {"joint_stride": 5, "marginals": False}):
+    for kw in (
+        {"joint_stride": 0},
+        {"joint_stride": 2.5},
+        {"joint_stride": 20},
+        {"joint_stride": 5, "marginals": False},
+    ):
         with pytest.raises(ValueError, match="joint_stride"):
             run_graph(small_log, "batch", association="truth", **kw)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="joint_stride"):
