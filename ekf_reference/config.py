@@ -68,8 +68,9 @@ class EKFConfig:
     carried (new local features are, at every step); an estimated duplicate of a known
     feature then keeps its observations (loop600 seed 2: 6 duplicates, 4 without).  On
     loop600 (40 seeds, ``benchmarks/mc_loop600.py``), 1 keeps the fused maximum error
-    within 0.15 m on 35 seeds instead of 31 (iSAM2's filter: 37), about as consistent
-    with fusion as before; without fusion it makes the EKF less consistent (NEES
+    within 0.15 m on 37 seeds instead of 32 (iSAM2's filter: 37), about as consistent
+    with fusion as before (NEES within the χ² bound on ≥ 90 % of the steps on 35 seeds
+    instead of 33); without fusion it makes the EKF less consistent (NEES
     within the χ² bound on ≥ 90 % of the steps on 29 seeds instead of 34), towards
     one local map for the whole run (seed 4: 11 % of the steps within).  Not
     combinable with :attr:`loop_closure`."""
