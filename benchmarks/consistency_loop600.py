@@ -29,6 +29,7 @@ from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
     consistent_error_draws,
+    joint_nees,
     nees_mean_distribution,
     nees_series,
     pose_errors,
@@ -63,8 +64,7 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
     nees = nees_series(err.dx, batch.covs)[steps]
     dist = nees_mean_distribution(joint.cov)
     e = consistent_error_draws(joint.cov, draws, np.random.default_rng(seed))
-    blocks = batch.covs[steps]
-    drawn_nees = np.einsum("nti,tij,ntj->nt", e, np.linalg.inv(blocks), e)
+    drawn_nees = joint_nees(e, joint.cov)
     within = np.mean(drawn_nees <= CHI2_3_95, axis=1)
     max_pos = np.max(np.hypot(e[:, :, 0], e[:, :, 1]), axis=1)
     m_ekf = ekf_metrics(ekf.ekf, log)

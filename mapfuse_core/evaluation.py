@@ -40,6 +40,7 @@ __all__ = [
     "gps_position_metrics",
     "integrated_autocorrelation_time",
     "interpolate_positions",
+    "joint_nees",
     "known_map_draw_offset",
     "nees_mean_distribution",
     "nees_mean_interval",
@@ -215,8 +216,9 @@ def _satterthwaite(steps: int, dof: int, mean: float, var: float, p: float) -> N
     )
 
 
-def _whitened_joint(joint_cov: FloatArray, dof: int) -> FloatArray:
-    """``D^{-1/2} Σ D^{-T/2}`` with ``D`` the diagonal blocks of ``Σ`` (Cholesky factors)."""
+def _block_inverse_factors(joint_cov: FloatArray, dof: int) -> tuple[FloatArray, FloatArray]:
+    """The checked ``joint_cov`` and the inverse Cholesky factors (T, dof, dof) of its
+    diagonal blocks: ``L_t⁻¹ e_t`` whitens pose ``t``'s error by its own marginal."""
     S = np.asarray(joint_cov, dtype=float)
     if S.ndim != 2 or S.shape[0] != S.shape[1] or S.shape[0] % dof or S.shape[0] == 0:
         raise ValueError(
@@ -226,14 +228,21 @@ def _whitened_joint(joint_cov: FloatArray, dof: int) -> FloatArray:
     if not np.all(np.isfinite(S)):
         raise ValueError("joint_cov has non-finite entries")
     n = S.shape[0] // dof
-    S4 = S.reshape(n, dof, n, dof)
-    blocks = S4[np.arange(n), :, np.arange(n), :]
+    blocks = S.reshape(n, dof, n, dof)[np.arange(n), :, np.arange(n), :]
     try:
         L = np.linalg.cholesky(0.5 * (blocks + blocks.transpose(0, 2, 1)))
     except np.linalg.LinAlgError as exc:
         raise ValueError("a diagonal block of joint_cov is not positive definite") from exc
-    Li = np.linalg.inv(L)
-    W = np.einsum("sab,sbtc,tdc->satd", Li, S4, Li).reshape(n * dof, n * dof)
+    Li: FloatArray = np.linalg.inv(L)
+    return S, Li
+
+
+def _whitened_joint(joint_cov: FloatArray, dof: int) -> FloatArray:
+    """``D^{-1/2} Σ D^{-T/2}`` with ``D`` the diagonal blocks of ``Σ`` (Cholesky factors)."""
+    S, Li = _block_inverse_factors(joint_cov, dof)
+    n = Li.shape[0]
+    W = np.einsum("sab,sbtc,tdc->satd", Li, S.reshape(n, dof, n, dof), Li)
+    W = W.reshape(n * dof, n * dof)
     out: FloatArray = 0.5 * (W + W.T)
     return out
 
@@ -285,13 +294,26 @@ def consistent_error_draws(
     with this joint covariance (for the maximum error over a run, for one)."""
     if n_draws < 1:
         raise ValueError(f"n_draws must be >= 1, got {n_draws}")
-    S = np.asarray(joint_cov, dtype=float)
-    _whitened_joint(S, dof)  # the same checks of the input
+    S, _ = _block_inverse_factors(joint_cov, dof)
     w, V = np.linalg.eigh(0.5 * (S + S.T))
     root = V * np.sqrt(np.clip(w, 0.0, None))
     out: FloatArray = (rng.standard_normal((n_draws, S.shape[0])) @ root.T).reshape(
         n_draws, -1, dof
     )
+    return out
+
+
+def joint_nees(errors: FloatArray, joint_cov: FloatArray, dof: int = 3) -> FloatArray:
+    """NEES (…, T) of errors (…, T, dof), each pose's against its own diagonal block of
+    ``joint_cov`` (the pose's marginal), e.g. of :func:`consistent_error_draws`."""
+    _, Li = _block_inverse_factors(joint_cov, dof)
+    e = np.asarray(errors, dtype=float)
+    if e.shape[-2:] != (Li.shape[0], dof):
+        raise ValueError(
+            f"errors must end in ({Li.shape[0]}, {dof}) to match joint_cov, got {e.shape}"
+        )
+    z = np.einsum("tab,...tb->...ta", Li, e)
+    out: FloatArray = np.sum(z * z, axis=-1)
     return out
 
 
@@ -301,16 +323,7 @@ def consistent_nees_draws(
     """NEES series (n_draws, T) of errors drawn from ``joint_cov`` itself: what a
     consistent estimator with this joint covariance would show, for statistics without
     a closed form (the fraction of steps within a χ² bound, for one)."""
-    if n_draws < 1:
-        raise ValueError(f"n_draws must be >= 1, got {n_draws}")
-    W = _whitened_joint(joint_cov, dof)
-    n = W.shape[0] // dof
-    # Whitened per pose, the NEES is the squared norm of each pose's dof components.
-    w, V = np.linalg.eigh(W)
-    root = V * np.sqrt(np.clip(w, 0.0, None))
-    z = rng.standard_normal((n_draws, W.shape[0])) @ root.T
-    out: FloatArray = np.sum(z.reshape(n_draws, n, dof) ** 2, axis=2)
-    return out
+    return joint_nees(consistent_error_draws(joint_cov, n_draws, rng, dof), joint_cov, dof)
 
 
 def pose_metrics(est: FloatArray, covs: FloatArray, truth: FloatArray) -> dict[str, Any]:
