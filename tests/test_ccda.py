@@ -468,6 +468,25 @@ def mixed_map(rng: np.random.Generator, n_c: int, n_l: int) -> KnownMapArrays:
     return make_map(kinds, [f for f, _ in feats], [S for _, S in feats])
 
 
+def noisy_match(
+    rng: np.random.Generator, B_true: KnownMapArrays, inflate: bool = False
+) -> tuple[KnownMapArrays, KnownMapArrays, np.ndarray]:
+    """A random transform ``T`` and noisy copies ``(A, B)`` of ``B_true`` moved by ``T``
+    and of ``B_true``, each feature drawn from its covariance (times a random 1–30 with
+    ``inflate``)."""
+    T = np.array([*rng.uniform(-50, 50, size=2), rng.uniform(-math.pi, math.pi)])
+    kinds = [int(k) for k in B_true.kinds]
+    maps = []
+    for truth in (B_true, moved_copy(B_true, T)):
+        noisy = [
+            perturb(rng, k, f, S * float(rng.uniform(1, 30)) if inflate else S)
+            for k, f, S in zip(kinds, truth.params, truth.covs, strict=True)
+        ]
+        maps.append(make_map(kinds, [f for f, _ in noisy], [S for _, S in noisy]))
+    B, A = maps
+    return A, B, T
+
+
 @pytest.mark.parametrize(("n_c", "n_l"), [(4, 0), (0, 3), (1, 2), (6, 5)])
 def test_estimate_transform_exact_from_noise_free_pairings(n_c: int, n_l: int) -> None:
     for seed in range(20):
@@ -501,18 +520,8 @@ def test_estimate_transform_covariance_is_consistent() -> None:
     for seed in range(trials):
         rng = np.random.default_rng(10_000 + seed)
         B_true = mixed_map(rng, int(rng.integers(2, 8)), int(rng.integers(0, 6)))
-        T = np.array([*rng.uniform(-50, 50, size=2), rng.uniform(-math.pi, math.pi)])
-        A_true = moved_copy(B_true, T)
-        kinds = [int(k) for k in B_true.kinds]
-        maps = []
-        for truth in (B_true, A_true):
-            noisy = [
-                perturb(rng, k, f, S)
-                for k, f, S in zip(kinds, truth.params, truth.covs, strict=True)
-            ]
-            maps.append(make_map(kinds, [f for f, _ in noisy], [S for _, S in noisy]))
-        B, A = maps
-        x, cov = estimate_transform(A, B, [(i, i) for i in range(len(kinds))])
+        A, B, T = noisy_match(rng, B_true)
+        x, cov = estimate_transform(A, B, [(i, i) for i in range(len(B_true.kinds))])
         values.append(nees(x, cov, T))
     mean = float(np.mean(values))
     lo, hi = chi2.ppf([0.005, 0.995], 3 * trials) / trials
@@ -639,20 +648,10 @@ def test_gauss_newton_finds_a_dip_between_the_longest_and_shortest_steps(seed: i
     start, cost ~10⁴)."""
     rng = np.random.default_rng(seed)
     B_true = mixed_map(rng, int(rng.integers(0, 5)), int(rng.integers(2, 7)))
-    T = np.array([*rng.uniform(-50, 50, size=2), rng.uniform(-math.pi, math.pi)])
-    A_true = moved_copy(B_true, T)
-    kinds = [int(k) for k in B_true.kinds]
-    maps = []
-    for truth in (B_true, A_true):
-        noisy = [
-            perturb(rng, k, f, S * float(rng.uniform(1, 30)))
-            for k, f, S in zip(kinds, truth.params, truth.covs, strict=True)
-        ]
-        maps.append(make_map(kinds, [f for f, _ in noisy], [S for _, S in noisy]))
-    B, A = maps
+    A, B, T = noisy_match(rng, B_true, inflate=True)
     pa = ccda._prepare(A, "map_a", CCDAParams())
     pb = ccda._prepare(B, "map_b", CCDAParams())
-    ii = jj = np.arange(len(kinds))
+    ii = jj = np.arange(len(B_true.kinds))
     x0s = [T + np.array([*rng.normal(0, 10, 2), rng.normal(0, 0.7)]) for _ in range(3)]
     best = ccda._estimate(pa, pb, ii, jj, None)[0]
     P = ccda._pair_set(pa, pb, ii, jj)

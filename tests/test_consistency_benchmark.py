@@ -4,29 +4,19 @@ minutes a seed; the statistics it uses are tested in ``test_nees_statistics.py``
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
 
+from tests.scripts import load_benchmark
 from tests.synthetic import synthetic_log
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "consistency_loop600.py"
 
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("consistency_loop600", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["consistency_loop600"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("consistency_loop600")
 
 
 def test_a_row_and_its_summary(bench: ModuleType) -> None:

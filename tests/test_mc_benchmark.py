@@ -7,27 +7,19 @@ counting that the README's Monte Carlo figures come from.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "mc_loop600.py"
+from tests.scripts import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def mc() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("mc_loop600", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["mc_loop600"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("mc_loop600")
 
 
 def _row(seed: int, max_m: float, within: float, anchor_m: float | None) -> dict[str, Any]:
