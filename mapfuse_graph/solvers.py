@@ -291,10 +291,17 @@ class GraphResult:
 # --------------------------------------------------------------------------- helpers
 
 
+def _body_to_abs(thetas: FloatArray) -> FloatArray:
+    """(k, 3, 3) ``G`` of each heading: a body-tangent perturbation is ``G δ`` absolute."""
+    G = np.zeros((thetas.size, 3, 3))
+    c, s = np.cos(thetas), np.sin(thetas)
+    G[:, 0, 0], G[:, 0, 1], G[:, 1, 0], G[:, 1, 1], G[:, 2, 2] = c, -s, s, c, 1.0
+    return G
+
+
 def body_to_abs_cov(P_body: FloatArray, theta: float) -> FloatArray:
     """Pose2 covariance in GTSAM's body tangent → absolute ``(x, y, θ)``: ``G P Gᵀ``."""
-    c, s = math.cos(theta), math.sin(theta)
-    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    G = _body_to_abs(np.array([theta]))[0]
     out: FloatArray = G @ P_body @ G.T
     return 0.5 * (out + out.T)
 
@@ -307,9 +314,7 @@ def _joint_pose_cov(
     keys = gtsam.KeyVector([pose_key(int(k)) for k in steps])
     P = np.asarray(marginals.jointMarginalCovariance(keys).fullMatrix(), dtype=float)
     # GTSAM orders the blocks as the keys were given; body tangent -> absolute per pose.
-    G = np.zeros((steps.size, 3, 3))
-    c, s = np.cos(poses[steps, 2]), np.sin(poses[steps, 2])
-    G[:, 0, 0], G[:, 0, 1], G[:, 1, 0], G[:, 1, 1], G[:, 2, 2] = c, -s, s, c, 1.0
+    G = _body_to_abs(poses[steps, 2])
     n = steps.size
     out = np.einsum("sab,sbtc,tdc->satd", G, P.reshape(n, 3, n, 3), G).reshape(3 * n, 3 * n)
     return JointPoseCovariance(steps=steps, cov=0.5 * (out + out.T))
@@ -612,9 +617,10 @@ def _pose_covs(poses: FloatArray, cov_of: Callable[[int], FloatArray] | None) ->
     n = poses.shape[0]
     if cov_of is None:
         return np.full((n, 3, 3), np.nan)
-    return np.array([body_to_abs_cov(cov_of(pose_key(k)), poses[k, 2]) for k in range(n)]).reshape(
-        n, 3, 3
-    )
+    P = np.array([cov_of(pose_key(k)) for k in range(n)]).reshape(n, 3, 3)
+    G = _body_to_abs(poses[:, 2])
+    out: FloatArray = G @ P @ G.transpose(0, 2, 1)
+    return 0.5 * (out + out.transpose(0, 2, 1))
 
 
 # --------------------------------------------------------------------------- runs
