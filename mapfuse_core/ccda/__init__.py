@@ -1,4 +1,4 @@
-"""Map-to-map matching by Combined Constraint Data Association (method.md §5.1).
+"""Map-to-map matching by Combined Constraint Data Association (``docs/method.md`` §5.1).
 
 CCDA (Bailey, Nebot, Rosenblatt, Durrant-Whyte, ICRA 2000) finds which features of
 map ``A`` are the same physical features as features of map ``B`` when the rigid
@@ -34,8 +34,9 @@ The method, step by step:
    of edges, not with ``|A|²·|B|²``), and each candidate is then tested exactly.
 3. **Maximum clique.**  Nodes that cannot be in a clique of ``min_pairings`` nodes
    are pruned (k-core), then an exact maximum clique is searched by
-   :class:`_CliqueGraph` (networkx's ``max_weight_clique`` takes seconds on the
-   ~300,000-edge graphs of 200 × 60 feature maps; see that class for the method).
+   :class:`~mapfuse_core.ccda.clique._CliqueGraph` (networkx's ``max_weight_clique``
+   takes seconds on the graphs of maps of a few hundred features; see that class for
+   the method).
 4. **Transform and verification.**  The transform is estimated from the clique's
    pairings by weighted least squares (:func:`estimate_transform`).  Every pairing
    is then tested *leave-one-out*: its residual against the transform fitted to

@@ -11,8 +11,8 @@ from mapfuse_core.ccda.prepare import IntArray
 class _CliqueGraph:
     """Maximum-clique search on the correspondence graph.
 
-    networkx's ``max_weight_clique`` takes seconds on the ~5,000-node,
-    ~300,000-edge graphs of 200 × 60 feature maps, so the search is written here
+    networkx's ``max_weight_clique`` takes seconds on the graphs of 200 × 60 feature
+    maps (thousands of nodes, some 10⁵ edges), so the search is written here
     around one observation: chance edges are spread thinly, so a random edge has
     few common neighbours, whereas every edge inside a clique of ``k`` nodes has at
     least ``k − 2``.  The search therefore
@@ -28,7 +28,7 @@ class _CliqueGraph:
        each node, its later neighbours in a degree order, with a k-core prune and
        Tomita's greedy-colouring bound (MCQ), Python integers as bitsets.
 
-    Memory is ``n² / 8`` bytes for ``n`` nodes (2.7 MB for 4,600 nodes).
+    Memory is ``n² / 8`` bytes for ``n`` nodes.
     """
 
     def __init__(

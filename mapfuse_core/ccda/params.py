@@ -1,7 +1,7 @@
 """Parameters and result of CCDA, and the χ² gates derived from the parameters.
 
 Every default of :class:`CCDAParams` is a *(choice)* explained in the package
-docstring of :mod:`mapfuse_core.ccda` and in ``docs/method.md``.
+docstring of :mod:`mapfuse_core.ccda` and in ``docs/method.md`` §5.1.
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ class CCDAParams:
     """Most maximum-clique searches (best plus competitors) per call."""
     max_edges: int = 5_000_000
     """Largest correspondence graph searched.  The exact search costs about
-    ``edges × nodes / 64`` word operations (0.25 s for 200 × 60 features and 3·10⁵
-    edges, 3 s for 200 × 200 and 3·10⁶): beyond this the call returns
-    ``"graph too large"`` instead of running for minutes; match a cropped map."""
+    ``edges × nodes / 64`` word operations (timings in ``docs/method.md`` §5.1): beyond
+    this the call returns ``"graph too large"`` instead of running for minutes; match
+    a cropped map."""
     var_floor_m: float = 1e-4
     """Standard deviation (m) added in quadrature to every positional variance."""
     var_floor_rad: float = 1e-5

@@ -125,11 +125,11 @@ def _gauss_newton(
         # alone.  S depends on T (a line's angle noise grows with the other
         # feature's distance along it), which the model ignores: on a wrong
         # hypothesis the step can increase the true cost at every length, and
-        # halving it to 2^-20 each time took most of the matching time.  So after
-        # the first few halvings the shortest step is tried: if that fails too, the
-        # cost rises along dx at both ends of the lengths left and the fit stops (a
-        # cost that dipped only between 1/16 and 2^-20 would be missed; loop600's
-        # seeds 0-6 give the results of the full halving to 1e-8).
+        # halving all the way to _MIN_STEP every time would dominate the matching
+        # time.  So after the first few halvings the shortest step is tried: if that
+        # fails too, the cost rises along dx at both ends of the lengths left and the
+        # fit stops (a cost that dips only between _PROBE_BELOW and _MIN_STEP is
+        # missed; on loop600 this gives the results of the full halving).
         step = 1.0
         Tn = _step(T, dx, step)
         while not _cost(P, Tn) <= cost * (1.0 + 1e-12) + 1e-12:
