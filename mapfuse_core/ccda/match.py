@@ -57,7 +57,7 @@ def _result(
 def ccda_match(
     map_a: KnownMapArrays, map_b: KnownMapArrays, params: CCDAParams = _DEFAULT_PARAMS
 ) -> CCDAResult:
-    """Match ``map_b`` into ``map_a`` by CCDA; see the docstring of :mod:`mapfuse_core.ccda`.
+    """Match ``map_b`` into ``map_a`` by CCDA (the package docstring explains how).
 
     ``map_a`` features are expected at ``x_A_B ⊕ b`` for their partners ``b`` of
     ``map_b``.  Returns a :class:`CCDAResult`; raises :class:`ValueError` only for

@@ -1,4 +1,4 @@
-"""Real datasets as :class:`~mapfuse_core.measlog.MeasurementLog`: ACFR car park, Victoria Park.
+"""Real datasets as measurement logs: the ACFR car park and Victoria Park.
 
 The files are read from a directory the caller gives (the project never ships them);
 ``docs/datasets.md`` describes both datasets, their provenance and their conventions.
