@@ -1,6 +1,6 @@
 """Wall time of simulating loop600 (motion, 2,400 laser scans, feature extraction).
 
-Prints one JSON object.  Target (issue 2): ≤ 20 s on the 2-core project machine.
+Prints one JSON object.  Target: ≤ 20 s on the 2-core project machine.
 
 ``wall_time_s`` is the best of ``--repeat`` runs of :func:`simulate` with ``workers``
 extraction processes (the library's default unless ``--workers`` is given);

@@ -2,15 +2,15 @@
 EKF's loop closures (prints JSON).
 
 Not a speed benchmark: the study behind ``VICTORIA_PARK_ODOMETRY_NOISE`` and
-``VictoriaParkOptions.bearing_offset_rad`` (see ``VICTORIA_PARK_CALIBRATION_NOTE``).  For
+``VictoriaParkOptions.bearing_offset_rad`` (``docs/victoria-park-calibration.md``).  For
 each setting the whole run goes through the EKF as ``mapfuse run victoria-park`` runs it
 (``run_backend``; without fusion, which is the same on a log with no known map), and the
 rotations of its loop closures (``EKFResult.loop_closures``) are summarised.  Anything
 that makes every map the car builds on new ground turn the same way (a yaw error of the
 laser, or a motion model that meets sideways motion only with turns) makes the closures
 rotate with one sign when the car comes back; the setting is chosen where their mean is
-zero, which uses no GPS.  The GPS error (best fit) is printed beside it for the record
-only.  About 50 s per setting on the project machine.
+zero, which uses no GPS.  The GPS error (best fit) is printed beside it as a check,
+not as a criterion.  The docs page gives the time per setting.
 
 ``--data DIR`` is the real-data directory (``../shared/data`` by default); ``--slips``
 (m/√m) and ``--offsets`` (rad) give the grid, every slip with every offset.

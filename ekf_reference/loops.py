@@ -2,19 +2,14 @@
 
 *(choice, beyond the paper)*  The paper pairs a local map with the global map by the
 filter's own individual compatibility tests.  That works while the filter's relative
-covariance between the two maps is right.  After a long excursion it may not be: on
-Victoria Park (first calibration) the local map returning from the park's western arm
-(t ≈ 1,157 s) was 4.3° and 5.7 m (at its centroid) off the global map while the
-filter's σ of their relative heading was 0.5°: 6 of its 93 trees were paired,
-although 70 of them lie on global trees once the local map is moved back; the missed
-ones became a second copy of those trees, which the rest of the run then followed
-(10–20 m off GPS).  With the laser yaw of the tracking fit, every one of the 15 loop
-closures of the whole run turned the global map onto the returning local map the same
-way (``LoopClosure.correction`` θ of −0.5° to −2.1°): a systematic drift, which the
-filter's white-noise models cannot represent, hence its overconfidence.  That sign is
-what calibrates the odometry's sideways slip (``VICTORIA_PARK_ODOMETRY_NOISE``; it once
-calibrated a laser yaw, which the slip replaced): with it, 6 closures turning both ways
-(−0.88° to +0.65°).  They are in ``EKFResult.loop_closures``.
+covariance between the two maps is right.  After a long excursion it may not be: a
+local map coming back can be degrees and metres off the global map while the filter
+believes their relative heading to a fraction of a degree, so only a few of its trees
+are paired and the rest become a second copy of trees already mapped, which the run
+then follows.  A drift that the filter's white-noise models cannot represent shows up
+as closures that all turn the same way; that sign is what calibrates Victoria Park's
+sideways slip (``VICTORIA_PARK_ODOMETRY_NOISE``).  ``docs/victoria-park-calibration.md``
+gives the measured cases.  The closures are in ``EKFResult.loop_closures``.
 
 The registration here finds the rigid motion that puts the most local circle centres
 on global ones, without using the filter's covariance (as CCDA does for the known map,

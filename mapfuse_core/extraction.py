@@ -35,9 +35,9 @@ Why the refinement in range space: the Jacobian of a point-space residual
 (``p_i·t`` for a line, the normal at ``p_i`` for a circle) contains the noise of the
 point itself, and range noise moves a point along and across the curve at once; the
 correlation between Jacobian and residual biases the estimate (errors in variables).
-On a trunk, whose radius is known only to about a tenth, this measured −0.5 to −0.7 σ
-on the radius, with NEES ≈ 4 instead of 3.  In range space the Jacobian depends only on
-the beam and the parameters, and the bias is gone.
+On a trunk, whose radius is known only to about a tenth, the bias is a large fraction
+of σ on the radius (``docs/extraction.md``).  In range space the Jacobian depends only
+on the beam and the parameters, and the bias is gone.
 
 What else keeps the covariances honest (checked by
 ``tests/test_extraction_consistency.py``) is leaving out data the first-order model
@@ -51,22 +51,20 @@ does not describe, with rules computable without the truth:
   building) may hide a corner: the adjoining wall can show as a stub of one or two
   returns, too short for the split, and a ray cast near the hidden corner can cross
   it, so its range comes from the other wall.  Line fits drop the returns within
-  ``corner_margin_sigma · σβ`` of such an end (``occluded_end_margin``).  On loop600
-  the farthest wall of a building behind a tree had a mean angle error of −0.53 σ
-  over fixed-pose scans (variance 1.42 instead of 1); with the margin, −0.05 σ and
-  1.01;
-* the outermost return of a cluster was kept *because* its perturbed ray still hit
+  ``corner_margin_sigma · σβ`` of such an end (``occluded_end_margin``; its effect
+  on loop600 is in ``docs/extraction.md``);
+* the outermost return of a cluster is there *because* its perturbed ray still hits
   the feature, which conditions its bearing error (``end_trim``);
 * grazing returns are dropped (incidence above ``max_line_incidence_rad`` /
   ``max_circle_incidence_rad``, or, on circles, a range too nonlinear in the bearing
   error: ``max_range_nonlinearity``);
 * which clusters may be circles, and which of their beams are fitted, is decided from
   the bearings of the cluster, never from the fitted radius: selecting on the fitted
-  radius or its σ keeps the noise realisations that look most curved (at
-  ``r / σ_r ≈ 5`` such a selection biased the radius by −2 σ);
+  radius or its σ keeps the noise realisations that look most curved, which biases
+  the radius of small trunks by σ's (``docs/extraction.md``);
 * a circle whose silhouette a beam beside the cluster crosses is not a trunk, but only
   a crossing deeper than 3 σ of the fit counts (:func:`_crosses_silhouette`): testing
-  the fitted circle itself rejected the fits whose radius came out too large;
+  the fitted circle itself would reject the fits whose radius comes out too large;
 * every fit must pass a χ² test on its normalised residuals.
 
 The 3×3 covariance of a line holds, along the line, the pseudo-variance ``L²/12`` of
@@ -155,7 +153,7 @@ class ExtractionParams:
     """A short cluster is tried as a circle only if a circle filling its bearing span
     would have ``r / σ_r`` at least this large, predicted from the beam geometry alone
     (see :func:`_circle_beams`).  At 4 the radius is known to 25 %; below about 3 the
-    estimate is visibly non-Gaussian (heavier NEES tails on loop600)."""
+    estimate is visibly non-Gaussian (heavier NEES tails)."""
     max_circle_radius_rel_sigma: float = 0.5
     """Sanity bound: circles whose fitted σ_r exceeds this fraction of the radius are
     rejected (``ill_conditioned``); not reached after ``min_circle_snr`` unless the fit
@@ -629,11 +627,11 @@ def _beam_cos_inc(circle: FloatArray, sin_b: FloatArray, cos_b: FloatArray) -> F
 
 
 # scipy's default forward-difference step (``approx_derivative``, "2-point"): √eps times
-# max(1, |x|), away from zero.  The point-space circle fit was tuned with exactly that
-# Jacobian, so it is kept bit for bit (see :func:`_geometric_circle`).
+# max(1, |x|), away from zero.  The point-space circle fit's thresholds are tuned with
+# exactly that Jacobian, so it is reproduced bit for bit (see :func:`_geometric_circle`).
 _FD_REL_STEP = float(np.finfo(np.float64).eps) ** 0.5
-# MINPACK settings of scipy's ``least_squares(method="lm")``, which these fits were
-# tuned with: gtol, and 100 evaluations per parameter.
+# MINPACK settings of scipy's ``least_squares(method="lm")``, with which these fits are
+# tuned: gtol, and 100 evaluations per parameter.
 _LM_GTOL = 1e-8
 _LM_EVALS_PER_PARAM = 100
 
@@ -649,7 +647,7 @@ def _levenberg_marquardt(
     Called through :func:`scipy.optimize.leastsq` rather than ``least_squares``: the
     solver, its settings and therefore its iterates are the same, but ``least_squares``
     wraps every evaluation in bookkeeping that costs more than these 3-parameter
-    problems themselves (it was a quarter of the extraction time).
+    problems themselves (a large share of the extraction time).
     """
     out = leastsq(
         fun,
@@ -749,7 +747,7 @@ def _refine_circle(
     ``n_i`` the direction from the centre to the *noisy* point: range noise moves a
     point both along the normal and (off normal incidence) along the arc, so the
     Jacobian is correlated with the residual.  On a trunk, whose radius is only ~10σ_r,
-    that errors-in-variables bias measured about −0.5 σ on the radius.  Predicting the
+    that errors-in-variables bias is about half a σ on the radius.  Predicting the
     measured range of each nominal beam (:func:`_circle_system`) removes it, and also
     accounts for the second-order effect of the bearing noise on the mean range.
     """
@@ -849,8 +847,8 @@ def _crosses_silhouette(
     The beam must cross the circle by more than 3 σ: ``g = r − |u × c|``, the depth of
     the beam ``u`` inside the silhouette, has the variance of the fit (``cov``) and of
     the beam's own bearing error.  Testing the fitted circle itself (``g > 0``) would
-    reject the fits whose radius came out too large and keep those too small: on loop600
-    that biased the radius by −0.5 σ and the centre towards the laser by −0.4 σ.
+    reject the fits whose radius comes out too large and keep those too small, which
+    biases the radius and pulls the centre towards the laser (``docs/extraction.md``).
     """
     ranges, bearings = outside
     cb, sb = np.cos(bearings), np.sin(bearings)

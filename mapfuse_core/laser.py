@@ -1,4 +1,4 @@
-"""Range–bearing laser simulation by exact ray casting (method.md §3).
+"""Range–bearing laser simulation by exact ray casting (``docs/method.md`` §3).
 
 The sensor frame ``S`` has its x axis along the central beam; bearings are measured
 counter-clockwise from it.  A :class:`Scan` holds the *nominal* bearing of every beam

@@ -1,4 +1,4 @@
-"""SE(2) geometry with analytic Jacobians (method.md §1).
+"""SE(2) geometry with analytic Jacobians (``docs/method.md`` §1).
 
 Every pose, frame and tangent vector in mapfuse is a length-3 float array ordered
 ``(x, y, θ)``: position in metres, heading in radians wrapped to ``(−π, π]``.

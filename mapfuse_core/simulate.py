@@ -4,12 +4,11 @@ Random streams are split from one :class:`numpy.random.SeedSequence` per purpose
 (motion, laser, known map), so changing e.g. the laser parameters does not change
 the trajectory noise of the same seed.
 
-Feature extraction is most of the cost (about three quarters on loop600) and needs no
-random numbers, so scans are extracted in a pool of worker processes while this
-process keeps casting rays: the scans themselves must be made in step order, from one
-generator.  The log does not depend on the number of workers, bit for bit: every scan
-is extracted by the same deterministic code on the same arrays, and the results are
-gathered in step order.
+Feature extraction is most of the cost and needs no random numbers, so scans are
+extracted in a pool of worker processes while this process keeps casting rays: the
+scans themselves must be made in step order, from one generator.  The log does not
+depend on the number of workers, bit for bit: every scan is extracted by the same
+deterministic code on the same arrays, and the results are gathered in step order.
 
 The pool uses the ``spawn`` start method on every platform.  ``fork`` would start
 faster, but forking a process that runs threads (a Jupyter kernel, a pytest-xdist
@@ -49,11 +48,11 @@ from mapfuse_core.world import WallSegment, World
 __all__ = ["SimulationResult", "extraction_workers", "simulate", "world_arrays"]
 
 # Below this many steps a pool costs more than it saves: a spawned worker is ready only
-# after 1-2 s of imports (the package, numpy, scipy), while a loop600 scan is extracted
-# in about 5 ms, so two workers gain n · 2.5 ms against that wait.
+# after its imports (the package, numpy, scipy: seconds), while a scan is extracted in
+# milliseconds, so two workers gain half of n scans' extraction against that wait.
 _MIN_PARALLEL_STEPS = 600
-# Scans per task: enough to make the inter-process traffic negligible (~0.5 ms per
-# task against ~0.4 s of work), few enough that the workers start early and share the
+# Scans per task: enough to make the inter-process traffic negligible against a task's
+# work, few enough that the workers start early and share the
 # tail of the run evenly.
 _CHUNK_STEPS = 64
 

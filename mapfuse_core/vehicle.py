@@ -1,4 +1,4 @@
-"""Car-like vehicle, its odometry and a pure-pursuit driver (method.md §3).
+"""Car-like vehicle, its odometry and a pure-pursuit driver (``docs/method.md`` §3).
 
 The paper gives only the control noise (Table 1: σv on the velocity, σφ on the
 steering angle); the motion model is our *(choice)*: a kinematic bicycle whose

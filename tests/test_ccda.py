@@ -644,7 +644,7 @@ def test_gauss_newton_never_ends_above_its_start() -> None:
 def test_gauss_newton_finds_a_dip_between_the_longest_and_shortest_steps(seed: int) -> None:
     """Correct pairings from a start metres and a radian off, where the full step and
     the shortest one both raise the cost but a quarter step lowers it: the fit must go
-    on to the solution (a line search that probed only the two ends stopped at the
+    on to the solution (a line search that probes only the two ends stops at the
     start, cost ~10⁴)."""
     rng = np.random.default_rng(seed)
     B_true = mixed_map(rng, int(rng.integers(0, 5)), int(rng.integers(2, 7)))

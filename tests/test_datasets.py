@@ -1,8 +1,8 @@
 """Real-dataset loaders: conventions checked against the data, odometry model, error paths.
 
 The real-data tests use the ``data_dir`` fixture (skipped when the data is absent); the
-rest run on small fabricated files.  Measured values quoted in comments are those of
-the shared copies of the data with the default options.
+rest run on small fabricated files.  Values quoted in comments, which justify the
+tolerances, are those of the shared copies of the data with the default options.
 """
 
 from __future__ import annotations
@@ -624,7 +624,7 @@ def test_victoria_calibration_keeps_trees_stiller(victoria: MeasurementLog, data
     """The tracking fit's steering zero, speed scale and latency (kept by default) bring
     the detections of a trunk two seconds apart closer together than the raw data; its
     laser yaw would bring them closer still, which is the sideways motion the default
-    odometry takes as slip instead (VICTORIA_PARK_CALIBRATION_NOTE)."""
+    odometry takes as slip instead (``docs/victoria-park-calibration.md``)."""
     raw = load_victoria_park(
         data_dir,
         options=VictoriaParkOptions(

@@ -1,4 +1,4 @@
-"""Issue 2 acceptance: `mapfuse simulate loop600` gives the paper's loop, reproducibly."""
+"""`mapfuse simulate loop600` gives the paper's loop, reproducibly."""
 
 from __future__ import annotations
 
