@@ -16,6 +16,7 @@ from ekf_reference.pipeline import _Run
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.features import FeatureKind, canonical_line, observe, transform_feature
+from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.measlog import MeasurementLog, MeasurementLogError
 from mapfuse_core.se2 import compose_jacobians, wrap_angle
 from tests.synthetic import ring_world, synthetic_log, with_known
@@ -265,8 +266,10 @@ def test_nan_in_log_is_refused_before_running() -> None:
 def test_bad_config_is_refused() -> None:
     with pytest.raises(ValueError, match="local_map_steps"):
         EKFConfig(local_map_steps=0)
-    with pytest.raises(ValueError, match="association"):
-        EKFConfig(association="magic")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="method must be one of nn, jcbb"):
+        EKFConfig(data_association=AssociationConfig(method="magic"))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="data_association must be an AssociationConfig"):
+        EKFConfig(data_association="nn")  # type: ignore[arg-type]
     for bad in (-1, True, 1.5):
         with pytest.raises(ValueError, match="carry_seen_steps"):
             EKFConfig(carry_seen_steps=bad)  # type: ignore[arg-type]
@@ -277,8 +280,8 @@ def test_bad_config_is_refused() -> None:
 
 def test_jcbb_gives_same_associations_on_clean_data() -> None:
     log = synthetic_log(steps=120, seed=6)
-    nn = run_ekf(log, EKFConfig(fusion=False, association="nn"))
-    jc = run_ekf(log, EKFConfig(fusion=False, association="jcbb"))
+    nn = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="nn")))
+    jc = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="jcbb")))
     np.testing.assert_allclose(nn.poses, jc.poses, atol=1e-9)
 
 
