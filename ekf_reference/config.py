@@ -20,8 +20,8 @@ class EKFConfig:
     """Fuse the known map (the paper's method); ``False`` is "SLAM without map fusion"."""
     local_map_steps: int = 40
     """*(choice)* Steps per local map before it is joined.  40 steps (10 m of travel in
-    loop600) was measured as the best trade-off between per-step cost (larger maps)
-    and join cost/linearisation (more joins): see ``benchmarks/bench_ekf.py``."""
+    loop600) balances the per-step cost (larger maps) against the join cost and
+    linearisation (more joins): ``benchmarks/bench_ekf.py`` measures it."""
     data_association: AssociationConfig = field(default_factory=AssociationConfig)
     """Gates, search (``method``: nearest neighbour or JCBB), one-to-one rules, CCDA
     match and anchor prior: the settings shared with the factor graph
@@ -29,9 +29,9 @@ class EKFConfig:
     min_obs_to_join: int = 1
     """*(choice)* Local-map features seen fewer times than this when their local map is
     joined are dropped (marginalised out) instead of joining the global map, and their
-    observations become unassociated (−1).  1 keeps every feature.  On Victoria Park a
-    third of the features are trunks seen in a single scan: 2 drops them, which keeps
-    the global map (and every join's O(F²) cost) to the trees that were tracked."""
+    observations become unassociated (−1).  1 keeps every feature; 2 drops the trunks
+    seen in a single scan, which keeps the global map (and every join's O(F²) cost) to
+    the trees that were tracked (``docs/configuration.md``)."""
 
     carry_seen_steps: int = 0
     """*(choice, beyond the paper)* Start every local map with the global features seen
@@ -41,14 +41,10 @@ class EKFConfig:
     local map, which starts empty and links a re-seen feature only at its join.  A
     carried feature is shared, so it is not tested against the known map while it is
     carried (new local features are, at every step); an estimated duplicate of a known
-    feature then keeps its observations (loop600 seed 2: 6 duplicates, 4 without).  On
-    loop600 (40 seeds, ``benchmarks/mc_loop600.py``), 1 keeps the fused maximum error
-    within 0.15 m on 37 seeds instead of 32 (iSAM2's filter: 37), about as consistent
-    with fusion as before (NEES within the χ² bound on ≥ 90 % of the steps on 35 seeds
-    instead of 33); without fusion it makes the EKF less consistent (NEES
-    within the χ² bound on ≥ 90 % of the steps on 29 seeds instead of 34), towards
-    one local map for the whole run (seed 4: 11 % of the steps within).  Not
-    combinable with :attr:`loop_closure`."""
+    feature then keeps its observations.  With fusion it bounds the maximum error more
+    often at about the same consistency; without fusion it makes the EKF less
+    consistent, towards one local map for the whole run (``docs/configuration.md``,
+    ``benchmarks/mc_loop600.py``).  Not combinable with :attr:`loop_closure`."""
 
     loop_closure: LoopClosureParams | None = None
     """*(choice)* Before the join's association, register the local map's circles to

@@ -70,9 +70,8 @@ class AssociationConfig:
     ``docs/association.md``)."""
     ccda: CCDAParams = field(default_factory=_default_ccda)
     """CCDA parameters of the match with the known map.  *(choice)* At least 8
-    pairings (the paper asks for more than three): on loop600, wrong all-line matches
-    with 4 to 6 pairings pass every other test, while correct matches have 8 or more
-    (``docs/association.md``)."""
+    pairings (the paper asks for more than three): with fewer, wrong matches made of a
+    few collinear walls pass every other test (``docs/association.md``)."""
     min_obs_for_matching: int = 2
     """Map features observed fewer times than this are left out of the CCDA match and
     of the known-map pairing (most spurious features are seen once)."""
