@@ -322,7 +322,8 @@ def test_two_segments_of_one_wall_in_one_scan_make_one_landmark() -> None:
     assert run.obs_track[0] == run.obs_track[1]
 
 
-def test_line_landmarks_take_several_observations_circles_one() -> None:
+@pytest.mark.parametrize("method", ["nn", "jcbb"])
+def test_line_landmarks_take_several_observations_circles_one(method: str) -> None:
     m = GaussianMap()
     m.add(Element(ElementKind.POSE, Role.BASE, True, -1), np.zeros(3), np.zeros((3, 3)))
     line, cov, ext = _segment(0.0, 14.0, 5.0, 0.01, 0.002)
@@ -346,11 +347,20 @@ def test_line_landmarks_take_several_observations_circles_one() -> None:
                 (math.nan, math.nan),
             )
         )
-    chosen = associate(m, queries, predict_all_targets(m, lambda e: True), EKFConfig())
-    assert [c.target if c is not None else None for c in chosen[:2]] == [1, 1]
-    circle_hits = [c for c in chosen[2:] if c is not None]
-    assert len(circle_hits) == 1
-    assert circle_hits[0].target == 2
+    targets = predict_all_targets(m, lambda e: True)
+
+    def targets_of(**kw: object) -> list[int | None]:
+        cfg = EKFConfig(data_association=AssociationConfig(method=method, **kw))  # type: ignore[arg-type]
+        return [c.target if c is not None else None for c in associate(m, queries, targets, cfg)]
+
+    chosen = targets_of()
+    assert chosen[:2] == [1, 1]
+    assert sorted(chosen[2:], key=str) == [2, None]
+    # One observation per line: the wall takes one segment only.
+    assert sorted(targets_of(one_observation_per_line=True)[:2], key=str) == [1, None]
+    if method == "jcbb":
+        # A node budget of 1 ends the search before any pairing.
+        assert targets_of(jcbb_max_nodes=1) == [None] * 4
 
 
 def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
