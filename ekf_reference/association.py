@@ -6,34 +6,38 @@ constraints of map joining and of the known-map fusion).  A *target* is a featur
 element expressed in the vehicle frame, or a known-map feature seen through the
 anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the shared models of
 :mod:`mapfuse_core.features`.
+
+This module linearises the pairings on a :class:`~ekf_reference.state.GaussianMap`;
+the gates, the searches and their settings are the backend-independent ones of
+:mod:`mapfuse_core.matching`.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
-from mapfuse_core.se2 import FloatArray, wrap_angle, wrap_angle_half
+from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
+from mapfuse_core.matching import jcbb as jcbb_search
+from mapfuse_core.matching import nearest_neighbour as nn_search
+from mapfuse_core.se2 import FloatArray, wrap_angle
 
 __all__ = [
     "Candidate",
     "Query",
     "apply",
     "apply_iterated",
-    "chi2_gate",
     "element_pairings",
     "evaluate",
     "exclusive",
+    "individual_candidates",
     "jcbb",
     "joint_compatible",
-    "line_gap",
     "nearest_neighbour",
     "predict_all_targets",
     "predict_targets",
@@ -72,32 +76,6 @@ class Candidate:
     """Covariance of the residual due to the measurement (zeros for a map element)."""
     d2: float
     """Mahalanobis distance ``rᵀ S⁻¹ r``."""
-
-
-@functools.lru_cache(maxsize=64)
-def chi2_gate(prob: float, dof: int) -> float:
-    """χ² quantile, cached: it is asked for once per observation."""
-    return float(chi2.ppf(prob, dof))
-
-
-def line_gap(
-    q_line: FloatArray,
-    q_extent: tuple[float, float],
-    t_line: FloatArray,
-    t_extent: tuple[float, float],
-) -> float:
-    """Gap (m) between two collinear-ish segments along the target line; 0 if they overlap."""
-    if not all(math.isfinite(v) for v in (*q_extent, *t_extent)):
-        return 0.0
-    # Plain floats: this runs for every pre-gated pairing, where numpy's per-call
-    # overhead on 2-vectors was most of its time.
-    qx, qy, qth = (float(v) for v in q_line)
-    tx, ty, tth = (float(v) for v in t_line)
-    cq, sq = math.cos(qth), math.sin(qth)
-    ct, st = math.cos(tth), math.sin(tth)
-    s0, s1 = ((qx + t * cq - tx) * ct + (qy + t * sq - ty) * st for t in q_extent)
-    lo, hi = min(s0, s1), max(s0, s1)
-    return max(lo - t_extent[1], t_extent[0] - hi, 0.0)
 
 
 def predict_targets(
@@ -244,30 +222,20 @@ def _prefilter(
     preds: FloatArray,
     targets: list[int],
     state: GaussianMap,
-    max_dist: float,
-    max_ang: float,
-    max_gap: float,
+    config: AssociationConfig,
 ) -> list[int]:
+    """Targets worth a χ² test with ``q`` (:func:`mapfuse_core.matching.pregate`)."""
     if not targets:
         return []
-    if q.kind == ElementKind.CIRCLE:
-        d = np.hypot(preds[:, 0] - q.params[0], preds[:, 1] - q.params[1])
-        return [targets[k] for k in np.nonzero(d < max_dist)[0].tolist()]
-    c, s = math.cos(q.params[2]), math.sin(q.params[2])
-    dx, dy = preds[:, 0] - q.params[0], preds[:, 1] - q.params[1]
-    # Either offset passes: the target's point from the query's line (what evaluate()
-    # takes for an estimated line) or the query's point from the target's line (for a
-    # known wall).  Cheaper than looking up each target's role, and only a pre-gate.
-    lateral = np.minimum(
-        np.abs(-s * dx + c * dy), np.abs(np.sin(preds[:, 2]) * dx - np.cos(preds[:, 2]) * dy)
+    rows = pregate(
+        q.kind.feature_kind(),
+        q.params,
+        q.extent,
+        preds,
+        lambda k: state.elements[targets[k]].extent,
+        config,
     )
-    dang = np.abs(wrap_angle_half(preds[:, 2] - q.params[2]))
-    ok = (lateral < max_dist) & (dang < max_ang)
-    return [
-        targets[k]
-        for k in np.nonzero(ok)[0].tolist()
-        if line_gap(q.params, q.extent, preds[k], state.elements[targets[k]].extent) <= max_gap
-    ]
+    return [targets[k] for k in rows]
 
 
 def individual_candidates(
@@ -275,15 +243,12 @@ def individual_candidates(
     q: Query,
     targets: list[int],
     preds: FloatArray,
-    gate_prob: float,
-    max_dist: float,
-    max_ang: float,
-    max_gap: float,
+    config: AssociationConfig,
 ) -> list[Candidate]:
     """Individually compatible candidates of ``q``, best (smallest d²) first."""
-    gate = chi2_gate(gate_prob, 2 if q.kind == ElementKind.LINE else 3)
+    gate = chi2_gate(config.gate_prob, 2 if q.kind == ElementKind.LINE else 3)
     out = []
-    for t in _prefilter(q, preds, targets, state, max_dist, max_ang, max_gap):
+    for t in _prefilter(q, preds, targets, state, config):
         if t == q.element:
             continue
         c = evaluate(state, q, t)
@@ -293,34 +258,19 @@ def individual_candidates(
     return out
 
 
-def exclusive(c: Candidate) -> bool:
-    """Whether ``c``'s target may take only one query.
-
-    A circle gives one return arc per scan and one element per map, so two queries
-    on one circle mean one of them is wrong.  A wall occluded by a tree gives two
-    segments in one scan, and a local map may hold two pieces of one wall (their
-    gap exceeded ``line_overlap_gap_m`` when the second was first seen): each is a
-    genuine, independent observation of one line.  Keeping only the best-fitting one
-    (smallest d²) both throws the other away as a duplicate landmark and biases the
-    update towards the prediction: on loop600 seed 4 without fusion that selection
-    took the fraction of steps with the vehicle NEES within bound from 0.79 to 0.55.
-    """
-    return c.residual.size != 2
+def exclusive(c: Candidate, config: AssociationConfig) -> bool:
+    """Whether ``c``'s target may take only one query (``config``'s one-to-one rules:
+    by default a circle takes one, a line several segments of one wall)."""
+    kind = FeatureKind.LINE if c.residual.size == 2 else FeatureKind.CIRCLE
+    return config.one_observation_per(kind)
 
 
-def nearest_neighbour(cands: list[list[Candidate]]) -> list[Candidate | None]:
-    """Greedy NN: the globally best pairs first; a circle target is used once."""
-    flat = sorted(
-        ((c.d2, qi, c) for qi, cs in enumerate(cands) for c in cs), key=lambda x: (x[0], x[1])
-    )
-    chosen: list[Candidate | None] = [None] * len(cands)
-    used: set[int] = set()
-    for _, qi, c in flat:
-        if chosen[qi] is None and c.target not in used:
-            chosen[qi] = c
-            if exclusive(c):
-                used.add(c.target)
-    return chosen
+def nearest_neighbour(
+    cands: list[list[Candidate]], config: AssociationConfig
+) -> list[Candidate | None]:
+    """Greedy NN (:func:`mapfuse_core.matching.nearest_neighbour`): the globally best
+    pairs first, under :func:`exclusive`."""
+    return nn_search(cands, lambda c: exclusive(c, config))
 
 
 def joint_compatible(state: GaussianMap, chosen: list[Candidate], gate_prob: float) -> bool:
@@ -337,47 +287,16 @@ def joint_compatible(state: GaussianMap, chosen: list[Candidate], gate_prob: flo
 
 
 def jcbb(
-    state: GaussianMap, cands: list[list[Candidate]], gate_prob: float, max_nodes: int = 20000
+    state: GaussianMap, cands: list[list[Candidate]], config: AssociationConfig
 ) -> list[Candidate | None]:
-    """Joint compatibility branch and bound (Neira & Tardós): most jointly compatible pairs.
-
-    Ties in the number of pairings are broken by the smaller joint d².  The search
-    stops after ``max_nodes`` nodes and returns the best found (documented bound).
-    """
-    n = len(cands)
-    best: list[Candidate | None] = [None] * n
-    best_count = 0
-    nodes = 0
-
-    def rec(i: int, current: list[Candidate | None], used: set[int], count: int) -> None:
-        nonlocal best, best_count, nodes
-        nodes += 1
-        if nodes > max_nodes:
-            return
-        if i == n:
-            if count > best_count:
-                best, best_count = list(current), count
-            return
-        remaining = sum(1 for cs in cands[i:] if cs)
-        if count + remaining <= best_count:
-            return
-        for c in cands[i]:
-            if c.target in used:
-                continue
-            trial = [x for x in current if x is not None] + [c]
-            if joint_compatible(state, trial, gate_prob):
-                current[i] = c
-                taken = exclusive(c)
-                if taken:
-                    used.add(c.target)
-                rec(i + 1, current, used, count + 1)
-                if taken:
-                    used.discard(c.target)
-                current[i] = None
-        rec(i + 1, current, used, count)
-
-    rec(0, [None] * n, set(), 0)
-    return best
+    """JCBB (:func:`mapfuse_core.matching.jcbb`) with the joint χ² test of
+    :func:`joint_compatible` (correlations through the map included)."""
+    return jcbb_search(
+        cands,
+        lambda trial: joint_compatible(state, trial, config.gate_prob),
+        lambda c: exclusive(c, config),
+        config.jcbb_max_nodes,
+    )
 
 
 def stack(

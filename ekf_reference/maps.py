@@ -324,24 +324,14 @@ def associate(
     config: EKFConfig,
 ) -> list[Candidate | None]:
     """Associate queries to targets (NN or JCBB over individually compatible candidates)."""
+    assoc = config.data_association
     cands = []
     for q in queries:
         targets, preds = targets_for[q.kind]
-        cands.append(
-            individual_candidates(
-                state,
-                q,
-                targets,
-                preds,
-                config.gate_prob,
-                config.prefilter_m,
-                config.prefilter_rad,
-                config.line_overlap_gap_m,
-            )
-        )
-    if config.association == "jcbb":
-        return jcbb(state, cands, config.gate_prob)
-    return nearest_neighbour(cands)
+        cands.append(individual_candidates(state, q, targets, preds, assoc))
+    if assoc.method == "jcbb":
+        return jcbb(state, cands, assoc)
+    return nearest_neighbour(cands, assoc)
 
 
 def merge_extent(

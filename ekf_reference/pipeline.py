@@ -14,7 +14,6 @@ from ekf_reference.association import (
     Query,
     apply,
     apply_iterated,
-    chi2_gate,
     element_pairings,
     evaluate,
     individual_candidates,
@@ -39,6 +38,7 @@ from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.ccda import ccda_match
 from mapfuse_core.features import transform_feature
+from mapfuse_core.matching import chi2_gate
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian
 
@@ -169,17 +169,7 @@ class _Run:
         same = [i for i in born if loc.elements[i].kind == ElementKind.LINE]
         if q.kind != ElementKind.LINE or not same:
             return None
-        cfg = self.config
-        cands = individual_candidates(
-            loc,
-            q,
-            same,
-            loc.mean[same],
-            cfg.gate_prob,
-            cfg.prefilter_m,
-            cfg.prefilter_rad,
-            cfg.line_overlap_gap_m,
-        )
+        cands = individual_candidates(loc, q, same, loc.mean[same], self.config.data_association)
         return cands[0] if cands else None
 
     def constrain_to_known(self, state: GaussianMap, which: Callable[[Element], bool]) -> None:
@@ -341,7 +331,7 @@ class _Run:
                 J[3 * i + 2, 2] = 1.0
         joint.cov += (J * sig**2) @ J.T
         joint.symmetrise()
-        gate = chi2_gate(self.config.gate_prob, 3)
+        gate = chi2_gate(self.config.data_association.gate_prob, 3)
         pairs = []
         for i, g in zip(li.tolist(), gi.tolist(), strict=True):
             e = joint.elements[i]
@@ -422,7 +412,8 @@ class _Run:
         feats = [
             i
             for i, e in enumerate(g.elements)
-            if e.role == Role.FEATURE and e.n_obs >= self.config.min_obs_for_matching
+            if e.role == Role.FEATURE
+            and e.n_obs >= self.config.data_association.min_obs_for_matching
         ]
         known = self.log.known_map
         if not feats or len(known) == 0:
@@ -434,11 +425,11 @@ class _Run:
             params=g.mean[feats].copy(),
             covs=np.stack([g.block(i) for i in feats]),
         )
-        res = ccda_match(map_a, known, self.config.ccda)
+        res = ccda_match(map_a, known, self.config.data_association.ccda)
         if not res.accepted:
             return
         # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
-        sig = np.array(self.config.anchor_prior_sigma)
+        sig = np.array(self.config.data_association.anchor_prior_sigma)
         g.add(
             Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1),
             res.x_A_B,

@@ -17,7 +17,7 @@ Per step ``k``:
   a prior on the circle's separate radius variable.
 
 With fusion, from the step the match is known (the *anchor step*): a Pose2 anchor
-``A = x^Wglobal_Wknown`` with a loose prior (the EKF's ``anchor_prior_sigma``: the
+``A = x^Wglobal_Wknown`` with a loose prior (``data_association.anchor_prior_sigma``: the
 tie factors, not the match's own covariance, fix it, so the information of the
 matched features is counted once), every known feature as a variable with a prior
 from its σ, and one tie factor per (landmark, known) pairing; a landmark first seen
@@ -33,7 +33,8 @@ Association sources:
   initialised by a weighted fit (:func:`mapfuse_core.ccda.estimate_transform`) once
   enough paired landmarks exist to fix it.
 * ``"own"`` — χ²-gated nearest neighbour against the solver's current estimate,
-  made while the graph grows (needs an incremental solver); CCDA every
+  made while the graph grows (needs an incremental solver), with the gates and the
+  one-to-one rules of :mod:`mapfuse_core.matching` that the EKF uses; CCDA every
   ``ccda_every`` steps until it accepts a match, then χ²-gated pairing of the
   remaining landmarks with known features.
 * explicit arrays ``(obs_landmark, obs_known_id)`` (e.g. from
@@ -52,10 +53,16 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
 from mapfuse_core.ccda import ccda_match, estimate_transform
 from mapfuse_core.features import FeatureKind, transform_feature
+from mapfuse_core.matching import (
+    AssociationConfig,
+    ScoredPair,
+    chi2_gate,
+    nearest_neighbour,
+    pregate,
+)
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.se2 import FloatArray, compose, compose_jacobians, inverse
 from mapfuse_graph.factors import (
@@ -154,30 +161,17 @@ class GraphOptions:
     """σ (m, rad) of the tie factors.  The EKF applies the pairing as a hard constraint;
     1 mm / 0.1 mrad is two orders below the known map's σ, so the answer is that of a
     hard constraint to < 1e-4 relative, while the system stays well conditioned."""
-    anchor_prior_sigma: tuple[float, float, float] = (100.0, 100.0, math.pi)
-    """σ of the loose prior on the anchor at its initial value (as the EKF's)."""
-    gate_prob: float = 0.999
-    """χ² gate probability of ``own`` association and of its known-map pairing."""
-    prefilter_m: float = 3.0
-    """``own``: cheap pre-gate on the centre distance / lateral offset (m)."""
-    prefilter_rad: float = 0.3
-    """``own``: cheap pre-gate on line angle differences (rad, modulo π)."""
-    line_gap_m: float = 4.0
-    """``own``: a line observation can only be an existing landmark if it lies within
-    this distance (m) of the segment that landmark has been seen on."""
-    known_gap_m: float = 30.0
-    """``own``: *(choice)* when the known map has no wall extents, a known wall can be a
-    line landmark only if its reference point lies within this distance (m) of the
-    segment the landmark was seen on; otherwise collinear walls 100 m apart pair up.
-    30 m is half the longest loop600 wall (45 m) plus margin."""
+    data_association: AssociationConfig = field(default_factory=AssociationConfig)
+    """Settings shared with the EKF (:class:`~mapfuse_core.matching.AssociationConfig`):
+    the anchor's loose prior (every fused run) and, for ``own``, the gates, the
+    one-to-one rules, the CCDA match and which landmarks it takes.  ``own`` searches
+    by nearest neighbour only (``method`` must be ``"nn"``)."""
     ccda_every: int = 40
     """``own``: steps between CCDA attempts (the EKF's local-map length), and between
     attempts to pair the remaining landmarks with known features once matched."""
     cov_refresh_steps: int = 100
     """``own``: a landmark marginal used for gating is re-read from the solver after
     this many steps (reading iSAM2 marginals costs more than an update)."""
-    min_obs_for_matching: int = 2
-    """``own``: landmarks seen fewer times are left out of CCDA and known pairing."""
     min_anchor_pairings: int = 4
     """``truth``: paired landmarks needed before the anchor is initialised."""
     max_anchor_std: tuple[float, float] = (1.0, 0.05)
@@ -191,26 +185,32 @@ class GraphOptions:
     detections; then the radius is independent of everything else and the estimates,
     and the zero centre–radius covariance, are those of the 3-vector form), no robust
     kernel (it would weigh the two parts apart), a fixed association and no known
-    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks: 8–13 %
-    less CPU on the whole Victoria Park run (measured with its first calibration)."""
+    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks, which
+    saves CPU on Victoria Park (``docs/configuration.md``)."""
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
             raise ValueError(
                 f"association must be one of {', '.join(ASSOCIATIONS)}, got {self.association!r}"
             )
-        if not (self.known_gap_m > 0 and self.line_gap_m > 0 and self.prefilter_m > 0):
-            raise ValueError("known_gap_m, line_gap_m and prefilter_m must be > 0")
-        for name in ("first_pose_sigma", "tie_sigma", "anchor_prior_sigma", "max_anchor_std"):
+        if not isinstance(self.data_association, AssociationConfig):
+            raise ValueError(
+                "data_association must be an AssociationConfig, got "
+                f"{type(self.data_association).__name__}"
+            )
+        if self.association == "own" and self.data_association.method != "nn":
+            raise ValueError(
+                "association 'own' searches by nearest neighbour only: "
+                f"data_association.method must be 'nn', got {self.data_association.method!r}"
+            )
+        for name in ("first_pose_sigma", "tie_sigma", "max_anchor_std"):
             v = getattr(self, name)
             if not all(math.isfinite(s) and s > 0 for s in v):
                 raise ValueError(f"{name} must hold positive finite values, got {v}")
-        if not 0.0 < self.gate_prob < 1.0:
-            raise ValueError(f"gate_prob must be in (0, 1), got {self.gate_prob}")
         if self.ccda_every < 1 or self.cov_refresh_steps < 1:
             raise ValueError("ccda_every and cov_refresh_steps must be >= 1")
-        if self.min_anchor_pairings < 2 or self.min_obs_for_matching < 1:
-            raise ValueError("min_anchor_pairings must be >= 2 and min_obs_for_matching >= 1")
+        if self.min_anchor_pairings < 2:
+            raise ValueError(f"min_anchor_pairings must be >= 2, got {self.min_anchor_pairings}")
         if self.robust is not None:
             make_noise(np.eye(2), self.robust)  # raises ValueError on a bad spec
 
@@ -332,7 +332,7 @@ class GraphBuilder:
         self.pairings: list[tuple[int, int]] = []
         """(landmark index, known row) of every tie factor added."""
         self._next_step = 0
-        self._gate = {d: float(chi2.ppf(opts.gate_prob, d)) for d in (2, 3)}
+        self._gate = {d: chi2_gate(opts.data_association.gate_prob, d) for d in (2, 3)}
         self._label: dict[int, int] = {}
         self._planned: dict[int, tuple[FeatureKind, int, int]] = {}
         self._planned_known: dict[int, int] = {}
@@ -575,7 +575,9 @@ class GraphBuilder:
         out.values.insert(anchor_key(), A)
         out.factors.add(
             gtsam.PriorFactorPose2(
-                anchor_key(), A, make_noise(np.diag(np.square(self.options.anchor_prior_sigma)))
+                anchor_key(),
+                A,
+                make_noise(np.diag(np.square(self.options.data_association.anchor_prior_sigma))),
             )
         )
         for r in range(len(self.known)):
@@ -675,12 +677,12 @@ class GraphBuilder:
         feats = [
             i
             for i, lmk in enumerate(self.landmarks)
-            if lmk.n_obs >= self.options.min_obs_for_matching
+            if lmk.n_obs >= self.options.data_association.min_obs_for_matching
         ]
         if len(feats) < 2:
             return
         map_a = self.landmark_map(est_now, feats)
-        res = ccda_match(map_a, self.known)
+        res = ccda_match(map_a, self.known, self.options.data_association.ccda)
         if not res.accepted or not self._anchor_ok(res.x_A_B, res.cov):
             return
         for ia, jb in res.pairings:
@@ -693,17 +695,20 @@ class GraphBuilder:
         """``own``: χ²-pair unpaired, well-observed landmarks with unpaired known features.
 
         Known features are carried into ``Wglobal`` by the current anchor and pre-gated
-        like observations; the χ² test uses the landmark's (cached) marginal and the
-        known feature's covariance (the anchor's own uncertainty is left out: it is far
-        smaller than the known map's σ once the match is made).  Pairs are then taken
-        greedily by increasing distance, one-to-one.
+        like observations (a known wall without extents by its reference point, within
+        ``known_gap_m`` of the landmark's segment); the χ² test uses the landmark's
+        (cached) marginal and the known feature's covariance (the anchor's own
+        uncertainty is left out: it is far smaller than the known map's σ once the match
+        is made).  Pairs are then taken by nearest neighbour, one-to-one both ways: a
+        graph ties a known feature to one landmark.
         """
+        cfg = self.options.data_association
         A = est.anchor()
         taken = {lmk.known for lmk in self.landmarks if lmk.known >= 0}
         free = [r for r in range(len(self.known)) if r not in taken]
         if not free:
             return
-        cands: list[tuple[float, int, int]] = []
+        by_landmark: dict[int, list[ScoredPair]] = {}
         for kind in (FeatureKind.LINE, FeatureKind.CIRCLE):
             rows = [r for r in free if int(self.known.kinds[r]) == int(kind)]
             idx = [
@@ -712,53 +717,58 @@ class GraphBuilder:
                 if lmk.kind == kind
                 and lmk.known < 0
                 and lmk.created
-                and lmk.n_obs >= self.options.min_obs_for_matching
+                and lmk.n_obs >= cfg.min_obs_for_matching
             ]
             if not rows or not idx:
                 continue
             dim = 2 if kind == FeatureKind.LINE else 3
             vals = np.array([est.vector(landmark_key(i, kind)) for i in idx]).reshape(-1, dim)
+            feats = _as_spmap(kind, vals)
             for r in rows:
                 kw = transform_feature(kind, A, self.known.params[r])[0]
-                near = self._near(kind, kw, vals)
-                if kind == FeatureKind.LINE:
-                    near &= self._known_overlaps(kw, r, vals, idx)
-                if not np.any(near):
+                ext = None if self.known.extents is None else self.known.extents[r]
+                if ext is not None and np.all(np.isfinite(ext)):
+                    near = self._pregate(kind, kw, (float(ext[0]), float(ext[1])), idx, feats)
+                else:
+                    # No extents: the wall's reference point must lie near the segment.
+                    near = self._pregate(kind, kw, (0.0, 0.0), idx, feats, cfg.known_gap_m)
+                if not near:
                     continue
                 kv, kP = _known_prior(kind, self.known.params[r], self.known.covs[r])
-                for n in np.nonzero(near)[0]:
-                    i = idx[int(n)]
+                for n in near:
+                    i = idx[n]
                     P = self._landmark_cov(i, k, est)
                     if P is None:
                         continue
                     d2 = _tie_d2(kind, A, vals[n], P, kv, kP, self.known.params[r])
                     if d2 <= self._gate[dim]:
-                        cands.append((d2, i, r))
-        cands.sort()
-        for _, i, r in cands:
-            if self.landmarks[i].known >= 0 or r in taken:
-                continue
-            self.landmarks[i].known = r
-            taken.add(r)
+                        by_landmark.setdefault(i, []).append(ScoredPair(r, d2))
+        order = sorted(by_landmark)
+        chosen = nearest_neighbour([by_landmark[i] for i in order], lambda c: True)
+        for i, c in zip(order, chosen, strict=True):
+            if c is not None:
+                self.landmarks[i].known = c.target
 
-    def _known_overlaps(
-        self, kw: FloatArray, r: int, vals: FloatArray, idx: list[int]
-    ) -> np.ndarray:
-        """(n,) bool: the known wall ``r`` (at ``kw`` in ``Wglobal``) can be the segment each
-        line landmark was seen on, not a collinear wall elsewhere on the same line."""
-        alpha = vals[:, 1]
-        t0 = -kw[0] * np.sin(alpha) + kw[1] * np.cos(alpha)
-        ext = None if self.known.extents is None else self.known.extents[r]
-        if ext is not None and np.all(np.isfinite(ext)):
-            sign = np.cos(kw[2] - (alpha + math.pi / 2.0))
-            e0, e1 = t0 + sign * float(ext[0]), t0 + sign * float(ext[1])
-            a, b, gap = np.minimum(e0, e1), np.maximum(e0, e1), self.options.line_gap_m
-        else:
-            a, b, gap = t0, t0, self.options.known_gap_m
-        lo = np.array([self.landmarks[i].extent[0] for i in idx])
-        hi = np.array([self.landmarks[i].extent[1] for i in idx])
-        apart = (a > hi + gap) | (b < lo - gap)
-        return np.asarray(~(np.isfinite(lo) & apart))
+    def _pregate(
+        self,
+        kind: FeatureKind,
+        fw: FloatArray,
+        extent: tuple[float, float],
+        idx: list[int],
+        feats: FloatArray,
+        max_gap: float | None = None,
+    ) -> list[int]:
+        """Positions in ``idx`` of the landmarks (``feats``: their SPmap form) that pass
+        the pre-gate with feature ``fw`` (in ``Wglobal``, seen on ``extent``)."""
+        return pregate(
+            kind,
+            fw,
+            extent,
+            feats,
+            lambda n: self.landmarks[idx[n]].extent,
+            self.options.data_association,
+            max_gap,
+        )
 
     def _landmark_cov(self, i: int, k: int, est: Estimate) -> FloatArray | None:
         """Landmark ``i``'s marginal, cached for ``cov_refresh_steps`` (iSAM2 marginals are
@@ -773,54 +783,57 @@ class GraphBuilder:
     # ------------------------------------------------------------------ own association
 
     def _associate_own(self, k: int, x: FloatArray, est: Estimate) -> None:
-        """χ²-gated nearest neighbour of step ``k``'s observations, one per landmark.
+        """χ²-gated nearest neighbour of step ``k``'s observations
+        (:func:`mapfuse_core.matching.nearest_neighbour`) under the one-to-one rules of
+        ``data_association``: by default a circle landmark takes one observation of the
+        scan, a line landmark every segment of its wall.
 
         The innovation covariance is the observation noise plus the predicted pose's
         and the landmark's marginal covariances propagated through the residual
         (their correlation is ignored, which widens the gate).  Landmark marginals
-        are refreshed at most every ``ccda_every`` steps: asking iSAM2 for them costs
-        more than the whole update.
+        are refreshed at most every ``cov_refresh_steps`` steps: asking iSAM2 for them
+        costs more than the whole update.
         """
         log = self.log
+        cfg = self.options.data_association
         sl = log.feature_slice(k)
         Px = est.pose_cov(k - 1) if k > 0 else np.zeros((3, 3))
         if Px is not None and k > 0:
             _, J1, J2 = compose_jacobians(est.pose(k - 1), log.odometry[k])
             Px = J1 @ Px @ J1.T + J2 @ log.odometry_cov[k] @ J2.T
         # Current landmark estimates, fetched once per step for a vectorised pre-gate.
-        by_kind: dict[FeatureKind, tuple[list[int], FloatArray]] = {}
+        by_kind: dict[FeatureKind, tuple[list[int], FloatArray, FloatArray]] = {}
         for kind in (FeatureKind.LINE, FeatureKind.CIRCLE):
             idx = [i for i, lmk in enumerate(self.landmarks) if lmk.kind == kind]
             dim = 2 if kind == FeatureKind.LINE else 3
             vals = np.array([est.vector(landmark_key(i, kind)) for i in idx]).reshape(-1, dim)
-            by_kind[kind] = (idx, vals)
-        cands: list[tuple[float, int, int]] = []
+            by_kind[kind] = (idx, vals, _as_spmap(kind, vals))
+        cands: list[list[ScoredPair]] = []
         for j in range(sl.start, sl.stop):
             kind = FeatureKind(int(log.feat_kind[j]))
             z = log.feat_params[j]
             zw = transform_feature(kind, x, z)[0]
-            idx, vals = by_kind[kind]
-            for r in np.nonzero(self._prefilter(kind, zw, vals, idx, j))[0]:
-                i = idx[int(r)]
-                d2 = self._obs_d2(k, kind, z, x, Px, i, vals[r], log.feat_cov[j], est)
+            idx, vals, feats = by_kind[kind]
+            ext = log.feat_extent[j]
+            mine = []
+            for n in self._pregate(kind, zw, (float(ext[0]), float(ext[1])), idx, feats):
+                i = idx[n]
+                d2 = self._obs_d2(k, kind, z, x, Px, i, vals[n], log.feat_cov[j], est)
                 if d2 <= self._gate[2 if kind == FeatureKind.LINE else 3]:
-                    cands.append((d2, j, i))
-        cands.sort()
-        used_obs: dict[int, int] = {}
-        used_lm: set[int] = set()
-        for _, j, i in cands:
-            if j in used_obs or i in used_lm:
-                continue
-            used_obs[j] = i
-            used_lm.add(i)
-        for j in range(sl.start, sl.stop):
+                    mine.append(ScoredPair(i, d2))
+            cands.append(mine)
+        chosen = nearest_neighbour(
+            cands, lambda c: cfg.one_observation_per(self.landmarks[c.target].kind)
+        )
+        for j, c in zip(range(sl.start, sl.stop), chosen, strict=True):
             kind = FeatureKind(int(log.feat_kind[j]))
-            i = used_obs.get(j, -1)
-            if i < 0:
+            if c is None:
                 # step() creates its variable; it is recorded now so that no other
                 # observation of this scan can be matched to it.
                 i = len(self.landmarks)
                 self.landmarks.append(_Landmark(kind, k, j))
+            else:
+                i = c.target
             self.obs_landmark[j] = i
             if kind == FeatureKind.LINE:
                 zw = transform_feature(kind, x, log.feat_params[j])[0]
@@ -840,48 +853,6 @@ class GraphBuilder:
         sign = math.cos(zw[2] - (v[1] + math.pi / 2.0))
         e = sorted((t0 + sign * float(ext[0]), t0 + sign * float(ext[1])))
         return e[0], e[1]
-
-    def _near(self, kind: FeatureKind, fw: FloatArray, vals: FloatArray) -> np.ndarray:
-        """(n,) bool: which landmark variables ``vals`` pass the cheap pre-gate with the
-        feature ``fw`` (SPmap line or circle in ``Wglobal``)."""
-        opts = self.options
-        if vals.shape[0] == 0:
-            return np.zeros(0, dtype=bool)
-        if kind == FeatureKind.CIRCLE:
-            out: np.ndarray = np.hypot(vals[:, 0] - fw[0], vals[:, 1] - fw[1]) <= opts.prefilter_m
-            return out
-        alpha = vals[:, 1]
-        # Angle between the lines modulo π (a line has no direction).
-        da = np.mod(fw[2] - (alpha + math.pi / 2.0) + math.pi / 2.0, math.pi) - math.pi / 2.0
-        lateral = fw[0] * np.cos(alpha) + fw[1] * np.sin(alpha) - vals[:, 0]
-        near: np.ndarray = (np.abs(da) <= opts.prefilter_rad) & (
-            np.abs(lateral) <= opts.prefilter_m
-        )
-        return near
-
-    def _prefilter(
-        self, kind: FeatureKind, zw: FloatArray, vals: FloatArray, idx: list[int], j: int
-    ) -> np.ndarray:
-        """(n,) bool: landmarks ``vals`` (all of ``kind``) close enough to test exactly."""
-        opts = self.options
-        keep = self._near(kind, zw, vals)
-        if kind == FeatureKind.CIRCLE:
-            return keep
-        alpha = vals[:, 1]
-        ca, sa = np.cos(alpha), np.sin(alpha)
-        ext = self.log.feat_extent[j]
-        if not np.any(keep) or not np.all(np.isfinite(ext)):
-            return keep
-        # Collinear walls are one landmark only if the segments overlap or nearly.
-        t0 = -zw[0] * sa + zw[1] * ca
-        sign = np.cos(zw[2] - (alpha + math.pi / 2.0))
-        e0, e1 = t0 + sign * float(ext[0]), t0 + sign * float(ext[1])
-        a, b = np.minimum(e0, e1), np.maximum(e0, e1)
-        lo = np.array([self.landmarks[i].extent[0] for i in idx])
-        hi = np.array([self.landmarks[i].extent[1] for i in idx])
-        known_ext = np.isfinite(lo)
-        apart = (a > hi + opts.line_gap_m) | (b < lo - opts.line_gap_m)
-        return np.asarray(keep & ~(known_ext & apart))
 
     def _obs_d2(
         self,
@@ -960,6 +931,17 @@ class _WithStep:
 
     def cov(self, key: int) -> FloatArray | None:
         return None if self._new.exists(key) else self._est.cov(key)
+
+
+def _as_spmap(kind: FeatureKind, vals: FloatArray) -> FloatArray:
+    """(n, 3) SPmap features of landmark variables ``vals``: circles unchanged, a line
+    ``(ρ, α)`` as the foot of its normal and the direction ``α + π/2``, the frame in
+    which :func:`~mapfuse_graph.factors.rho_alpha_along` (and a landmark's extent)
+    measures along the line."""
+    if kind == FeatureKind.CIRCLE:
+        return np.asarray(vals, dtype=float).reshape(-1, 3)
+    rho, alpha = vals[:, 0], vals[:, 1]
+    return np.column_stack([rho * np.cos(alpha), rho * np.sin(alpha), alpha + math.pi / 2.0])
 
 
 def _tie_d2(

@@ -131,14 +131,15 @@ def default_graph_options(
     set by :func:`~mapfuse_graph.solvers.run_graph`."""
     from mapfuse_core.datasets import VICTORIA_PARK_NAME
 
+    shared = default_ekf_config(log).data_association  # the EKF's association settings
     if (
         log.scenario == VICTORIA_PARK_NAME
         and association != "own"
         and robust is None
         and centre_radius_correlated(log) is None
     ):
-        return GraphOptions(split_circles=True)
-    return GraphOptions()
+        return GraphOptions(split_circles=True, data_association=shared)
+    return GraphOptions(data_association=shared)
 
 
 def default_isam2_options(log: MeasurementLog) -> ISAM2Options:

@@ -21,6 +21,7 @@ from ekf_reference.association import (
 )
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
+from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.se2 import compose, compose_jacobians, wrap_angle
 from tests.jacobians import ATOL, RTOL, numerical_jacobian, poses
 
@@ -129,7 +130,7 @@ def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:
     q = _measurement(m, 40.0, 0.0, 0.1)
     targets, preds = predict_all_targets(m, lambda e: True)[ElementKind.LINE]
     assert targets == [1]
-    assert _prefilter(q, preds, targets, m, 3.0, 0.3, math.inf) == [1]
+    assert _prefilter(q, preds, targets, m, AssociationConfig(line_gap_m=math.inf)) == [1]
     assert abs(evaluate(m, q, 1).residual[0]) < 1e-9
 
 

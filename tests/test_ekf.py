@@ -16,6 +16,7 @@ from ekf_reference.pipeline import _Run
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.features import FeatureKind, canonical_line, observe, transform_feature
+from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.measlog import MeasurementLog, MeasurementLogError
 from mapfuse_core.se2 import compose_jacobians, wrap_angle
 from tests.synthetic import ring_world, synthetic_log, with_known
@@ -265,8 +266,10 @@ def test_nan_in_log_is_refused_before_running() -> None:
 def test_bad_config_is_refused() -> None:
     with pytest.raises(ValueError, match="local_map_steps"):
         EKFConfig(local_map_steps=0)
-    with pytest.raises(ValueError, match="association"):
-        EKFConfig(association="magic")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="method must be one of nn, jcbb"):
+        EKFConfig(data_association=AssociationConfig(method="magic"))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="data_association must be an AssociationConfig"):
+        EKFConfig(data_association="nn")  # type: ignore[arg-type]
     for bad in (-1, True, 1.5):
         with pytest.raises(ValueError, match="carry_seen_steps"):
             EKFConfig(carry_seen_steps=bad)  # type: ignore[arg-type]
@@ -277,8 +280,8 @@ def test_bad_config_is_refused() -> None:
 
 def test_jcbb_gives_same_associations_on_clean_data() -> None:
     log = synthetic_log(steps=120, seed=6)
-    nn = run_ekf(log, EKFConfig(fusion=False, association="nn"))
-    jc = run_ekf(log, EKFConfig(fusion=False, association="jcbb"))
+    nn = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="nn")))
+    jc = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="jcbb")))
     np.testing.assert_allclose(nn.poses, jc.poses, atol=1e-9)
 
 
@@ -319,7 +322,8 @@ def test_two_segments_of_one_wall_in_one_scan_make_one_landmark() -> None:
     assert run.obs_track[0] == run.obs_track[1]
 
 
-def test_line_landmarks_take_several_observations_circles_one() -> None:
+@pytest.mark.parametrize("method", ["nn", "jcbb"])
+def test_line_landmarks_take_several_observations_circles_one(method: str) -> None:
     m = GaussianMap()
     m.add(Element(ElementKind.POSE, Role.BASE, True, -1), np.zeros(3), np.zeros((3, 3)))
     line, cov, ext = _segment(0.0, 14.0, 5.0, 0.01, 0.002)
@@ -343,11 +347,20 @@ def test_line_landmarks_take_several_observations_circles_one() -> None:
                 (math.nan, math.nan),
             )
         )
-    chosen = associate(m, queries, predict_all_targets(m, lambda e: True), EKFConfig())
-    assert [c.target if c is not None else None for c in chosen[:2]] == [1, 1]
-    circle_hits = [c for c in chosen[2:] if c is not None]
-    assert len(circle_hits) == 1
-    assert circle_hits[0].target == 2
+    targets = predict_all_targets(m, lambda e: True)
+
+    def targets_of(**kw: object) -> list[int | None]:
+        cfg = EKFConfig(data_association=AssociationConfig(method=method, **kw))  # type: ignore[arg-type]
+        return [c.target if c is not None else None for c in associate(m, queries, targets, cfg)]
+
+    chosen = targets_of()
+    assert chosen[:2] == [1, 1]
+    assert sorted(chosen[2:], key=str) == [2, None]
+    # One observation per line: the wall takes one segment only.
+    assert sorted(targets_of(one_observation_per_line=True)[:2], key=str) == [1, None]
+    if method == "jcbb":
+        # A node budget of 1 ends the search before any pairing.
+        assert targets_of(jcbb_max_nodes=1) == [None] * 4
 
 
 def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
+from mapfuse_core.ccda import CCDAParams
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.features import FeatureKind
+from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.se2 import compose, inverse, wrap_angle
 from mapfuse_graph import factors as fx
@@ -368,6 +371,84 @@ def test_own_association_recovers_the_world() -> None:
     d = res.anchor.x_Wknown_Wglobal - log.true_poses[0]
     d[2] = float(wrap_angle(d[2]))
     assert float(d @ np.linalg.solve(res.anchor.cov, d)) <= 16.27  # χ²(3, 0.999)
+
+
+def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The EKF's CCDA call and the graph's own CCDA call both receive the parameters of
+    the one AssociationConfig they are given, and the graph gates with its χ² probability."""
+    import ekf_reference.pipeline
+    import mapfuse_graph.graph
+    from mapfuse_core import ccda
+
+    cfg = AssociationConfig(gate_prob=0.995, ccda=CCDAParams(min_pairings=5))
+    seen: dict[str, list[CCDAParams]] = {"ekf": [], "graph": []}
+
+    def spy(who: str) -> Callable[..., ccda.CCDAResult]:
+        def call(a: object, b: object, params: CCDAParams) -> ccda.CCDAResult:
+            seen[who].append(params)
+            return ccda.ccda_match(a, b, params)  # type: ignore[arg-type]
+
+        return call
+
+    monkeypatch.setattr(ekf_reference.pipeline, "ccda_match", spy("ekf"))
+    monkeypatch.setattr(mapfuse_graph.graph, "ccda_match", spy("graph"))
+    log = synthetic_log(steps=120, seed=0)
+    run_ekf(log, EKFConfig(fusion=True, data_association=cfg))
+    opts = GraphOptions(association="own", data_association=cfg)
+    run_graph(log, "isam2", fusion=True, association="own", options=opts)
+    assert seen["ekf"]
+    assert seen["graph"]
+    assert all(p is cfg.ccda for p in seen["ekf"] + seen["graph"])
+    b = GraphBuilder(log, opts)
+    assert b._gate == {2: chi2_gate(0.995, 2), 3: chi2_gate(0.995, 3)}
+
+
+def test_mapfuse_defaults_give_the_graph_the_ekfs_association_config(
+    small_log: MeasurementLog,
+) -> None:
+    from mapfuse_graph.runner import default_ekf_config, default_graph_options
+
+    ekf = default_ekf_config(small_log).data_association
+    assert default_graph_options(small_log).data_association == ekf
+    assert default_graph_options(small_log).data_association.ccda.min_pairings == 8
+
+
+def _line_landmarks_taking_two_segments(res: GraphResult, log: MeasurementLog) -> int:
+    """Scans in which one line landmark takes two or more observations."""
+    n = 0
+    for k in range(log.n_steps):
+        sl = log.feature_slice(k)
+        lm = res.obs_landmark[sl][(log.feat_kind[sl] == int(FeatureKind.LINE))]
+        lm = lm[lm >= 0]
+        n += int(lm.size - np.unique(lm).size)
+    return n
+
+
+def test_own_association_gives_a_wall_every_segment_of_a_scan() -> None:
+    """loop600's trees split walls into several segments of one scan: by default they all
+    go to the wall's landmark, each to the landmark of its own world wall; with one
+    observation per line, never two to one landmark."""
+    import dataclasses as dc
+
+    from mapfuse_core.scenario import load_scenario
+    from mapfuse_core.simulate import simulate
+
+    log = simulate(dc.replace(load_scenario("loop600"), steps=120), seed=0).log
+    res = run_graph(log, "isam2", fusion=False, association="own", marginals=False)
+    assert _line_landmarks_taking_two_segments(res, log) > 10
+    assert _purity(res.obs_landmark, log.feat_true_id) == 1.0
+    strict = GraphOptions(data_association=AssociationConfig(one_observation_per_line=True))
+    res1 = run_graph(log, "isam2", fusion=False, association="own", options=strict, marginals=False)
+    assert _line_landmarks_taking_two_segments(res1, log) == 0
+    assert len(res1.landmarks.kinds) > len(res.landmarks.kinds)
+
+
+def test_graph_options_refuse_a_bad_association_config() -> None:
+    with pytest.raises(ValueError, match="data_association must be an AssociationConfig"):
+        GraphOptions(data_association={"gate_prob": 0.99})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="nearest neighbour only"):
+        GraphOptions(association="own", data_association=AssociationConfig(method="jcbb"))
+    assert GraphOptions(data_association=AssociationConfig(method="jcbb")).association == "ekf"
 
 
 def test_ekf_association_with_fusion_uses_the_ekf_anchor() -> None:

@@ -1,0 +1,116 @@
+"""Settings of data association, shared by every estimator (EKF and factor graph).
+
+One :class:`AssociationConfig` decides how observations are paired with map features
+and how a map is matched with the known map: the χ² gate, the cheap pre-gates before
+it, when two collinear segments can be one wall, the search (nearest neighbour or
+joint compatibility), the one-to-one rules, and the CCDA match that anchors the known
+map.  The estimators hold one such object (``EKFConfig.data_association``,
+``GraphOptions.data_association``) and keep only their backend-specific settings.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mapfuse_core.ccda import CCDAParams
+from mapfuse_core.features import FeatureKind
+
+__all__ = ["METHODS", "AssociationConfig"]
+
+METHODS: tuple[str, ...] = ("nn", "jcbb")
+"""Names of the association searches: nearest neighbour, joint compatibility."""
+
+
+def _default_ccda() -> CCDAParams:
+    return CCDAParams(min_pairings=8)
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """How observations are paired with map features and maps with the known map."""
+
+    gate_prob: float = 0.999
+    """χ² gate probability of individual compatibility (observation ↔ map feature, map
+    feature ↔ known feature) and of the joint test of JCBB."""
+    prefilter_m: float = 3.0
+    """Cheap pre-gate before the χ² test (m): centre distance for circles, lateral
+    offset for lines (either reference point from the other's line).  Far larger than
+    any 99.9 % gate at simulated laser noise; it only saves χ² tests."""
+    prefilter_rad: float = 0.3
+    """Cheap pre-gate on the angle between two lines (rad, modulo π)."""
+    line_gap_m: float = 4.0
+    """Two collinear line segments can be one wall only if their extents along the
+    wall overlap or the gap between them is at most this (m): without it, collinear
+    walls far apart (two sides of a street) pair up."""
+    known_gap_m: float = 30.0
+    """*(choice)* For a known wall with no extents: it can be a line landmark only if
+    its reference point lies within this distance (m) of the segment the landmark was
+    seen on.  30 m is half the longest loop600 wall (45 m) plus margin.  Used by the
+    factor graph's own known-map pairing; the EKF takes a known wall without extents
+    as overlapping every collinear segment."""
+    method: Literal["nn", "jcbb"] = "nn"
+    """``"nn"``: greedy nearest neighbour over individually compatible pairs, best
+    (smallest d²) first.  ``"jcbb"``: joint compatibility branch and bound (Neira &
+    Tardós 2001), the largest jointly compatible set.  The factor graph's own
+    association supports ``"nn"`` only."""
+    jcbb_max_nodes: int = 20_000
+    """JCBB stops after visiting this many search nodes and returns the best set found
+    so far (its cost is exponential in the worst case)."""
+    one_observation_per_circle: bool = True
+    """A circle (tree trunk) takes at most one observation per scan: a scan gives one
+    return arc per trunk, so a second observation on it is another trunk."""
+    one_observation_per_line: bool = False
+    """``False``: a line may take several segments of one scan.  A wall occluded by a
+    tree gives two segments in one scan, each a genuine, independent observation of
+    one line; keeping only the best-fitting one both makes the other a duplicate
+    landmark and biases the update towards the prediction (see
+    ``docs/association.md``)."""
+    ccda: CCDAParams = field(default_factory=_default_ccda)
+    """CCDA parameters of the match with the known map.  *(choice)* At least 8
+    pairings (the paper asks for more than three): with fewer, wrong matches made of a
+    few collinear walls pass every other test (``docs/association.md``)."""
+    min_obs_for_matching: int = 2
+    """Map features observed fewer times than this are left out of the CCDA match and
+    of the known-map pairing (most spurious features are seen once)."""
+    anchor_prior_sigma: tuple[float, float, float] = (100.0, 100.0, math.pi)
+    """*(choice)* σ (m, m, rad) of the loose prior on the anchor (the known map's pose)
+    at the value CCDA accepts.  The pairings with the known features then fix the
+    anchor, so the information of the matched features is counted once (CCDA's own
+    covariance, inserted as the paper does, would count it twice)."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.gate_prob, numbers.Real) and 0.0 < self.gate_prob < 1.0):
+            raise ValueError(f"gate_prob must be in (0, 1), got {self.gate_prob!r}")
+        for name in ("prefilter_m", "prefilter_rad", "line_gap_m", "known_gap_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, numbers.Real) and v > 0.0):
+                raise ValueError(f"{name} must be a number > 0 (inf: no limit), got {v!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        for name in ("jcbb_max_nodes", "min_obs_for_matching"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+        for name in ("one_observation_per_circle", "one_observation_per_line"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        if not isinstance(self.ccda, CCDAParams):
+            raise ValueError(f"ccda must be a CCDAParams, got {type(self.ccda).__name__}")
+        sig = self.anchor_prior_sigma
+        if not (
+            isinstance(sig, tuple)
+            and len(sig) == 3
+            and all(isinstance(s, numbers.Real) and math.isfinite(s) and s > 0.0 for s in sig)
+        ):
+            raise ValueError(
+                f"anchor_prior_sigma must be a tuple of 3 finite values > 0, got {sig!r}"
+            )
+
+    def one_observation_per(self, kind: FeatureKind) -> bool:
+        """Whether a map feature of ``kind`` takes at most one observation per scan."""
+        if kind == FeatureKind.CIRCLE:
+            return self.one_observation_per_circle
+        return self.one_observation_per_line
