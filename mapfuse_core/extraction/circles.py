@@ -112,8 +112,9 @@ def _levenberg_marquardt(
 
     Called through :func:`scipy.optimize.leastsq` rather than ``least_squares``: the
     solver, its settings and therefore its iterates are the same, but ``least_squares``
-    wraps every evaluation in bookkeeping that costs more than these 3-parameter
-    problems themselves (a large share of the extraction time).
+    wraps every call in bookkeeping that is a sizeable part of the cost of these
+    3-parameter problems, and these calls are a large share of the extraction time
+    (``docs/extraction.md``).
     """
     out = leastsq(
         fun,

@@ -86,11 +86,12 @@ def _refine_line(r: FloatArray, b: FloatArray, start: _LineFit, noise: _Noise) -
     """Gauss–Newton fit of ``(ρ, α)`` to the measured *ranges*, from ``start``.
 
     Beam ``i`` at incidence ``γ_i = β_i − α`` predicts ``ρ̂_i = ρ / cos γ_i``, with the
-    mean and variance of :func:`~mapfuse_core.extraction.noise._range_moments` (``ρ̂' = ρ̂ tan γ``,
-    ``ρ̂'' = ρ̂ (2 tan²γ + 1)``) and the Jacobian ``(1 / cos γ_i, −ρ̂_i tan γ_i)``.  The
-    point-space residual ``p_i·n − ρ`` has the Jacobian ``p_i·t``, which carries the
-    noise of ``p_i`` itself (range noise moves a point along and across the line at
-    once): an errors-in-variables bias that this formulation does not have.
+    mean and variance of :func:`~mapfuse_core.extraction.noise._range_moments`
+    (``ρ̂' = ρ̂ tan γ``, ``ρ̂'' = ρ̂ (2 tan²γ + 1)``) and the Jacobian
+    ``(1 / cos γ_i, −ρ̂_i tan γ_i)``.  The point-space residual ``p_i·n − ρ`` has the
+    Jacobian ``p_i·t``, which carries the noise of ``p_i`` itself (range noise moves a
+    point along and across the line at once): an errors-in-variables bias that this
+    formulation does not have.
     ``None`` if a beam does not face the line or the normal matrix is singular.
     """
     rho, alpha = start.rho, start.alpha
