@@ -33,7 +33,7 @@ lint: venv
 	$(VENV)/bin/ruff format --check .
 
 typecheck: venv
-	$(VENV)/bin/mypy mapfuse_core ekf_reference mapfuse_graph
+	$(VENV)/bin/mypy mapfuse_core ekf_reference mapfuse_graph mapfuse
 
 unit: venv
 	MAPFUSE_DATA=$(DATA) $(PY) -m pytest -n $(PYTEST_WORKERS) -q
