@@ -87,9 +87,14 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
     )
 
 
-def _graph_flags(args: argparse.Namespace) -> dict[str, object]:
-    """``--association`` / ``--robust`` as option overrides, when given."""
+def _graph_flags(args: argparse.Namespace, estimator: object) -> dict[str, object]:
+    """``--association`` / ``--robust`` as option overrides, when given; only an
+    estimator that consumes another's decisions (the graph backends) takes them."""
     flags: dict[str, object] = {}
+    given = [f for f in ("association", "robust") if getattr(args, f) is not None]
+    if given and getattr(estimator, "consumes", None) is None:
+        names = " and ".join(f"--{f}" for f in given)
+        raise ValueError(f"{names}: only for the graph backends (batch, isam2), not {args.backend}")
     if args.association is not None:
         flags["association"] = args.association
     if args.robust is not None:
@@ -113,7 +118,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         estimator,
         fusion=args.fusion,
         progress=_Progress(args.backend, not args.quiet),
-        **_graph_flags(args),
+        **_graph_flags(args, estimator),
     )
     paths = write_outputs(run, args.out)
     print(json.dumps({"metrics": run.metrics, "outputs": paths}, indent=2))

@@ -175,6 +175,14 @@ def compare(
             ):  # an estimator that cannot fuse reports the same run twice
                 continue
             runs.append(r)
+    # By the fusion each run reports (an estimator that cannot fuse reports none).
+    order = [e.name for e in estimators]
+    runs.sort(
+        key=lambda r: (
+            fusions.index(r.fusion) if r.fusion in fusions else len(fusions),
+            order.index(r.estimator) if r.estimator in order else len(order),
+        )
+    )
     return Comparison(log=log, runs=tuple(runs), wall_time_s=time.perf_counter() - t0)
 
 
