@@ -6,8 +6,8 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 DATA   ?= ../shared/data
 OUT    ?= out/loop600
-# Small dense matrices: multi-threaded BLAS only adds contention (measured 4x slower
-# EKF on 2 cores), so every target runs single-threaded BLAS.
+# Small dense matrices: multi-threaded BLAS only adds contention (docs/performance.md),
+# so every target runs single-threaded BLAS.
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1

@@ -191,8 +191,8 @@ class GraphOptions:
     detections; then the radius is independent of everything else and the estimates,
     and the zero centre–radius covariance, are those of the 3-vector form), no robust
     kernel (it would weigh the two parts apart), a fixed association and no known
-    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks: 8–13 %
-    less CPU on the whole Victoria Park run (measured with its first calibration)."""
+    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks, for less
+    CPU (``docs/victoria-park.md``)."""
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:

@@ -1,8 +1,8 @@
 """Solvers of the mapfuse factor graph: batch Levenberg–Marquardt and iSAM2.
 
 Both are driven so that no Python factor callback ever receives a ``Values`` that
-Python does not own (``docs/gtsam-notes.md``: GTSAM's own optimizers deep-copy the
-``Values`` on every callback, 100–700 µs each):
+Python does not own (GTSAM's own optimizers deep-copy the ``Values`` on every
+callback; costs in ``docs/performance.md``):
 
 * **batch** — Levenberg–Marquardt written here: ``graph.linearize(values)``, add
   ``√λ·I`` damping rows per variable, eliminate (multifrontal, COLAMD),
@@ -114,11 +114,12 @@ class ISAM2Options:
     """Relinearise a variable when any entry of its linear delta exceeds this: one float
     for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
     ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
-    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate within 0.05 σ of the
-    batch optimum on loop600 while relinearising half as many variables as 0.01 for
-    all: a line landmark seen from hundreds of poses costs hundreds of Python
-    callbacks each time it is relinearised.  With ``GraphOptions.split_circles`` the
-    ``c`` entries ``(x, y, r)`` go to the centre and the radius variables."""
+    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate close to the batch
+    optimum while relinearising far fewer variables than 0.01 for all
+    (``docs/performance.md``): a line landmark seen from hundreds of poses costs
+    hundreds of Python callbacks each time it is relinearised.  With
+    ``GraphOptions.split_circles`` the ``c`` entries ``(x, y, r)`` go to the centre and
+    the radius variables."""
     relinearize_skip: int = 1
     """Check for relinearisation every this many updates."""
     factorization: str = "CHOLESKY"
@@ -127,9 +128,9 @@ class ISAM2Options:
     """Extra empty updates at the end so the final estimate is fully relinearised."""
     final_marginals: str = "isam2"
     """Smoothed marginals of iSAM2's own linear system (``"isam2"``: the graph linearised
-    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; within
-    2 % of the exact ones on loop600 because a variable's linearisation point may lag its
-    estimate by up to the relinearisation threshold) or of a fresh linearisation at the
+    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; close
+    to, not equal to, the exact ones because a variable's linearisation point may lag
+    its estimate by up to the relinearisation threshold) or of a fresh linearisation at the
     final estimate (``"relinearized"``: exact, one more pass of the Python callbacks).
     Both are read by :func:`tree_marginals`."""
 
@@ -424,10 +425,9 @@ def tree_marginals(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict
     covariance, give ``Σ_FS = −R⁻¹ S Σ_SS`` and ``Σ_FF = R⁻¹ R⁻ᵀ − Σ_FS (R⁻¹ S)ᵀ``.
     Exact, like ``gtsam.Marginals``, but each clique is handled once: asking GTSAM for
     every variable's ``marginalCovariance`` re-eliminates the clique's conditional with
-    its separator marginal for each variable, which on Victoria Park (separators of up
-    to a few hundred dimensions) took 9.5 s of CPU on the first 3,000 scans against
-    0.8 s here, linearisation included, with the same result to 1e-11 relative (whole
-    run: 38 s → 2 s).
+    its separator marginal for each variable, which costs an order of magnitude more
+    where separators reach a few hundred dimensions (Victoria Park;
+    ``docs/performance.md``).
     """
     out: dict[int, FloatArray] = {}
     bt = lin.eliminateMultifrontal()
@@ -738,8 +738,8 @@ def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
 
     The newest pose then ends the root clique's conditional, where its marginal is read
     off the last rows (:class:`_LastVariableMarginal`).  Without it the pose often sits in
-    a child of the root: on Victoria Park after 5,000 scans the root holds ~220 variables
-    (660 dimensions) and GTSAM's marginal through it cost 20–35 ms a step.  The groups
+    a child of the root, and GTSAM's marginal through a large root clique (hundreds of
+    dimensions on Victoria Park) dominates the step's cost.  The groups
     must stay below the number of variables re-eliminated (CCOLAMD's bound), which the
     keys of the new factors are part of: two groups need three such keys.
     """
@@ -800,10 +800,10 @@ def _newest_pose_marginal(
     The marginal Gaussian ``p(δ_k)`` gives both: its mean is the Gauss–Newton step of
     ``X_k`` and its information the inverse covariance.  Asking instead for
     ``calculateEstimatePose2`` runs the wildfire back-substitution over every clique
-    re-eliminated by the update, each step (5 ms a step on Victoria Park's first 3,000
-    scans); left alone, the next relinearisation check does that once per
-    ``relinearize_skip`` updates.  The mean is the exact linear solve, where the
-    wildfire one stops propagating changes below 1e-3: the two differ by < 0.1 mm there.
+    re-eliminated by the update, each step; left alone, the next relinearisation check
+    does that once per ``relinearize_skip`` updates.  The mean is the exact linear
+    solve, where the wildfire one stops propagating changes below 1e-3 (sub-millimetre
+    differences).
     """
     elim = _LastVariableMarginal(key, 3)
     m = isam.marginalFactor(key, elim)
@@ -936,7 +936,7 @@ def run_graph(
     ``marginals=False`` skips the smoothed marginals (covariances NaN).
     ``joint_stride`` (batch, with marginals) also computes the joint covariance of every
     ``joint_stride``-th pose (:attr:`GraphResult.joint_pose_cov`); its cost grows with
-    the cube of the number of poses (stride 10 on loop600's 2,400 steps: a few seconds).
+    the cube of the number of poses it keeps.
     """
     t_start = time.perf_counter()
     cpu_start = time.process_time()
