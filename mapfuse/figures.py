@@ -477,8 +477,8 @@ def nees_figure(runs: Sequence[Run]) -> Figure:
 def timing_figure(runs: Sequence[Run]) -> Figure:
     """Per-step wall time of each run (log scale); one panel per fusion setting.
 
-    Batch has no per-step cost: its solve is shared equally among the steps (said in
-    the legend).
+    A smoother without per-step estimates (batch) has no per-step cost: its solve is
+    shared equally among the steps (said in the legend).
     """
     from matplotlib.figure import Figure
 
@@ -491,7 +491,9 @@ def timing_figure(runs: Sequence[Run]) -> Figure:
         for run in sel:
             st = step_times(run)
             b = str(run.metrics["backend"])
-            label = f"{b} (solve shared equally over steps)" if b == "batch" else b
+            # A smoother without per-step estimates (batch) shares its solve among the steps.
+            shared = run.result.filtered is None
+            label = f"{b} (solve shared equally over steps)" if shared else b
             label += f", total {float(np.sum(st)):.2f} s"
             ax.plot(
                 run.timestamps[: st.shape[0]], 1e3 * st, color=_colour(run), lw=0.7, label=label

@@ -26,7 +26,9 @@ from mapfuse_core.simulate import simulate
 __all__ = [
     "DATASETS",
     "Run",
+    "consumer_options",
     "fusion_for",
+    "labelled",
     "make_options",
     "prepare_log",
     "resolve",

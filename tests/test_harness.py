@@ -170,3 +170,15 @@ def test_outputs_and_saved_decisions_feed_a_graph_run(log: MeasurementLog, tmp_p
     assert "associations" not in graph_paths  # it consumed decisions, made none
     with pytest.raises(ValueError, match="the ekf estimator has no option robust"):
         make_options("ekf", log, robust="huber")
+
+
+def test_builtins_load_without_package_metadata(monkeypatch: pytest.MonkeyPatch) -> None:
+    from mapfuse import registry
+
+    # A source tree on PYTHONPATH over an install that does not declare the group.
+    monkeypatch.setattr(registry, "_entry_points", dict)
+    monkeypatch.setattr(registry, "_loaded", {})
+    assert registry.available() == ("ekf", "batch", "isam2")
+    assert registry.get("batch").name == "batch"
+    with pytest.raises(ValueError, match="unknown estimator 'toy'"):
+        registry.get("toy")
