@@ -20,7 +20,8 @@ Covariances: GTSAM's Pose2 marginals are in the body tangent (``X ⊕ Exp(δ)``)
 mapfuse reports absolute ``(x, y, θ)`` covariances, ``G P Gᵀ`` with
 ``G = blockdiag(R(θ), 1)`` (:func:`body_to_abs_cov`).
 
-Entry point: :func:`run_graph`.
+Entry point: :func:`run_graph`.  One module although long: both solvers share the
+Bayes-tree marginal readers and the pose, landmark and anchor extraction.
 """
 
 from __future__ import annotations
