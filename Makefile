@@ -6,8 +6,8 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 DATA   ?= ../shared/data
 OUT    ?= out/loop600
-# Small dense matrices: multi-threaded BLAS only adds contention (measured 4x slower
-# EKF on 2 cores), so every target runs single-threaded BLAS.
+# Small dense matrices: multi-threaded BLAS only adds contention (docs/performance.md),
+# so every target runs single-threaded BLAS.
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
@@ -33,7 +33,7 @@ lint: venv
 	$(VENV)/bin/ruff format --check .
 
 typecheck: venv
-	$(VENV)/bin/mypy mapfuse_core ekf_reference mapfuse_graph
+	$(VENV)/bin/mypy mapfuse_core ekf_reference mapfuse_graph mapfuse
 
 unit: venv
 	MAPFUSE_DATA=$(DATA) $(PY) -m pytest -n $(PYTEST_WORKERS) -q

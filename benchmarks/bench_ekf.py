@@ -13,7 +13,9 @@ import argparse
 import json
 import time
 
-from ekf_reference import EKFConfig, ekf_metrics, run_ekf
+from ekf_reference import EKFConfig, run_ekf
+from mapfuse.estimators.ekf import to_result
+from mapfuse.metrics import run_metrics
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.simulate import simulate
 
@@ -36,7 +38,7 @@ def main() -> None:
                 res = run_ekf(log, EKFConfig(fusion=fusion, local_map_steps=size))
                 walls.append(time.perf_counter() - t0)
             wall = min(walls)
-            m = ekf_metrics(res, log)
+            m = run_metrics(to_result(res, log), log)
             rows.append(
                 {
                     "fusion": fusion,

@@ -4,7 +4,7 @@ EKF's loop closures (prints JSON).
 Not a speed benchmark: the study behind ``VICTORIA_PARK_ODOMETRY_NOISE`` and
 ``VictoriaParkOptions.bearing_offset_rad`` (``docs/victoria-park-calibration.md``).  For
 each setting the whole run goes through the EKF as ``mapfuse run victoria-park`` runs it
-(``run_backend``; without fusion, which is the same on a log with no known map), and the
+(``mapfuse.run.run``; without fusion, which is the same on a log with no known map), and the
 rotations of its loop closures (``EKFResult.loop_closures``) are summarised.  Anything
 that makes every map the car builds on new ground turn the same way (a yaw error of the
 laser, or a motion model that meets sideways motion only with turns) makes the closures
@@ -27,12 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from mapfuse.run import run
 from mapfuse_core.datasets import (
     VICTORIA_PARK_ODOMETRY_NOISE,
     VictoriaParkOptions,
     load_victoria_park,
 )
-from mapfuse_graph.runner import run_backend
 
 SLIPS = (0.01, 0.02, 0.04, 0.08)
 OFFSETS_RAD = (0.0,)
@@ -43,10 +43,9 @@ def _row(data: str, slip: float, offset: float) -> dict[str, Any]:
     options = VictoriaParkOptions(odometry_noise=noise, bearing_offset_rad=offset)
     log = load_victoria_park(data, options=options)
     t0 = time.process_time()
-    run = run_backend(log, "ekf", fusion=False)
+    done = run(log, "ekf", fusion=False)
     cpu = time.process_time() - t0
-    assert run.ekf is not None
-    res = run.ekf
+    res = done.result.extras["ekf"]
     rot = np.degrees([lc.correction[2] for lc in res.loop_closures])
     gps = run.metrics["position_error_m"] or {}
     return {

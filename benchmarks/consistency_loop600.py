@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ekf_reference import ekf_metrics
+from mapfuse.run import run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -39,7 +39,6 @@ from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.se2 import wrap_angle
 from mapfuse_core.simulate import simulate
-from mapfuse_graph.runner import run_backend
 
 
 def seed_row(seed: int, stride: int, draws: int) -> dict[str, Any]:
@@ -52,12 +51,10 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
     (``seed`` also seeds the draws)."""
     if log.true_poses is None:
         raise ValueError("the log has no true poses: a simulated run is needed")
-    ekf = run_backend(log, "ekf", fusion=True)
-    assert ekf.ekf is not None
-    batch = run_backend(log, "batch", fusion=True, ekf_result=ekf.ekf, joint_stride=stride)
-    assert batch.graph is not None
-    assert batch.graph.joint_pose_cov is not None
-    joint = batch.graph.joint_pose_cov
+    ekf = run(log, "ekf", fusion=True)
+    batch = run(log, "batch", fusion=True, upstream=ekf.result, joint_stride=stride)
+    joint = batch.result.extras["graph"].joint_pose_cov
+    assert joint is not None
     steps = joint.steps
     truth = truth_in_global(log.true_poses)
     err = pose_errors(batch.poses, truth)
@@ -67,9 +64,9 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
     drawn_nees = joint_nees(e, joint.cov)
     within = np.mean(drawn_nees <= CHI2_3_95, axis=1)
     max_pos = np.max(np.hypot(e[:, :, 0], e[:, :, 1]), axis=1)
-    m_ekf = ekf_metrics(ekf.ekf, log)
+    m_ekf = ekf.metrics
     anchor: dict[str, Any] = {}
-    for name, a in (("ekf", ekf.ekf.anchor), ("batch", batch.graph.anchor)):
+    for name, a in (("ekf", ekf.result.anchor), ("batch", batch.result.anchor)):
         if a is None:
             anchor[name] = None
             continue

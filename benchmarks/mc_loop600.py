@@ -36,7 +36,11 @@ from typing import Any
 
 import numpy as np
 
-from ekf_reference import AnchorResult, EKFConfig, ekf_metrics, run_ekf
+from ekf_reference import AnchorResult, EKFConfig, EKFResult, run_ekf
+from mapfuse.estimators.ekf import to_result
+from mapfuse.metrics import run_metrics
+from mapfuse.result import Anchor
+from mapfuse.run import run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -45,11 +49,10 @@ from mapfuse_core.evaluation import (
     pose_errors,
     truth_in_global,
 )
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.scenario import build_known_map, load_scenario
 from mapfuse_core.se2 import compose, wrap_angle
 from mapfuse_core.simulate import simulate
-from mapfuse_graph.runner import run_backend
-from mapfuse_graph.solvers import GraphAnchor
 
 ESTIMATORS = ("ekf", "ekf_carry", "filter", "batch", "draw")
 
@@ -66,6 +69,10 @@ CRITERIA = {
     ),
     "no_wrong_pairing": ("fused", "wrong_pairings", lambda r: r["wrong_pairings"] == 0),
 }
+
+
+def _ekf_metrics(res: EKFResult, log: MeasurementLog) -> dict[str, Any]:
+    return run_metrics(to_result(res, log), log)
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -104,7 +111,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
     assert log.true_poses is not None
     truth = anchor_truth(log.true_poses)
 
-    def anchor_nees(a: AnchorResult | GraphAnchor | None) -> float | None:
+    def anchor_nees(a: AnchorResult | Anchor | None) -> float | None:
         if a is None:
             return None
         dx = pose_errors(a.x_Wknown_Wglobal[None], truth[None]).dx
@@ -124,7 +131,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
                 else run_ekf(log, EKFConfig(fusion=fusion, carry_seen_steps=carry))
             )
             row[name]["fused" if fusion else "plain"] = _ekf_row(
-                ekf_metrics(res, log), anchor_nees(res.anchor)
+                _ekf_metrics(res, log), anchor_nees(res.anchor)
             )
     if "draw" in estimators:
         # The log's draw against the map's truth (which no draw changes).
@@ -140,8 +147,8 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
             }
         }
     if "filter" in estimators:
-        g = run_backend(log, "isam2", fusion=True, ekf_result=default_fused).graph
-        assert g is not None
+        upstream = to_result(default_fused, log)
+        g = run(log, "isam2", fusion=True, upstream=upstream).result.extras["graph"]
         assert g.filtered_poses is not None
         assert g.filtered_covs is not None
         dx = pose_errors(g.filtered_poses, truth_in_global(log.true_poses)).dx
@@ -155,15 +162,14 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
             }
         }
     if "batch" in estimators:
-        run = run_backend(log, "batch", fusion=True, ekf_result=default_fused)
-        assert run.graph is not None
-        m = run.metrics
+        batch = run(log, "batch", fusion=True, upstream=to_result(default_fused, log))
+        m = batch.metrics
         row["batch"] = {
             "fused": {
                 "max_m": m["position_error_m"]["max"],
                 "nees_mean": m["nees"]["mean"],
                 **_anchor_fields(m["anchor"]),
-                "anchor_nees": anchor_nees(run.graph.anchor),
+                "anchor_nees": anchor_nees(batch.result.anchor),
             }
         }
     return row

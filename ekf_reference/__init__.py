@@ -6,15 +6,7 @@ Depends on :mod:`mapfuse_core` only; never imports gtsam.
 from ekf_reference.config import EKFConfig
 from ekf_reference.loops import LoopClosureParams
 from ekf_reference.pipeline import run_ekf
-from ekf_reference.report import ekf_metrics
-from ekf_reference.result import (
-    AnchorResult,
-    EKFResult,
-    LoopClosure,
-    MapResult,
-    load_associations,
-    save_associations,
-)
+from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 
 __all__ = [
     "AnchorResult",
@@ -23,8 +15,5 @@ __all__ = [
     "LoopClosure",
     "LoopClosureParams",
     "MapResult",
-    "ekf_metrics",
-    "load_associations",
     "run_ekf",
-    "save_associations",
 ]

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ekf_reference.config import EKFConfig
+from mapfuse_core.decisions import AnchorDecision, AssociationDecisions
 from mapfuse_core.se2 import FloatArray
 
 __all__ = [
@@ -15,8 +15,6 @@ __all__ = [
     "EKFResult",
     "LoopClosure",
     "MapResult",
-    "load_associations",
-    "save_associations",
 ]
 
 
@@ -107,27 +105,14 @@ class EKFResult:
     """Loop closures found at the joins, in order (none unless ``config.loop_closure``,
     and none once the known map is fused: the local maps are then held to it)."""
 
-
-def save_associations(result: EKFResult, path: str | Path) -> Path:
-    """Save the association decisions so another backend can consume exactly the same."""
-    path = Path(path)
-    np.savez(
-        path,
-        format_name=np.array("mapfuse.associations"),
-        format_version=np.array(1),
-        obs_landmark=result.obs_landmark,
-        obs_known_id=result.obs_known_id,
-    )
-    return path
-
-
-def load_associations(path: str | Path, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
-    """Load decisions saved by :func:`save_associations`, checking they fit a log of ``n_obs``."""
-    path = Path(path)
-    with np.load(path, allow_pickle=False) as z:
-        if str(z.get("format_name", "")) != "mapfuse.associations":
-            raise ValueError(f"{path}: not a mapfuse associations file")
-        lm, kn = z["obs_landmark"], z["obs_known_id"]
-    if lm.shape != (n_obs,) or kn.shape != (n_obs,):
-        raise ValueError(f"{path}: holds {lm.shape[0]} decisions, the log has {n_obs} observations")
-    return lm.astype(np.int64), kn.astype(np.int64)
+    @property
+    def decisions(self) -> AssociationDecisions:
+        """The final association decisions (and the accepted match), as data another
+        estimator consumes."""
+        anchor = None
+        if self.anchor is not None:
+            anchor = AnchorDecision(
+                np.asarray(self.anchor.x_Wknown_Wglobal, dtype=float),
+                int(self.anchor.accepted_at_step),
+            )
+        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor)

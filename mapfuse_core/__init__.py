@@ -1,7 +1,7 @@
 """mapfuse_core: geometry, features, scenarios, sensing, matching and evaluation.
 
-numpy, scipy and networkx only (matplotlib only in :mod:`mapfuse_core.plotting`,
-which is not imported here).  Poses are ``(x, y, θ)`` everywhere.
+numpy, scipy and networkx only (plots live in the harness, :mod:`mapfuse.plotting`).
+Poses are ``(x, y, θ)`` everywhere.
 """
 
 from mapfuse_core.ccda import CCDAParams, CCDAResult, ccda_match, estimate_transform

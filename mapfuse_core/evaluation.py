@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -30,10 +30,8 @@ __all__ = [
     "MapDrawOffset",
     "NeesMeanDistribution",
     "PoseErrors",
-    "anchor_block",
     "anchor_metrics",
     "anchor_truth",
-    "build_metrics",
     "consistent_error_draws",
     "consistent_nees_draws",
     "gps_error_series",
@@ -642,66 +640,3 @@ def known_map_draw_offset(
     offset.setflags(write=False)
     cov.setflags(write=False)
     return MapDrawOffset(offset=offset, cov=cov, nees=float(S @ H @ S))
-
-
-class AnchorLike(Protocol):
-    """What every backend's anchor result offers (EKF and graph alike)."""
-
-    @property
-    def x_Wknown_Wglobal(self) -> FloatArray: ...
-    @property
-    def accepted_at_step(self) -> int: ...
-    @property
-    def pairings(self) -> tuple[tuple[int, int], ...]: ...
-
-
-def anchor_block(anchor: AnchorLike | None, true_poses: FloatArray | None) -> dict[str, Any] | None:
-    """The ``anchor`` block of ``metrics.json`` for any backend's anchor (or ``None``)."""
-    if anchor is None:
-        return None
-    truth = anchor_truth(true_poses) if true_poses is not None else None
-    return anchor_metrics(anchor.x_Wknown_Wglobal, truth, anchor.accepted_at_step, anchor.pairings)
-
-
-def build_metrics(
-    *,
-    scenario: str,
-    seed: int,
-    backend: str,
-    fusion: bool,
-    poses: FloatArray,
-    covs: FloatArray,
-    true_poses: FloatArray | None,
-    step_time_s: FloatArray,
-    anchor: dict[str, Any] | None,
-    map_features: int,
-    matched_known: int,
-    timestamps: FloatArray | None = None,
-    gps: tuple[FloatArray, FloatArray] | None = None,
-) -> dict[str, Any]:
-    """One ``metrics.json`` object (schema in the README), identical for every backend.
-
-    Without true poses but with ``gps`` (times, East/North) and ``timestamps``, the
-    position errors are against GPS (:func:`gps_position_metrics`, through the anchor
-    when there is one); heading and NEES stay ``None``.
-    """
-    out: dict[str, Any] = {
-        "scenario": scenario,
-        "seed": int(seed),
-        "backend": backend,
-        "fusion": bool(fusion),
-        "steps": int(poses.shape[0]),
-    }
-    if true_poses is not None:
-        out.update(pose_metrics(poses, covs, truth_in_global(true_poses)))
-    else:
-        out.update({"position_error_m": None, "heading_error_rad": None, "nees": None})
-        if gps is not None and timestamps is not None:
-            ref = None if anchor is None else np.asarray(anchor["estimate"], dtype=float)
-            out["position_error_m"] = gps_position_metrics(
-                timestamps[: poses.shape[0]], poses, gps[0], gps[1], ref
-            )
-    out["anchor"] = anchor
-    out["map"] = {"features": int(map_features), "matched_known": int(matched_known)}
-    out["runtime_s"] = runtime_metrics(step_time_s)
-    return out

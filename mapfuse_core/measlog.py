@@ -124,11 +124,6 @@ class MeasurementLog:
         """Total number of extracted features ``M``."""
         return int(self.feat_step.shape[0])
 
-    def fuses(self, fusion: bool) -> bool:
-        """Whether a run of this log asked for ``fusion`` fuses anything: not without a
-        known map (Victoria Park), whatever it asked.  Backends run, and report, this."""
-        return bool(fusion) and len(self.known_map) > 0
-
     @property
     def gps(self) -> tuple[FloatArray, FloatArray] | None:
         """``(gps_times, gps_xy)`` when the log carries GPS fixes, else ``None``."""

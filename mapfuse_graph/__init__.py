@@ -1,4 +1,4 @@
-"""The GTSAM mirror of the paper's problem, the comparison harness and the CLI.
+"""The GTSAM mirror of the paper's problem.
 
 Modules, imported on demand (each loads gtsam):
 
@@ -6,11 +6,9 @@ Modules, imported on demand (each loads gtsam):
   known-map anchor, on the measurement models of :mod:`mapfuse_core.features`;
 * :mod:`mapfuse_graph.graph` — builds the factor graph from a measurement log;
 * :mod:`mapfuse_graph.solvers` — batch Levenberg–Marquardt and iSAM2
-  (:func:`~mapfuse_graph.solvers.run_graph`);
-* :mod:`mapfuse_graph.runner` — one entry point for every backend
-  (:func:`~mapfuse_graph.runner.run_backend`) and the run's output files;
-* :mod:`mapfuse_graph.compare`, :mod:`mapfuse_graph.figures`,
-  :mod:`mapfuse_graph.baseline` — the comparison, its figures, EKF baselines;
-* :mod:`mapfuse_graph.testing` — assert a run is no worse than a recorded baseline;
-* :mod:`mapfuse_graph.cli` — the ``mapfuse`` command.
+  (:func:`~mapfuse_graph.solvers.run_graph`).
+
+Depends on :mod:`mapfuse_core` only (association decisions arrive as
+:class:`~mapfuse_core.decisions.AssociationDecisions`); the harness that runs it beside
+the EKF is :mod:`mapfuse`.
 """

@@ -25,9 +25,10 @@ after the anchor step gets its tie when it is created.
 
 Association sources:
 
-* ``"ekf"`` — the EKF's final decisions (``EKFResult.obs_landmark`` and
-  ``obs_known_id``): the same data association as the reference, so differences
-  come from the estimator alone.  Anchor step and initial value from the EKF's anchor.
+* ``"ekf"`` — the EKF's final decisions, handed over as
+  :class:`~mapfuse_core.decisions.AssociationDecisions`: the same data association as
+  the reference, so differences come from the estimator alone.  Anchor step and
+  initial value from the decisions' anchor.
 * ``"truth"`` — the simulator's world ids (observations with id −1 are dropped);
   a landmark is paired with the known feature of the same id.  The anchor is
   initialised by a weighted fit (:func:`mapfuse_core.ccda.estimate_transform`) once
@@ -37,8 +38,9 @@ Association sources:
   one-to-one rules of :mod:`mapfuse_core.matching` that the EKF uses; CCDA every
   ``ccda_every`` steps until it accepts a match, then χ²-gated pairing of the
   remaining landmarks with known features.
-* explicit arrays ``(obs_landmark, obs_known_id)`` (e.g. from
-  :func:`ekf_reference.load_associations`).
+* explicit arrays ``(obs_landmark, obs_known_id)`` (e.g. the
+  :attr:`~mapfuse_core.decisions.AssociationDecisions.arrays` of
+  :func:`mapfuse_core.decisions.load_associations`).
 
 Everything is validated before any factor is built: an exception inside an iSAM2
 update leaves it corrupt, so malformed input must never reach GTSAM.
@@ -49,12 +51,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import gtsam
 import numpy as np
 
 from mapfuse_core.ccda import ccda_match, estimate_transform
+from mapfuse_core.decisions import AssociationDecisions
 from mapfuse_core.features import FeatureKind, transform_feature
 from mapfuse_core.matching import (
     AssociationConfig,
@@ -83,9 +86,6 @@ from mapfuse_graph.factors import (
     rho_alpha_along,
     to_spmap_feature,
 )
-
-if TYPE_CHECKING:
-    from ekf_reference.result import EKFResult
 
 __all__ = [
     "ASSOCIATIONS",
@@ -185,8 +185,8 @@ class GraphOptions:
     detections; then the radius is independent of everything else and the estimates,
     and the zero centre–radius covariance, are those of the 3-vector form), no robust
     kernel (it would weigh the two parts apart), a fixed association and no known
-    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks, which
-    saves CPU on Victoria Park (``docs/configuration.md``)."""
+    circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks, for less
+    CPU (``docs/victoria-park.md``)."""
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
@@ -303,15 +303,15 @@ class GraphBuilder:
 
     ``association`` is a name of :data:`ASSOCIATIONS` or a pair of arrays
     ``(obs_landmark, obs_known_id)`` of the log's length (−1 = not associated /
-    not merged).  ``ekf_result`` is required for ``"ekf"``; with fusion it also
-    provides the anchor's initial value.
+    not merged).  ``decisions`` (the EKF's) is required for ``"ekf"``; with fusion its
+    anchor also provides the anchor's initial value and step.
     """
 
     def __init__(
         self,
         log: MeasurementLog,
         options: GraphOptions | None = None,
-        ekf_result: EKFResult | None = None,
+        decisions: AssociationDecisions | None = None,
         association: tuple[np.ndarray, np.ndarray] | None = None,
         steps: int | None = None,
     ) -> None:
@@ -343,11 +343,11 @@ class GraphBuilder:
             self._mode = "fixed"
             self._plan(lm, kn)
         elif opts.association == "ekf":
-            if ekf_result is None:
-                raise ValueError("association 'ekf' needs ekf_result (an EKFResult of this log)")
-            lm, kn = _check_assoc_arrays(
-                log, (ekf_result.obs_landmark, ekf_result.obs_known_id), self._known_row
-            )
+            if decisions is None:
+                raise ValueError(
+                    "association 'ekf' needs decisions (the EKF's AssociationDecisions on this log)"
+                )
+            lm, kn = _check_assoc_arrays(log, decisions.arrays, self._known_row)
             self._mode = "fixed"
             self._plan(lm, kn)
         elif opts.association == "truth":
@@ -372,22 +372,16 @@ class GraphBuilder:
         else:
             self._mode = "own"
 
-        if ekf_result is not None and ekf_result.poses.shape != (log.n_steps, 3):
-            raise ValueError(
-                f"ekf_result has {ekf_result.poses.shape[0]} poses, the log {log.n_steps} steps"
-            )
         if (
             opts.fusion
             and len(self.known) > 0
-            and ekf_result is not None
-            and ekf_result.anchor is not None
+            and decisions is not None
+            and decisions.anchor is not None
             and self._mode == "fixed"
         ):
-            a = np.asarray(ekf_result.anchor.x_Wknown_Wglobal, dtype=float)
-            if a.shape != (3,) or not np.all(np.isfinite(a)):
-                raise ValueError(f"ekf_result.anchor is not a finite pose: {a!r}")
+            a = np.asarray(decisions.anchor.x_Wknown_Wglobal, dtype=float)
             self.anchor_init = inverse(a)
-            self.anchor_step = min(int(ekf_result.anchor.accepted_at_step), self.n_steps - 1)
+            self.anchor_step = min(int(decisions.anchor.accepted_at_step), self.n_steps - 1)
             self.anchor_step = max(self.anchor_step, 0)
             self.anchor_source = "ekf"
         if opts.split_circles:

@@ -1,8 +1,8 @@
 """Solvers of the mapfuse factor graph: batch Levenberg–Marquardt and iSAM2.
 
 Both are driven so that no Python factor callback ever receives a ``Values`` that
-Python does not own (``docs/gtsam-notes.md``: GTSAM's own optimizers deep-copy the
-``Values`` on every callback, 100–700 µs each):
+Python does not own (GTSAM's own optimizers deep-copy the ``Values`` on every
+callback; costs in ``docs/performance.md``):
 
 * **batch** — Levenberg–Marquardt written here: ``graph.linearize(values)``, add
   ``√λ·I`` damping rows per variable, eliminate (multifrontal, COLAMD),
@@ -20,7 +20,8 @@ Covariances: GTSAM's Pose2 marginals are in the body tangent (``X ⊕ Exp(δ)``)
 mapfuse reports absolute ``(x, y, θ)`` covariances, ``G P Gᵀ`` with
 ``G = blockdiag(R(θ), 1)`` (:func:`body_to_abs_cov`).
 
-Entry point: :func:`run_graph`.
+Entry point: :func:`run_graph`.  One module although long: both solvers share the
+Bayes-tree marginal readers and the pose, landmark and anchor extraction.
 """
 
 from __future__ import annotations
@@ -29,18 +30,12 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import gtsam
 import numpy as np
 
-from mapfuse_core.evaluation import (
-    anchor_block,
-    build_metrics,
-    gps_position_metrics,
-    pose_metrics,
-    truth_in_global,
-)
+from mapfuse_core.decisions import AnchorDecision, AssociationDecisions
 from mapfuse_core.features import FeatureKind, line_from_normal
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.se2 import FloatArray, inverse_jacobian
@@ -55,9 +50,6 @@ from mapfuse_graph.graph import (
     radius_key,
 )
 
-if TYPE_CHECKING:
-    from ekf_reference.result import EKFResult
-
 __all__ = [
     "BACKENDS",
     "GraphAnchor",
@@ -68,7 +60,6 @@ __all__ = [
     "LMOptions",
     "LMReport",
     "body_to_abs_cov",
-    "graph_metrics",
     "levenberg_marquardt",
     "run_graph",
     "tree_marginals",
@@ -124,11 +115,12 @@ class ISAM2Options:
     """Relinearise a variable when any entry of its linear delta exceeds this: one float
     for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
     ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
-    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate within 0.05 σ of the
-    batch optimum on loop600 while relinearising half as many variables as 0.01 for
-    all: a line landmark seen from hundreds of poses costs hundreds of Python
-    callbacks each time it is relinearised.  With ``GraphOptions.split_circles`` the
-    ``c`` entries ``(x, y, r)`` go to the centre and the radius variables."""
+    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate close to the batch
+    optimum while relinearising far fewer variables than 0.01 for all
+    (``docs/performance.md``): a line landmark seen from hundreds of poses costs
+    hundreds of Python callbacks each time it is relinearised.  With
+    ``GraphOptions.split_circles`` the ``c`` entries ``(x, y, r)`` go to the centre and
+    the radius variables."""
     relinearize_skip: int = 1
     """Check for relinearisation every this many updates."""
     factorization: str = "CHOLESKY"
@@ -137,9 +129,9 @@ class ISAM2Options:
     """Extra empty updates at the end so the final estimate is fully relinearised."""
     final_marginals: str = "isam2"
     """Smoothed marginals of iSAM2's own linear system (``"isam2"``: the graph linearised
-    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; within
-    2 % of the exact ones on loop600 because a variable's linearisation point may lag its
-    estimate by up to the relinearisation threshold) or of a fresh linearisation at the
+    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; close
+    to, not equal to, the exact ones because a variable's linearisation point may lag
+    its estimate by up to the relinearisation threshold) or of a fresh linearisation at the
     final estimate (``"relinearized"``: exact, one more pass of the Python callbacks).
     Both are read by :func:`tree_marginals`."""
 
@@ -287,6 +279,58 @@ class GraphResult:
     """Batch with ``joint_stride``: the joint covariance of every ``joint_stride``-th pose,
     for consistency statistics that need it (``evaluation.nees_mean_distribution``)."""
 
+    @property
+    def obs_known_id(self) -> np.ndarray:
+        """(M,) known-map id of every observation's landmark, −1 if none (or not in the graph)."""
+        lm, known = self.obs_landmark, self.landmarks.known_ids
+        if not known.size:
+            return np.full(lm.shape, -1, dtype=np.int64)
+        return np.asarray(np.where(lm >= 0, known[np.clip(lm, 0, None)], -1), dtype=np.int64)
+
+    @property
+    def decisions(self) -> AssociationDecisions:
+        """The association decisions the graph was built with, and its anchor."""
+        anchor = None
+        if self.anchor is not None:
+            anchor = AnchorDecision(self.anchor.x_Wknown_Wglobal, self.anchor.accepted_at_step)
+        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor)
+
+
+@dataclass(frozen=True, eq=False)
+class _Solved:
+    """What one solver pass hands back to :func:`run_graph`."""
+
+    graph: gtsam.NonlinearFactorGraph
+    """The final nonlinear graph."""
+    values: gtsam.Values
+    """The final estimate."""
+    poses: FloatArray
+    """(N, 3) smoothed poses."""
+    covs: FloatArray
+    """(N, 3, 3) their absolute covariances (NaN without marginals)."""
+    filtered_poses: FloatArray | None
+    """(N, 3) per-step filtered poses (iSAM2), else ``None``."""
+    filtered_covs: FloatArray | None
+    """(N, 3, 3) their covariances (iSAM2), else ``None``."""
+    step_time_s: FloatArray
+    """(N,) per-step wall time (see :attr:`GraphResult.step_time_s`)."""
+    build_time_s: float
+    """Factor construction time outside the steps (batch), else 0."""
+    solve_time_s: float
+    """Optimisation time."""
+    marginals_time_s: float
+    """Final marginals time."""
+    anchor: GraphAnchor | None
+    """The anchor estimate."""
+    landmarks: GraphLandmarks
+    """The landmark estimates."""
+    lm: LMReport | None
+    """Batch: the Levenberg–Marquardt report."""
+    extra: dict[str, Any]
+    """Diagnostics."""
+    joint_pose_cov: JointPoseCovariance | None = None
+    """Batch with ``joint_stride``: the joint pose covariance."""
+
 
 # --------------------------------------------------------------------------- helpers
 
@@ -382,10 +426,9 @@ def tree_marginals(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict
     covariance, give ``Σ_FS = −R⁻¹ S Σ_SS`` and ``Σ_FF = R⁻¹ R⁻ᵀ − Σ_FS (R⁻¹ S)ᵀ``.
     Exact, like ``gtsam.Marginals``, but each clique is handled once: asking GTSAM for
     every variable's ``marginalCovariance`` re-eliminates the clique's conditional with
-    its separator marginal for each variable, which on Victoria Park (separators of up
-    to a few hundred dimensions) took 9.5 s of CPU on the first 3,000 scans against
-    0.8 s here, linearisation included, with the same result to 1e-11 relative (whole
-    run: 38 s → 2 s).
+    its separator marginal for each variable, which costs an order of magnitude more
+    where separators reach a few hundred dimensions (Victoria Park;
+    ``docs/performance.md``).
     """
     out: dict[int, FloatArray] = {}
     bt = lin.eliminateMultifrontal()
@@ -633,7 +676,7 @@ def _run_batch(
     marginals: bool,
     progress: Callable[[int, int], None] | None,
     joint_stride: int | None = None,
-) -> tuple[Any, ...]:
+) -> _Solved:
     n = builder.n_steps
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -657,12 +700,13 @@ def _run_batch(
     cov_of: Callable[[int], FloatArray] | None = None
     poses = _poses_from(values, n)
     extra: dict[str, Any] = {}
+    joint: JointPoseCovariance | None = None
     if marginals:
         # Marginals on the final linearisation, called from Python: no Values copies.
         m = gtsam.Marginals(lin if lin is not None else graph.linearize(values), values)
         cov_of = m.marginalCovariance
         if joint_stride is not None:
-            extra["joint_pose_cov"] = _joint_pose_cov(m, poses, joint_stride)
+            joint = _joint_pose_cov(m, poses, joint_stride)
     covs = _pose_covs(poses, cov_of)
     landmarks = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
@@ -670,21 +714,22 @@ def _run_batch(
     # Spread the solve over the steps so that the per-step times add up to the run's
     # cost (metrics.json's runtime total); their percentiles mean nothing for batch.
     times = times + (solve + marg) / n
-    return (
-        graph,
-        values,
-        poses,
-        covs,
-        None,
-        None,
-        times,
-        build,
-        solve,
-        marg,
-        anchor,
-        landmarks,
-        report,
-        extra,
+    return _Solved(
+        graph=graph,
+        values=values,
+        poses=poses,
+        covs=covs,
+        filtered_poses=None,
+        filtered_covs=None,
+        step_time_s=times,
+        build_time_s=build,
+        solve_time_s=solve,
+        marginals_time_s=marg,
+        anchor=anchor,
+        landmarks=landmarks,
+        lm=report,
+        extra=extra,
+        joint_pose_cov=joint,
     )
 
 
@@ -694,8 +739,8 @@ def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
 
     The newest pose then ends the root clique's conditional, where its marginal is read
     off the last rows (:class:`_LastVariableMarginal`).  Without it the pose often sits in
-    a child of the root: on Victoria Park after 5,000 scans the root holds ~220 variables
-    (660 dimensions) and GTSAM's marginal through it cost 20–35 ms a step.  The groups
+    a child of the root, and GTSAM's marginal through a large root clique (hundreds of
+    dimensions on Victoria Park) dominates the step's cost.  The groups
     must stay below the number of variables re-eliminated (CCOLAMD's bound), which the
     keys of the new factors are part of: two groups need three such keys.
     """
@@ -756,10 +801,10 @@ def _newest_pose_marginal(
     The marginal Gaussian ``p(δ_k)`` gives both: its mean is the Gauss–Newton step of
     ``X_k`` and its information the inverse covariance.  Asking instead for
     ``calculateEstimatePose2`` runs the wildfire back-substitution over every clique
-    re-eliminated by the update, each step (5 ms a step on Victoria Park's first 3,000
-    scans); left alone, the next relinearisation check does that once per
-    ``relinearize_skip`` updates.  The mean is the exact linear solve, where the
-    wildfire one stops propagating changes below 1e-3: the two differ by < 0.1 mm there.
+    re-eliminated by the update, each step; left alone, the next relinearisation check
+    does that once per ``relinearize_skip`` updates.  The mean is the exact linear
+    solve, where the wildfire one stops propagating changes below 1e-3 (sub-millimetre
+    differences).
     """
     elim = _LastVariableMarginal(key, 3)
     m = isam.marginalFactor(key, elim)
@@ -774,7 +819,7 @@ def _run_isam2(
     options: ISAM2Options | None,
     marginals: bool,
     progress: Callable[[int, int], None] | None,
-) -> tuple[Any, ...]:
+) -> _Solved:
     opts = options or ISAM2Options()
     n = builder.n_steps
     params = gtsam.ISAM2Params()
@@ -842,21 +887,21 @@ def _run_isam2(
     marg = time.perf_counter() - t0
     del linearization_point
     extra = {"variables_relinearized": relin, "filtered_marginal_shortcuts": shortcuts}
-    return (
-        graph,
-        values,
-        poses,
-        covs,
-        f_poses,
-        f_covs,
-        times,
-        0.0,
-        solve,
-        marg,
-        anchor,
-        landmarks,
-        None,
-        extra,
+    return _Solved(
+        graph=graph,
+        values=values,
+        poses=poses,
+        covs=covs,
+        filtered_poses=f_poses,
+        filtered_covs=f_covs,
+        step_time_s=times,
+        build_time_s=0.0,
+        solve_time_s=solve,
+        marginals_time_s=marg,
+        anchor=anchor,
+        landmarks=landmarks,
+        lm=None,
+        extra=extra,
     )
 
 
@@ -865,7 +910,7 @@ def run_graph(
     backend: str = "isam2",
     fusion: bool = True,
     association: str = "ekf",
-    ekf_result: EKFResult | None = None,
+    decisions: AssociationDecisions | None = None,
     robust: str | None = None,
     *,
     options: GraphOptions | None = None,
@@ -874,6 +919,7 @@ def run_graph(
     isam2: ISAM2Options | None = None,
     steps: int | None = None,
     init: str = "auto",
+    init_poses: FloatArray | None = None,
     marginals: bool = True,
     progress: Callable[[int, int], None] | None = None,
     joint_stride: int | None = None,
@@ -882,15 +928,16 @@ def run_graph(
 
     ``backend``: ``"batch"`` (Levenberg–Marquardt over all steps) or ``"isam2"`` (one
     update per step; also gives per-step filtered estimates).  ``association``:
-    ``"ekf"`` (needs ``ekf_result``), ``"truth"`` or ``"own"`` (for ``batch``, decided
-    by an iSAM2 pass first); ``associations`` (arrays) overrides it.  ``fusion`` and
-    ``robust`` override the same fields of ``options``.  ``steps`` solves only the first
-    ``steps`` steps.  ``init`` (batch): ``"ekf"`` starts from the EKF's poses,
-    ``"odometry"`` from dead reckoning, ``"auto"`` the EKF's when given.
+    ``"ekf"`` (needs ``decisions``, the EKF's), ``"truth"`` or ``"own"`` (for
+    ``batch``, decided by an iSAM2 pass first); ``associations`` (arrays) overrides it.
+    ``fusion`` and ``robust`` override the same fields of ``options``.  ``steps`` solves
+    only the first ``steps`` steps.  ``init`` (batch): ``"given"`` starts from
+    ``init_poses`` (e.g. the EKF's, one per step of the log), ``"odometry"`` from dead
+    reckoning, ``"auto"`` from ``init_poses`` when given.
     ``marginals=False`` skips the smoothed marginals (covariances NaN).
     ``joint_stride`` (batch, with marginals) also computes the joint covariance of every
     ``joint_stride``-th pose (:attr:`GraphResult.joint_pose_cov`); its cost grows with
-    the cube of the number of poses (stride 10 on loop600's 2,400 steps: a few seconds).
+    the cube of the number of poses it keeps.
     """
     t_start = time.perf_counter()
     cpu_start = time.process_time()
@@ -900,8 +947,8 @@ def run_graph(
         raise ValueError(
             f"association must be one of {', '.join(ASSOCIATIONS)}, got {association!r}"
         )
-    if init not in ("auto", "ekf", "odometry"):
-        raise ValueError(f"init must be 'auto', 'ekf' or 'odometry', got {init!r}")
+    if init not in ("auto", "given", "odometry"):
+        raise ValueError(f"init must be 'auto', 'given' or 'odometry', got {init!r}")
     if joint_stride is not None and (
         backend != "batch"
         or not marginals
@@ -913,6 +960,14 @@ def run_graph(
             "below the number of steps, "
             f"got joint_stride={joint_stride!r} with backend={backend!r}, marginals={marginals}"
         )
+    if init_poses is not None:
+        init_poses = np.asarray(init_poses, dtype=float)
+        if init_poses.shape != (log.n_steps, 3):
+            raise ValueError(
+                f"init_poses has shape {init_poses.shape}, the log needs ({log.n_steps}, 3)"
+            )
+        if not np.all(np.isfinite(init_poses)):
+            raise ValueError("init_poses has non-finite values")
     base = options or GraphOptions()
     opts = GraphOptions(
         **{**base.__dict__, "fusion": bool(fusion), "association": association, "robust": robust}
@@ -920,69 +975,48 @@ def run_graph(
     anchor_given: tuple[FloatArray, int, str] | None = None
     if backend == "batch" and associations is None and association == "own":
         # Own association is decided against an incremental estimate: run iSAM2 first.
-        pre = GraphBuilder(log, opts, ekf_result, None, steps)
+        pre = GraphBuilder(log, opts, decisions, None, steps)
         _run_isam2(pre, isam2, False, None)
         associations = _arrays_of(pre)
         if pre.anchor_added:
             assert pre.anchor_init is not None
             anchor_given = (pre.anchor_init, pre.anchor_step, pre.anchor_source)
-    builder = GraphBuilder(log, opts, ekf_result, associations, steps)
+    builder = GraphBuilder(log, opts, decisions, associations, steps)
     if anchor_given is not None:
         builder.anchor_init, builder.anchor_step, builder.anchor_source = anchor_given
     n = builder.n_steps
     if backend == "batch":
-        init_poses = None
-        if init == "ekf" and ekf_result is None:
-            raise ValueError("init 'ekf' needs ekf_result")
-        if init in ("auto", "ekf") and ekf_result is not None:
-            init_poses = np.asarray(ekf_result.poses[:n], dtype=float)
-            if not np.all(np.isfinite(init_poses)):
-                raise ValueError("ekf_result.poses has non-finite values")
-        out = _run_batch(builder, lm, init_poses, marginals, progress, joint_stride)
+        if init == "given" and init_poses is None:
+            raise ValueError("init 'given' needs init_poses")
+        start = None if init == "odometry" or init_poses is None else init_poses[:n]
+        out = _run_batch(builder, lm, start, marginals, progress, joint_stride)
     else:
         out = _run_isam2(builder, isam2, marginals, progress)
-    (
-        graph,
-        values,
-        poses,
-        covs,
-        f_poses,
-        f_covs,
-        times,
-        build,
-        solve,
-        marg,
-        anchor,
-        landmarks,
-        report,
-        extra,
-    ) = out
-    joint = extra.pop("joint_pose_cov", None)
     return GraphResult(
         scenario=log.scenario,
         seed=log.seed,
         backend=backend,
         fusion=opts.fusion,
         association=association if associations is None else "given",
-        poses=poses,
-        covs=covs,
-        filtered_poses=f_poses,
-        filtered_covs=f_covs,
-        step_time_s=times,
-        build_time_s=build,
-        solve_time_s=solve,
-        marginals_time_s=marg,
+        poses=out.poses,
+        covs=out.covs,
+        filtered_poses=out.filtered_poses,
+        filtered_covs=out.filtered_covs,
+        step_time_s=out.step_time_s,
+        build_time_s=out.build_time_s,
+        solve_time_s=out.solve_time_s,
+        marginals_time_s=out.marginals_time_s,
         total_time_s=time.perf_counter() - t_start,
         total_cpu_s=time.process_time() - cpu_start,
-        anchor=anchor,
-        landmarks=landmarks,
+        anchor=out.anchor,
+        landmarks=out.landmarks,
         obs_landmark=builder.obs_landmark.copy(),
-        n_factors=int(graph.size()),
-        n_variables=int(values.size()),
-        final_error=float(graph.error(values)),
-        lm=report,
-        extra=extra,
-        joint_pose_cov=joint,
+        n_factors=int(out.graph.size()),
+        n_variables=int(out.values.size()),
+        final_error=float(out.graph.error(out.values)),
+        lm=out.lm,
+        extra=out.extra,
+        joint_pose_cov=out.joint_pose_cov,
     )
 
 
@@ -992,52 +1026,3 @@ def _arrays_of(builder: GraphBuilder) -> tuple[np.ndarray, np.ndarray]:
     known = builder.landmark_known_ids()
     kn = np.where(lm >= 0, known[np.clip(lm, 0, None)] if known.size else -1, -1)
     return lm, np.asarray(kn, dtype=np.int64)
-
-
-def graph_metrics(
-    result: GraphResult, log: MeasurementLog, which: str = "smoothed"
-) -> dict[str, Any]:
-    """``metrics.json`` of a graph run (:func:`mapfuse_core.evaluation.build_metrics`).
-
-    ``which``: ``"smoothed"`` (final estimate, both backends) or ``"filtered"`` (iSAM2's
-    per-step estimate, the one comparable with the EKF's).
-    """
-    if which == "filtered":
-        if result.filtered_poses is None or result.filtered_covs is None:
-            raise ValueError("filtered estimates exist only for the isam2 backend")
-        poses, covs = result.filtered_poses, result.filtered_covs
-    elif which == "smoothed":
-        poses, covs = result.poses, result.covs
-    else:
-        raise ValueError(f"which must be 'smoothed' or 'filtered', got {which!r}")
-    anchor = anchor_block(result.anchor, log.true_poses)
-    n = poses.shape[0]
-    true_poses = None if log.true_poses is None else log.true_poses[:n]
-    out = build_metrics(
-        scenario=result.scenario,
-        seed=result.seed,
-        backend=result.backend,
-        fusion=log.fuses(result.fusion),
-        poses=poses,
-        covs=covs,
-        true_poses=true_poses,
-        step_time_s=result.step_time_s,
-        anchor=anchor,
-        map_features=len(result.landmarks.kinds),
-        matched_known=int(np.sum(result.landmarks.known_ids >= 0)),
-        timestamps=log.timestamps,
-        gps=log.gps,
-    )
-    out["association"] = result.association
-    out["estimate"] = which
-    fp, fc = result.filtered_poses, result.filtered_covs
-    if which == "smoothed" and fp is not None and fc is not None and true_poses is not None:
-        filtered = pose_metrics(fp, fc, truth_in_global(true_poses))
-        out["nees_filtered"] = filtered["nees"]
-        out["position_error_filtered_m"] = filtered["position_error_m"]
-    elif which == "smoothed" and fp is not None and log.gps is not None:
-        ref = None if anchor is None else np.asarray(anchor["estimate"], dtype=float)
-        out["position_error_filtered_m"] = gps_position_metrics(
-            log.timestamps[: fp.shape[0]], fp, *log.gps, ref
-        )
-    return out

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 from ekf_reference import EKFConfig, EKFResult, run_ekf
+from mapfuse.estimators.ekf import to_result
+from mapfuse.metrics import run_metrics
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.scenario import load_scenario
 from mapfuse_core.simulate import simulate
@@ -29,3 +32,8 @@ def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
 def loop600_ekf_carry(seed: int) -> EKFResult:
     """The fused EKF with ``carry_seen_steps=1`` on the loop600 log of ``seed``."""
     return run_ekf(loop600_log(seed), EKFConfig(fusion=True, carry_seen_steps=1))
+
+
+def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
+    """``metrics.json`` of an EKF result on ``log``."""
+    return run_metrics(to_result(result, log), log)

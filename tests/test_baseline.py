@@ -20,10 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from ekf_reference import EKFConfig, ekf_metrics, run_ekf
-from mapfuse_core.evaluation import build_metrics
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_graph.baseline import (
+from ekf_reference import EKFConfig, run_ekf
+from mapfuse.baseline import (
     DEFAULT_METRICS,
     METRICS,
     BaselineError,
@@ -35,8 +33,11 @@ from mapfuse_graph.baseline import (
     record_baselines,
     save_baseline,
 )
-from mapfuse_graph.runner import run_backend
-from mapfuse_graph.testing import assert_no_worse_than_baseline
+from mapfuse.estimators.ekf import to_result
+from mapfuse.metrics import build_metrics, run_metrics
+from mapfuse.run import run
+from mapfuse.testing import assert_no_worse_than_baseline
+from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
 COMMITTED = Path(__file__).parent / "baselines" / "synthetic_ring_seed0_200.json"
@@ -49,7 +50,7 @@ def log() -> MeasurementLog:
 
 @pytest.fixture(scope="module")
 def metrics(log: MeasurementLog) -> dict[str, Any]:
-    return run_backend(log, "ekf", fusion=True).metrics
+    return run(log, "ekf", fusion=True).metrics
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +73,7 @@ def _worse_log(log: MeasurementLog, kind: str) -> MeasurementLog:
 
 
 def test_the_same_run_passes(log: MeasurementLog, baseline: dict[str, Any]) -> None:
-    again = run_backend(log, "ekf", fusion=True).metrics
+    again = run(log, "ekf", fusion=True).metrics
     report = check_baseline(again, baseline)
     assert report.passed, report.summary()
     assert [c.metric for c in report.checks] == list(DEFAULT_METRICS)
@@ -91,7 +92,7 @@ def test_the_same_run_passes(log: MeasurementLog, baseline: dict[str, Any]) -> N
 def test_a_worsened_estimator_fails_naming_the_metric(
     log: MeasurementLog, baseline: dict[str, Any], kind: str, metric: str
 ) -> None:
-    worse = run_backend(_worse_log(log, kind), "ekf", fusion=True).metrics
+    worse = run(_worse_log(log, kind), "ekf", fusion=True).metrics
     report = check_baseline(worse, baseline)
     assert not report.passed
     failed = {c.metric: c for c in report.failures}
@@ -111,7 +112,7 @@ def test_a_worsened_estimator_fails_naming_the_metric(
 
 def test_perturbed_poses_fail_on_accuracy(log: MeasurementLog) -> None:
     res = run_ekf(log, EKFConfig(fusion=True))
-    base = record_baseline(ekf_metrics(res, log))
+    base = record_baseline(run_metrics(to_result(res, log), log))
     # A bias along x on every pose after the first, twice the RMSE limit: the RMS of
     # (error + bias) is at least |bias| − RMSE > limit, whatever the baseline is.
     m = "position_error_m.rmse"
@@ -377,8 +378,8 @@ def test_helper_does_not_modify_its_input(tmp_path: Path) -> None:
 
 
 def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path) -> None:
+    from mapfuse.cli import main
     from mapfuse_core.measlog import KnownMapArrays, save_log
-    from mapfuse_graph.cli import main
 
     log = synthetic_log(60, 2)
     k = log.known_map
@@ -390,9 +391,9 @@ def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path)
     entries = load_baseline(out)
     assert [e["metrics"]["fusion"] for e in entries] == [False]
     # Unambiguous: a run asked to fuse is reported without fusion and matches the entry.
-    metrics = run_backend(no_map, "ekf", fusion=True).metrics
+    metrics = run(no_map, "ekf", fusion=True).metrics
     assert metrics["fusion"] is False
     assert_no_worse_than_baseline(metrics, out)
     assert record_baseline(no_map, "ekf", fusion=True)["metrics"]["fusion"] is False
-    # The metric functions themselves report the fusion that happened.
-    assert ekf_metrics(run_ekf(no_map, EKFConfig(fusion=True)), no_map)["fusion"] is False
+    # The harness decides it once: the estimator itself is asked not to fuse.
+    assert run(no_map, "ekf", fusion=True).result.extras["ekf"].config.fusion is False

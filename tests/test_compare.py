@@ -9,11 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse_core.ccda import ccda_match
-from mapfuse_core.features import FeatureKind, express_in
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_graph.compare import FIGURE_FILES, Comparison, compare, write_comparison
-from mapfuse_graph.figures import (
+from mapfuse.compare import FIGURE_FILES, Comparison, compare, write_comparison
+from mapfuse.figures import (
     ccda_figure,
     fig6_errors_bounds,
     fig7_error_fusion,
@@ -22,7 +19,10 @@ from mapfuse_graph.figures import (
     run_label,
     timing_figure,
 )
-from mapfuse_graph.runner import run_backend
+from mapfuse.run import run
+from mapfuse_core.ccda import ccda_match
+from mapfuse_core.features import FeatureKind, express_in
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.synthetic import synthetic_log
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -66,14 +66,14 @@ def test_graph_runs_reuse_the_ekf_decisions_of_their_fusion_setting(
     comparison: Comparison,
 ) -> None:
     for fusion in (True, False):
-        ekf = comparison.run("ekf", fusion).ekf
-        assert ekf is not None
-        assert ekf.config.fusion is fusion
+        ekf = comparison.run("ekf", fusion).result
+        assert ekf.fusion is fusion
+        assert ekf.extras["ekf"].config.fusion is fusion
         for b in ("batch", "isam2"):
-            run = comparison.run(b, fusion)
+            graph = comparison.run(b, fusion)
             # The very object: the EKF was not run a second time.
-            assert run.ekf is ekf
-            assert run.metrics["association"] == "ekf"
+            assert graph.result.upstream is ekf
+            assert graph.metrics["association"] == "ekf"
 
 
 def test_progress_is_labelled_per_run(
@@ -92,14 +92,17 @@ def test_progress_is_labelled_per_run(
 def test_subset_of_backends(log: MeasurementLog) -> None:
     c = compare(log, backends=("isam2",), fusions=(True,))
     assert [(m["backend"], m["fusion"]) for m in c.metrics] == [("isam2", True)]
-    assert c.runs[0].ekf is not None  # the decisions still came from an EKF run
+    upstream = c.runs[0].result.upstream  # the decisions still came from an EKF run
+    assert upstream is not None
+    assert upstream.estimator == "ekf"
 
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"backends": ("ekf", "gtsam")}, "backends must be among"),
-        ({"backends": ()}, "backends must be among"),
+        ({"backends": ("ekf", "gtsam")}, "unknown estimator 'gtsam'"),
+        ({"backends": ()}, "backends must be distinct estimator names"),
+        ({"backends": ("ekf", "ekf")}, "backends must be distinct estimator names"),
         ({"fusions": (True, True)}, "fusions must be distinct"),
     ],
 )
@@ -244,7 +247,7 @@ def test_a_log_without_known_map_is_compared_once_and_not_labelled_fused(
     ]
     assert run_label(no_map.run("ekf", False)) == "ekf"
     # Asked for fusion on such a log, a run is made and reported without it.
-    alone = run_backend(no_map.log, "ekf", fusion=True)
+    alone = run(no_map.log, "ekf", fusion=True)
     assert alone.metrics["fusion"] is False
     np.testing.assert_array_equal(alone.poses, no_map.run("ekf", False).poses)
     assert run_label(compare(log, backends=("ekf",)).run("ekf", True)) == "ekf with fusion"

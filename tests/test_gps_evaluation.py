@@ -10,8 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.stats import chi2 as scipy_chi2
 
+from mapfuse.metrics import build_metrics
 from mapfuse_core.evaluation import (
-    build_metrics,
     gps_position_metrics,
     integrated_autocorrelation_time,
     interpolate_positions,

@@ -34,7 +34,6 @@ from mapfuse_graph.solvers import (
     _newest_pose_marginal,
     _ValuesEstimate,
     body_to_abs_cov,
-    graph_metrics,
     levenberg_marquardt,
     run_graph,
     tree_marginals,
@@ -84,7 +83,9 @@ def test_isam2_filtered_agrees_with_ekf(seed: int, scale: float, tol: float) -> 
     """
     log = _scaled_log(60, seed, scale)
     ekf = run_ekf(log, EKFConfig(fusion=False, local_map_steps=10_000))
-    res = run_graph(log, "isam2", fusion=False, association="ekf", ekf_result=ekf, marginals=False)
+    res = run_graph(
+        log, "isam2", fusion=False, association="ekf", decisions=ekf.decisions, marginals=False
+    )
     assert res.filtered_poses is not None
     assert res.filtered_covs is not None
     assert _rel_diff(res.filtered_poses, ekf.poses, ekf.covs).max() <= tol
@@ -241,23 +242,6 @@ def test_split_circles_refuses_what_would_change_the_model(small_log: Measuremen
         )
 
 
-def test_victoria_park_defaults_split_circles_only_when_it_is_the_same_model(
-    small_log: MeasurementLog,
-) -> None:
-    from mapfuse_core.datasets import VICTORIA_PARK_NAME
-    from mapfuse_graph.runner import default_graph_options
-
-    vp = dataclasses.replace(small_log, scenario=VICTORIA_PARK_NAME)
-    assert default_graph_options(vp).split_circles
-    assert not default_graph_options(small_log).split_circles
-    assert not default_graph_options(vp, association="own").split_circles
-    assert not default_graph_options(vp, robust="huber").split_circles
-    cov = vp.feat_cov.copy()
-    j = int(np.nonzero(vp.feat_kind == int(FeatureKind.CIRCLE))[0][0])
-    cov[j, 1, 2] = cov[j, 2, 1] = 1e-6
-    assert not default_graph_options(_tampered(vp, feat_cov=cov)).split_circles
-
-
 def _known_frame_solution(log: MeasurementLog) -> np.ndarray:
     """The same problem written in ``Wknown`` without an anchor or ties.
 
@@ -406,11 +390,13 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
 def test_mapfuse_defaults_give_the_graph_the_ekfs_association_config(
     small_log: MeasurementLog,
 ) -> None:
-    from mapfuse_graph.runner import default_ekf_config, default_graph_options
+    from mapfuse import registry
+    from mapfuse.profiles import default_options
 
-    ekf = default_ekf_config(small_log).data_association
-    assert default_graph_options(small_log).data_association == ekf
-    assert default_graph_options(small_log).data_association.ccda.min_pairings == 8
+    ekf = default_options(registry.get("ekf"), small_log).data_association
+    graph = default_options(registry.get("batch"), small_log).graph.data_association
+    assert graph == ekf
+    assert graph.ccda.min_pairings == 8
 
 
 def _line_landmarks_taking_two_segments(res: GraphResult, log: MeasurementLog) -> int:
@@ -455,7 +441,7 @@ def test_ekf_association_with_fusion_uses_the_ekf_anchor() -> None:
     log = synthetic_log(steps=120, seed=0)
     ekf = run_ekf(log, EKFConfig(fusion=True))
     assert ekf.anchor is not None
-    res = run_graph(log, "isam2", fusion=True, association="ekf", ekf_result=ekf)
+    res = run_graph(log, "isam2", fusion=True, association="ekf", decisions=ekf.decisions)
     assert res.anchor is not None
     assert res.anchor.source == "ekf"
     assert res.anchor.accepted_at_step == ekf.anchor.accepted_at_step
@@ -482,19 +468,20 @@ def test_robust_kernel_on_clean_data_changes_little() -> None:
     assert _rel_diff(huber.poses, plain.poses, plain.covs).max() <= 0.5
 
 
-def test_metrics_follow_the_shared_schema() -> None:
+def test_graph_result_decisions_round_trip_the_associations() -> None:
     log = synthetic_log(steps=40, seed=0)
     res = run_graph(log, "isam2", fusion=True, association="truth")
-    m = graph_metrics(res, log)
-    assert m["backend"] == "isam2"
-    assert m["steps"] == 40
-    assert {"position_error_m", "nees", "anchor", "map", "runtime_s"} <= set(m)
-    assert m["anchor"]["correct_pairings"] == m["anchor"]["pairings"] > 0
-    assert graph_metrics(res, log, "filtered")["estimate"] == "filtered"
-    bat = run_graph(log, "batch", fusion=True, association="truth")
-    with pytest.raises(ValueError, match="isam2"):
-        graph_metrics(bat, log, "filtered")
     assert isinstance(res, GraphResult)
+    d = res.decisions
+    assert d.anchor is not None
+    assert res.anchor is not None
+    np.testing.assert_array_equal(d.anchor.x_Wknown_Wglobal, res.anchor.x_Wknown_Wglobal)
+    np.testing.assert_array_equal(d.obs_landmark, res.obs_landmark)
+    known = res.landmarks.known_ids
+    for i in np.nonzero(res.obs_landmark >= 0)[0][:50]:
+        assert d.obs_known_id[i] == known[res.obs_landmark[i]]
+    again = run_graph(log, "isam2", fusion=True, associations=d.arrays)
+    np.testing.assert_allclose(again.poses, res.poses, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- validation
@@ -618,7 +605,7 @@ def test_rejects_bad_association_arrays(small_log: MeasurementLog) -> None:
 
 
 def test_rejects_bad_arguments(small_log: MeasurementLog) -> None:
-    with pytest.raises(ValueError, match="needs ekf_result"):
+    with pytest.raises(ValueError, match="needs decisions"):
         run_graph(small_log, "isam2", association="ekf")
     with pytest.raises(ValueError, match="backend"):
         run_graph(small_log, "lm", association="truth")

@@ -59,12 +59,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ekf_reference import ekf_metrics
+from mapfuse.testing import assert_no_worse_than_baseline
 from mapfuse_core.evaluation import anchor_truth, known_map_draw_offset
 from mapfuse_core.scenario import build_known_map, load_scenario
 from mapfuse_core.se2 import compose, wrap_angle
-from mapfuse_graph.testing import assert_no_worse_than_baseline
-from tests.loop600 import SEEDS, loop600_ekf, loop600_ekf_carry, loop600_log
+from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_ekf_carry, loop600_log
 
 pytestmark = pytest.mark.slow
 

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from ekf_reference import EKFConfig, ekf_metrics, run_ekf
+from ekf_reference import EKFConfig, run_ekf
+from mapfuse.estimators.ekf import to_result
+from mapfuse.run import Run, run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -28,8 +30,7 @@ from mapfuse_core.evaluation import (
 )
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
-from mapfuse_graph.runner import RunOutput, run_backend
-from tests.loop600 import SEEDS, loop600_ekf, loop600_log
+from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_log
 from tests.synthetic import with_known
 
 pytestmark = pytest.mark.slow
@@ -41,12 +42,13 @@ JOINT_STRIDE = 10
 
 
 @functools.lru_cache(maxsize=5)
-def _batch(seed: int) -> RunOutput:
-    return run_backend(
-        loop600_log(seed),
+def _batch(seed: int) -> Run:
+    log = loop600_log(seed)
+    return run(
+        log,
         "batch",
         fusion=True,
-        ekf_result=loop600_ekf(seed, True),
+        upstream=to_result(loop600_ekf(seed, True), log),
         joint_stride=JOINT_STRIDE,
     )
 
@@ -68,13 +70,12 @@ def test_pooled_smoothed_nees_is_within_its_interval() -> None:
     """
     parts, series = [], []
     for s in SEEDS:
-        run = _batch(s)
-        assert run.graph is not None
-        joint = run.graph.joint_pose_cov
+        b = _batch(s)
+        joint = b.result.extras["graph"].joint_pose_cov
         assert joint is not None
         truth = loop600_log(s).true_poses
         assert truth is not None
-        v = nees_series(pose_errors(run.poses, truth_in_global(truth)).dx, run.covs)
+        v = nees_series(pose_errors(b.poses, truth_in_global(truth)).dx, b.covs)
         series.append(v[joint.steps])
         parts.append(nees_mean_distribution(joint.cov))
     pooled = pooled_nees_mean_distribution(parts)
@@ -132,8 +133,9 @@ def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
 
 
 @functools.lru_cache(maxsize=5)
-def _isam2(seed: int) -> RunOutput:
-    return run_backend(loop600_log(seed), "isam2", fusion=True, ekf_result=loop600_ekf(seed, True))
+def _isam2(seed: int) -> Run:
+    log = loop600_log(seed)
+    return run(log, "isam2", fusion=True, upstream=to_result(loop600_ekf(seed, True), log))
 
 
 def _filtered(seed: int) -> tuple[float, np.ndarray]:
@@ -141,7 +143,7 @@ def _filtered(seed: int) -> tuple[float, np.ndarray]:
 
     Step 0 and non-finite values are left out of the NEES as ``ekf_metrics`` does (the
     EKF's step-0 covariance is zero; the graph's is its tiny prior's)."""
-    g = _isam2(seed).graph
+    g = _isam2(seed).result.extras["graph"]
     truth = loop600_log(seed).true_poses
     assert g is not None
     assert g.filtered_poses is not None
@@ -204,9 +206,7 @@ def _anchor_nees(
 def test_batch_anchor_covariance_is_consistent_pooled() -> None:
     values = []
     for s in SEEDS:
-        g = _batch(s).graph
-        assert g is not None
-        a = g.anchor
+        a = _batch(s).result.anchor
         assert a is not None
         values.append(_anchor_nees(a.x_Wknown_Wglobal, a.cov, s))
     print(f"\nbatch anchor NEES per seed {[round(v, 1) for v in values]}")
@@ -242,7 +242,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     log = with_known(log, walls)
     ekf = run_ekf(log, EKFConfig(fusion=True))
     assert ekf.anchor is not None
-    graph = run_backend(log, "batch", fusion=True, ekf_result=ekf).graph
+    graph = run(log, "batch", fusion=True, upstream=to_result(ekf, log)).result.extras["graph"]
     assert graph is not None
     assert graph.anchor is not None
     ratio = np.sqrt(np.diag(ekf.anchor.cov) / np.diag(graph.anchor.cov))

@@ -6,7 +6,6 @@ quoted in comments are those of the shared copies with default options.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -14,10 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ekf_reference import EKFConfig
 from ekf_reference.loops import LoopClosureParams
+from mapfuse.cli import main
+from mapfuse.compare import Comparison, compare, write_comparison
+from mapfuse.figures import gps_errors
+from mapfuse.run import run
 from mapfuse_core.datasets import (
-    VICTORIA_PARK_NAME,
     CarGeometry,
     OdometryNoise,
     integrate_odometry,
@@ -25,11 +26,6 @@ from mapfuse_core.datasets import (
     load_victoria_park,
 )
 from mapfuse_core.measlog import MeasurementLog
-from mapfuse_graph.cli import main
-from mapfuse_graph.compare import Comparison, compare, write_comparison
-from mapfuse_graph.figures import gps_errors
-from mapfuse_graph.runner import default_ekf_config, default_isam2_options, run_backend
-from tests.synthetic import synthetic_log
 
 pytestmark = pytest.mark.slow
 
@@ -153,14 +149,14 @@ def victoria_head(data_dir: Path) -> MeasurementLog:
 
 
 def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: MeasurementLog) -> None:
-    run = run_backend(victoria_head, "ekf", fusion=False)
-    m = run.metrics["position_error_m"]
+    result = run(victoria_head, "ekf", fusion=False)
+    m = result.metrics["position_error_m"]
     assert m["alignment"] == "best_fit"
     # Median 0.80 m over the 2,100 scans (0.50 m over t = 300–450 s) against GPS that
     # itself jumps by metres; with the laser's raw bearings and no sideways slip in the
     # odometry the run was 8–13 m off from t = 300 s on.
     assert m["median"] < 1.2
-    t, e = gps_errors(run)
+    t, e = gps_errors(result)
     late = (t >= 300.0) & (t <= 450.0)
     assert late.sum() > 100
     assert np.median(e[late]) < 1.0
@@ -173,9 +169,8 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir:
     seventeen turn the same way (mean +1.77°), and without slip only a laser yaw of
     −0.017 rad made them turn both ways.  The park's north-west arm, 6.4 m (median) off
     GPS without slip, now follows GPS."""
-    run = run_backend(load_victoria_park(data_dir), "ekf", fusion=False)
-    assert run.ekf is not None
-    closures = run.ekf.loop_closures
+    result = run(load_victoria_park(data_dir), "ekf", fusion=False)
+    closures = result.result.extras["ekf"].loop_closures
     rot = np.degrees([lc.correction[2] for lc in closures])
     # Measured: 6 closures, −0.88° … +0.65°, mean −0.07°.  0.3° is a sixth of the
     # systematic turn 1 cm/√m leaves, and about 1.3 standard errors of a mean of 6
@@ -189,29 +184,14 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir:
         assert 0 < lc.pairings <= lc.inliers
         assert lc.correction.shape == (3,)
         assert not lc.correction.flags.writeable
-    m = run.metrics["position_error_m"]
+    m = result.metrics["position_error_m"]
     # Measured: median 0.82 m (1.17 m without slip and with the −0.017 rad yaw that stood
     # in for it); GPS itself jumps by metres.  Not an independent check of the slip: GPS
     # is what shows the arm, but the value was chosen without it.
     assert m["median"] < 1.0
     assert m["alignment"] == "best_fit"
-    t, e = gps_errors(run)
+    t, e = gps_errors(result)
     arm = (t > 1285.0) & (t < 1335.0)  # the arm's tip
     # Measured: median 0.94 m over 182 fixes (6.4 m without slip).
     assert arm.sum() > 100
     assert np.median(e[arm]) < 2.0
-
-
-def test_dataset_specific_defaults() -> None:
-    log = synthetic_log(40, 1)
-    vp = dataclasses.replace(log, scenario=VICTORIA_PARK_NAME)
-    assert default_ekf_config(log, True) == EKFConfig(fusion=True)
-    assert default_ekf_config(vp, False) == EKFConfig(
-        fusion=False,
-        local_map_steps=200,
-        min_obs_to_join=2,
-        loop_closure=LoopClosureParams(),
-        join_circle_sigma_m=0.1,
-    )
-    assert default_isam2_options(log).relinearize_skip == 1
-    assert default_isam2_options(vp).relinearize_skip == 10

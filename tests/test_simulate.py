@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapfuse.cli import main
 from mapfuse_core.evaluation import path_length
 from mapfuse_core.laser import LaserParams, simulate_scan
 from mapfuse_core.measlog import load_log, save_log
 from mapfuse_core.scenario import Scenario, load_scenario
 from mapfuse_core.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
 from mapfuse_core.world import World
-from mapfuse_graph.cli import main
 from tests.loop600 import loop600_log
 
 

@@ -38,7 +38,6 @@ setting than its baseline fails with a message saying so.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -271,21 +270,24 @@ def record_baseline(
 ) -> dict[str, Any]:
     """A baseline entry from a ``metrics.json`` object, or by running ``backend`` on a log.
 
-    With a log, ``backend`` is required and the run is
-    ``run_backend(log, backend, fusion, association)``, reporting
-    ``progress(label, k, n)``.  With metrics, ``backend`` (if given) must match them and
-    ``fusion``/``association`` are ignored.
+    With a log, ``backend`` (a registered estimator name) is required and the run is
+    :func:`mapfuse.run.run` of it with ``fusion`` (and, for an estimator that consumes
+    another's decisions, ``association``), reporting ``progress(label, k, n)``.  With
+    metrics, ``backend`` (if given) must match them and ``fusion``/``association`` are
+    ignored.
     """
     if isinstance(source, MeasurementLog):
         if backend is None:
             raise ValueError("record_baseline on a log needs a backend ('ekf', 'batch', 'isam2')")
-        from mapfuse_graph.runner import run_backend
+        from mapfuse.run import fusion_for, labelled, make_options, resolve, run
 
-        fusion = source.fuses(fusion)
+        est = resolve(backend)
+        fusion = fusion_for(source, fusion)
         label = f"{backend} {'with' if fusion else 'without'} fusion"
-        report = None if progress is None else functools.partial(progress, label)
-        run = run_backend(source, backend, fusion=fusion, association=association, progress=report)
-        return _entry(run.metrics, note)
+        overrides = {} if getattr(est, "consumes", None) is None else {"association": association}
+        options = make_options(est, source, **overrides)
+        r = run(source, est, fusion=fusion, options=options, progress=labelled(progress, label))
+        return _entry(r.metrics, note)
     if backend is not None and source.get("backend") != backend:
         raise ValueError(f"metrics are of backend {source.get('backend')!r}, not {backend!r}")
     return _entry(source, note)
@@ -293,16 +295,17 @@ def record_baseline(
 
 def record_baselines(
     log: MeasurementLog,
-    backends: Sequence[str] = ("ekf", "batch", "isam2"),
+    backends: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
     note: str = "",
     progress: Callable[[str, int, int], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Entries for ``backends`` × ``fusions`` on ``log`` (one EKF run per fusion setting).
+    """Entries for ``backends`` × ``fusions`` on ``log`` (as :func:`mapfuse.compare.compare`,
+    whose defaults ``None`` takes).
 
-    ``progress(label, k, n)`` as in :func:`mapfuse_graph.compare.compare`.
+    ``progress(label, k, n)`` as in :func:`mapfuse.compare.compare`.
     """
-    from mapfuse_graph.compare import compare
+    from mapfuse.compare import compare
 
     comparison = compare(log, progress=progress, backends=backends, fusions=fusions)
     return [_entry(m, note) for m in comparison.metrics]
@@ -524,35 +527,31 @@ def check_log_against_baseline(
 ) -> list[BaselineReport]:
     """Re-run every entry's backend/fusion/association on ``log`` and check each.
 
-    The EKF runs once per fusion setting; graph entries with ``association="ekf"``
-    reuse it.  ``progress(label, k, n)`` as in :func:`mapfuse_graph.compare.compare`.
+    An estimator's result that others consume (the EKF's, for graph entries) is made
+    once per fusion setting and reused.  ``progress(label, k, n)`` as in
+    :func:`mapfuse.compare.compare`.
     """
-    from ekf_reference.result import EKFResult
-    from mapfuse_graph.runner import run_backend
+    from mapfuse.metrics import run_metrics
+    from mapfuse.result import EstimatorResult
+    from mapfuse.run import consumer_options, labelled, resolve, run
 
     entries = load_baseline(baseline) if isinstance(baseline, str | Path) else _entries_of(baseline)
-    ekf: dict[bool, EKFResult] = {}
+    done: dict[bool, dict[str, EstimatorResult]] = {}
     reports = []
     for e in entries:
         m = e["metrics"]
-        backend, fusion = str(m["backend"]), bool(m["fusion"])
-        association = str(m.get("association", "ekf"))
-        label = f"{backend} {'with' if fusion else 'without'} fusion"
-        report = None if progress is None else functools.partial(progress, label)
-        run = run_backend(
-            log,
-            backend,
-            fusion=fusion,
-            association=association,
-            ekf_result=ekf.get(fusion),
-            progress=report,
-        )
-        if run.ekf is not None:
-            ekf.setdefault(fusion, run.ekf)
-        new = run.metrics
-        if m.get("estimate") == "filtered" and run.graph is not None:
-            from mapfuse_graph.solvers import graph_metrics
-
-            new = graph_metrics(run.graph, log, which="filtered")
+        est = resolve(str(m["backend"]))
+        fusion = bool(m["fusion"])
+        overrides = {"association": str(m["association"])} if "association" in m else {}
+        mine = done.setdefault(fusion, {})
+        options = consumer_options(est, log, mine, **overrides)
+        label = f"{est.name} {'with' if fusion else 'without'} fusion"
+        r = run(log, est, fusion=fusion, options=options, progress=labelled(progress, label))
+        mine.setdefault(est.name, r.result)
+        if r.result.upstream is not None:
+            mine.setdefault(r.result.upstream.estimator, r.result.upstream)
+        new = r.metrics
+        if m.get("estimate") == "filtered":
+            new = run_metrics(r.result, log, which="filtered")
         reports.append(check_baseline(new, [e], tolerances, which))
     return reports

@@ -2,16 +2,16 @@
 
 Use in your own pytest tests::
 
-    from mapfuse_graph.runner import run_backend
-    from mapfuse_graph.testing import assert_no_worse_than_baseline
+    from mapfuse.run import run
+    from mapfuse.testing import assert_no_worse_than_baseline
 
     def test_my_change_keeps_the_ekf_accurate(my_log):
-        run = run_backend(my_log, "ekf", fusion=True)
-        assert_no_worse_than_baseline(run.metrics, "tests/baselines/my_scenario.json")
+        result = run(my_log, "ekf", fusion=True)
+        assert_no_worse_than_baseline(result.metrics, "tests/baselines/my_scenario.json")
 
-Record the baseline once with :func:`mapfuse_graph.baseline.record_baseline` and
-:func:`mapfuse_graph.baseline.save_baseline` (or ``mapfuse baseline record``).  The
-rules and default tolerances are those of :mod:`mapfuse_graph.baseline`.  No pytest
+Record the baseline once with :func:`mapfuse.baseline.record_baseline` and
+:func:`mapfuse.baseline.save_baseline` (or ``mapfuse baseline record``).  The
+rules and default tolerances are those of :mod:`mapfuse.baseline`.  No pytest
 import: a plain :class:`AssertionError` works under any test runner.
 """
 
@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from mapfuse_graph.baseline import BaselineReport, Tolerance, check_baseline
+from mapfuse.baseline import BaselineReport, Tolerance, check_baseline
 
 __all__ = ["assert_no_worse_than_baseline"]
 
@@ -34,11 +34,11 @@ def assert_no_worse_than_baseline(
 ) -> BaselineReport:
     """Raise :class:`AssertionError` if ``run_metrics`` is worse than its baseline.
 
-    ``run_metrics``: a ``metrics.json`` object (``RunOutput.metrics``).
+    ``run_metrics``: a ``metrics.json`` object (``Run.metrics``).
     ``baseline_path``: a baseline file; its entry of the same backend and fusion
     setting is used.  ``metrics``: dotted metric names to check (default
-    :data:`mapfuse_graph.baseline.DEFAULT_METRICS`).  ``tolerance``: one
-    :class:`~mapfuse_graph.baseline.Tolerance` for all of them, or one per metric
+    :data:`mapfuse.baseline.DEFAULT_METRICS`).  ``tolerance``: one
+    :class:`~mapfuse.baseline.Tolerance` for all of them, or one per metric
     (others keep their defaults).  The error message names every failing metric with
     its baseline value, its new value and the tolerance.  Returns the report when
     the run passes.

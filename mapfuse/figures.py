@@ -3,7 +3,9 @@
 Every function builds and returns a matplotlib :class:`~matplotlib.figure.Figure`
 from finished results (never ``pyplot``, never ``show()``), with labelled axes in
 units, a legend and a title; the caller saves or displays it.  Runs are the
-:class:`mapfuse_graph.runner.RunOutput` of :func:`mapfuse_graph.runner.run_backend`.
+:class:`mapfuse.run.Run` of :func:`mapfuse.run.run`; every figure reads only their
+:class:`~mapfuse.result.EstimatorResult`, their log and their metrics, so any
+registered estimator can be drawn.
 
 Figures that compare against truth raise :class:`ValueError` for a log without true
 poses (real data); :func:`fig10_maps` and :func:`timing_figure` work without truth.
@@ -17,6 +19,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mapfuse.plotting import (
+    draw_circle,
+    draw_line_feature,
+    plot_errors_with_bounds,
+    plot_trajectory,
+    plot_world,
+)
+from mapfuse.run import Run, fusion_for
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     gps_error_series,
@@ -26,13 +36,6 @@ from mapfuse_core.evaluation import (
 )
 from mapfuse_core.features import FeatureKind, transform_feature
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.plotting import (
-    draw_circle,
-    draw_line_feature,
-    plot_errors_with_bounds,
-    plot_trajectory,
-    plot_world,
-)
 from mapfuse_core.se2 import FloatArray, compose, inverse
 from mapfuse_core.world import World
 
@@ -41,7 +44,6 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from mapfuse_core.ccda import CCDAResult
-    from mapfuse_graph.runner import RunOutput
 
 __all__ = [
     "PAPER_ANCHOR_ESTIMATE",
@@ -79,20 +81,20 @@ _COLOURS = {"ekf": "tab:blue", "batch": "tab:orange", "isam2": "tab:green"}
 _STYLES = {True: "-", False: "--"}
 
 
-def run_label(run: RunOutput) -> str:
+def run_label(run: Run) -> str:
     """``"ekf with fusion"``-style label of a run; just the backend on a log without a
     known map (Victoria Park), where there is nothing to fuse either way."""
     m = run.metrics
-    if not run.log.fuses(True):
+    if not fusion_for(run.log, True):
         return str(m["backend"])
     return f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion"
 
 
-def _colour(run: RunOutput) -> str:
+def _colour(run: Run) -> str:
     return _COLOURS.get(str(run.metrics["backend"]), "tab:gray")
 
 
-def _style(run: RunOutput) -> str:
+def _style(run: Run) -> str:
     return _STYLES[bool(run.metrics["fusion"])]
 
 
@@ -102,39 +104,27 @@ def _truth(log: MeasurementLog, n: int) -> FloatArray:
     return truth_in_global(log.true_poses[:n])
 
 
-def run_errors(run: RunOutput) -> tuple[FloatArray, FloatArray]:
+def run_errors(run: Run) -> tuple[FloatArray, FloatArray]:
     """Per-step ``(dx (N, 3), NEES (N,))`` of a run against truth in ``Wglobal``."""
     err = pose_errors(run.poses, _truth(run.log, run.poses.shape[0]))
     return err.dx, nees_series(err.dx, run.covs)
 
 
-def step_times(run: RunOutput) -> FloatArray:
+def step_times(run: Run) -> FloatArray:
     """(N,) wall time of each step of a run (s)."""
-    if run.graph is not None:
-        return run.graph.step_time_s
-    if run.ekf is not None:
-        return run.ekf.step_time_s
-    raise ValueError("the run holds neither an EKF nor a graph result")
+    return run.result.step_time_s
 
 
-def anchor_of(run: RunOutput) -> FloatArray | None:
+def anchor_of(run: Run) -> FloatArray | None:
     """The run's estimated ``x^Wknown_Wglobal``, or ``None`` (no fusion, no match)."""
-    if run.graph is not None:
-        return None if run.graph.anchor is None else run.graph.anchor.x_Wknown_Wglobal
-    if run.ekf is not None and run.ekf.anchor is not None:
-        return run.ekf.anchor.x_Wknown_Wglobal
-    return None
+    anchor = run.result.anchor
+    return None if anchor is None else np.asarray(anchor.x_Wknown_Wglobal, dtype=float)
 
 
-def map_of(run: RunOutput) -> tuple[np.ndarray, FloatArray, np.ndarray, np.ndarray]:
+def map_of(run: Run) -> tuple[np.ndarray, FloatArray, np.ndarray, np.ndarray]:
     """The run's final map in ``Wglobal``: ``(kinds, params, known_ids, n_obs)``."""
-    if run.graph is not None:
-        lm = run.graph.landmarks
-        return lm.kinds, lm.params, lm.known_ids, lm.n_obs
-    if run.ekf is not None:
-        gm = run.ekf.global_map
-        return gm.kinds, gm.params, gm.known_ids, gm.n_obs
-    raise ValueError("the run holds neither an EKF nor a graph result")
+    mp = run.result.map
+    return mp.kinds, mp.params, mp.known_ids, mp.n_obs
 
 
 def _finish(ax: Axes, xlabel: str, ylabel: str, title: str, legend: bool = True) -> None:
@@ -149,7 +139,7 @@ def _finish(ax: Axes, xlabel: str, ylabel: str, title: str, legend: bool = True)
 # --------------------------------------------------------------------------- Fig. 6
 
 
-def fig6_errors_bounds(run: RunOutput) -> Figure:
+def fig6_errors_bounds(run: Run) -> Figure:
     """x, y, θ errors of one run (the paper: EKF with fusion) with ±2σ bounds."""
     from matplotlib.figure import Figure
 
@@ -176,7 +166,7 @@ def fig6_errors_bounds(run: RunOutput) -> Figure:
 # --------------------------------------------------------------------------- Fig. 7
 
 
-def fig7_error_fusion(runs: Sequence[RunOutput], paper_reference: bool = True) -> Figure:
+def fig7_error_fusion(runs: Sequence[Run], paper_reference: bool = True) -> Figure:
     """Position error against time of several runs (with and without fusion).
 
     ``paper_reference`` draws the paper's two levels (fused < 0.15 m, unfused ≈ 0.5 m).
@@ -252,7 +242,7 @@ def _in_frame(T: FloatArray, kinds: np.ndarray, params: FloatArray) -> FloatArra
     ).reshape(-1, 3)
 
 
-def _display_frame(run: RunOutput) -> tuple[FloatArray, str]:
+def _display_frame(run: Run) -> tuple[FloatArray, str]:
     """Where Fig. 10 draws a run: its anchor, else the true start, the GPS fit, or none."""
     T = anchor_of(run)
     if T is not None:
@@ -265,7 +255,7 @@ def _display_frame(run: RunOutput) -> tuple[FloatArray, str]:
     return np.zeros(3), "in Wglobal (no anchor, no truth)"
 
 
-def fig10_maps(runs: Sequence[RunOutput], world: World | None = None) -> Figure:
+def fig10_maps(runs: Sequence[Run], world: World | None = None) -> Figure:
     """Estimated map and trajectory of each run over the known map, in ``Wknown``.
 
     One panel per run; features never observed (the known features an EKF with fusion
@@ -335,7 +325,7 @@ def fig10_maps(runs: Sequence[RunOutput], world: World | None = None) -> Figure:
 # --------------------------------------------------------------------------- real data
 
 
-def _gps_alignment(run: RunOutput) -> FloatArray | None:
+def _gps_alignment(run: Run) -> FloatArray | None:
     """``x^gps_Wglobal`` the run's GPS metrics used (anchor or best fit), if any."""
     block = run.metrics.get("position_error_m")
     if not isinstance(block, dict) or "x_gps_Wglobal" not in block:
@@ -343,7 +333,7 @@ def _gps_alignment(run: RunOutput) -> FloatArray | None:
     return np.asarray(block["x_gps_Wglobal"], dtype=float)
 
 
-def gps_errors(run: RunOutput) -> tuple[FloatArray, FloatArray]:
+def gps_errors(run: Run) -> tuple[FloatArray, FloatArray]:
     """``(times (G,), position error (G,))`` of a run against GPS, as in its metrics.
 
     The estimate goes into the GPS frame through the transform the metrics used (the
@@ -356,7 +346,7 @@ def gps_errors(run: RunOutput) -> tuple[FloatArray, FloatArray]:
     return gps_error_series(run.timestamps, run.poses, *gps, T)
 
 
-def gps_error_figure(runs: Sequence[RunOutput]) -> Figure:
+def gps_error_figure(runs: Sequence[Run]) -> Figure:
     """Position error against GPS over time, one curve per run (real data)."""
     from matplotlib.figure import Figure
 
@@ -383,7 +373,7 @@ def gps_error_figure(runs: Sequence[RunOutput]) -> Figure:
     return fig
 
 
-def gps_trajectory_figure(runs: Sequence[RunOutput]) -> Figure:
+def gps_trajectory_figure(runs: Sequence[Run]) -> Figure:
     """Estimated trajectories over the GPS track, in the GPS frame (real data)."""
     from matplotlib.figure import Figure
 
@@ -426,8 +416,8 @@ def gps_trajectory_figure(runs: Sequence[RunOutput]) -> Figure:
 # --------------------------------------------------------------------------- NEES, timing
 
 
-def _split_by_fusion(runs: Sequence[RunOutput]) -> list[tuple[bool, list[RunOutput]]]:
-    out: list[tuple[bool, list[RunOutput]]] = []
+def _split_by_fusion(runs: Sequence[Run]) -> list[tuple[bool, list[Run]]]:
+    out: list[tuple[bool, list[Run]]] = []
     for fusion in (True, False):
         sel = [r for r in runs if bool(r.metrics["fusion"]) is fusion]
         if sel:
@@ -435,7 +425,7 @@ def _split_by_fusion(runs: Sequence[RunOutput]) -> list[tuple[bool, list[RunOutp
     return out
 
 
-def nees_figure(runs: Sequence[RunOutput]) -> Figure:
+def nees_figure(runs: Sequence[Run]) -> Figure:
     """Vehicle NEES against time with the χ²(3, 0.95) bound; one panel per fusion setting.
 
     Graph runs show the smoothed estimate; iSAM2 also its filtered (per-step)
@@ -451,7 +441,7 @@ def nees_figure(runs: Sequence[RunOutput]) -> Figure:
     for ax, (fusion, sel) in zip(axes, groups, strict=True):
         for run in sel:
             _, nees = run_errors(run)
-            smoothed = " (smoothed)" if run.graph is not None else ""
+            smoothed = " (smoothed)" if run.result.smoothed is not None else ""
             ax.plot(
                 run.timestamps,
                 nees,
@@ -459,13 +449,13 @@ def nees_figure(runs: Sequence[RunOutput]) -> Figure:
                 lw=0.8,
                 label=run.metrics["backend"] + smoothed,
             )
-            g = run.graph
-            if g is not None and g.filtered_poses is not None and g.filtered_covs is not None:
-                n = g.filtered_poses.shape[0]
-                err = pose_errors(g.filtered_poses, _truth(run.log, n))
+            f = run.result.filtered
+            if run.result.smoothed is not None and f is not None:
+                n = f.poses.shape[0]
+                err = pose_errors(f.poses, _truth(run.log, n))
                 ax.plot(
                     run.timestamps[:n],
-                    nees_series(err.dx, g.filtered_covs),
+                    nees_series(err.dx, f.covs),
                     color=_colour(run),
                     lw=0.8,
                     ls=":",
@@ -484,11 +474,11 @@ def nees_figure(runs: Sequence[RunOutput]) -> Figure:
     return fig
 
 
-def timing_figure(runs: Sequence[RunOutput]) -> Figure:
+def timing_figure(runs: Sequence[Run]) -> Figure:
     """Per-step wall time of each run (log scale); one panel per fusion setting.
 
-    Batch has no per-step cost: its solve is shared equally among the steps (said in
-    the legend).
+    A smoother without per-step estimates (batch) has no per-step cost: its solve is
+    shared equally among the steps (said in the legend).
     """
     from matplotlib.figure import Figure
 
@@ -501,7 +491,9 @@ def timing_figure(runs: Sequence[RunOutput]) -> Figure:
         for run in sel:
             st = step_times(run)
             b = str(run.metrics["backend"])
-            label = f"{b} (solve shared equally over steps)" if b == "batch" else b
+            # A smoother without per-step estimates (batch) shares its solve among the steps.
+            shared = run.result.filtered is None
+            label = f"{b} (solve shared equally over steps)" if shared else b
             label += f", total {float(np.sum(st)):.2f} s"
             ax.plot(
                 run.timestamps[: st.shape[0]], 1e3 * st, color=_colour(run), lw=0.7, label=label

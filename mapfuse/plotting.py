@@ -1,6 +1,7 @@
 """Plot helpers.  Each draws on a given matplotlib ``Axes`` and never calls ``show()``.
 
-matplotlib is imported only here, so the numeric core does not need it.
+Part of the harness: the numeric packages (``mapfuse_core``, ``ekf_reference``,
+``mapfuse_graph``) never import matplotlib.
 """
 
 from __future__ import annotations

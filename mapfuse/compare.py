@@ -1,16 +1,16 @@
 """One log through every backend, with and without map fusion, and the report of it.
 
-The library side of ``mapfuse compare``: :func:`compare` runs the EKF reference,
-batch Levenberg–Marquardt and iSAM2 on one log for each fusion setting (the graph
-runs consume the EKF's association decisions of the same setting, so the EKF runs
+The library side of ``mapfuse compare``: :func:`compare` runs registered estimators
+(by default the EKF reference, batch Levenberg–Marquardt and iSAM2) on one log for
+each fusion setting (an estimator that consumes another's result, as the graph runs
+consume the EKF's association decisions, gets that run of the same setting, made
 once per setting), and :func:`write_comparison` writes ``comparison.json`` (the list
 of ``metrics.json`` objects), ``report.md`` (one table, the paper's numbers beside
-ours) and the figures of :mod:`mapfuse_graph.figures`.
+ours) and the figures of :mod:`mapfuse.figures`.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import time
@@ -19,10 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapfuse_core.evaluation import CHI2_3_95, path_length
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import wrap_scalar
-from mapfuse_graph.figures import (
+from mapfuse import registry
+from mapfuse.figures import (
     PAPER_ANCHOR_ESTIMATE,
     PAPER_ANCHOR_TRUTH,
     PAPER_FUSED_MAX_ERROR_M,
@@ -35,7 +33,11 @@ from mapfuse_graph.figures import (
     nees_figure,
     timing_figure,
 )
-from mapfuse_graph.runner import BACKENDS, RunOutput, run_backend
+from mapfuse.result import EstimatorResult
+from mapfuse.run import Run, consumer_options, fusion_for, labelled, resolve, run
+from mapfuse_core.evaluation import CHI2_3_95, path_length
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.se2 import wrap_scalar
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -43,6 +45,7 @@ if TYPE_CHECKING:
     from mapfuse_core.scenario import Scenario
 
 __all__ = [
+    "DEFAULT_BACKENDS",
     "FIGURE_FILES",
     "Comparison",
     "compare",
@@ -67,6 +70,9 @@ _NEEDS_TRUTH = ("fig6_errors_bounds.png", "fig7_error_fusion.png", "nees.png")
 
 Progress = Callable[[str, int, int], None]
 
+#: What :func:`compare` runs when no backends are named.
+DEFAULT_BACKENDS: tuple[str, ...] = tuple(registry.BUILTIN)
+
 
 @dataclass(frozen=True)
 class Comparison:
@@ -74,9 +80,9 @@ class Comparison:
 
     log: MeasurementLog
     """The log all runs consumed."""
-    runs: tuple[RunOutput, ...]
+    runs: tuple[Run, ...]
     """Runs ordered by fusion setting (as requested; only without fusion on a log without a
-    known map), then backend (ekf, batch, isam2)."""
+    known map), then backend (as requested, those whose results others consume first)."""
     wall_time_s: float
     """Wall time of the whole :func:`compare` call (s)."""
 
@@ -99,7 +105,7 @@ class Comparison:
             for m in self.metrics
         )
 
-    def run(self, backend: str, fusion: bool) -> RunOutput:
+    def run(self, backend: str, fusion: bool) -> Run:
         """The run of ``backend`` with or without fusion; :class:`KeyError` if not run."""
         for r in self.runs:
             if r.metrics["backend"] == backend and bool(r.metrics["fusion"]) is bool(fusion):
@@ -110,7 +116,7 @@ class Comparison:
         )
         raise KeyError(f"no {backend} run {'with' if fusion else 'without'} fusion (have {have})")
 
-    def find(self, backend: str, fusion: bool) -> RunOutput | None:
+    def find(self, backend: str, fusion: bool) -> Run | None:
         """:meth:`run`, or ``None`` when that run was not made."""
         try:
             return self.run(backend, fusion)
@@ -118,48 +124,65 @@ class Comparison:
             return None
 
 
-def _labelled(
-    progress: Progress | None, backend: str, fusion: bool
-) -> Callable[[int, int], None] | None:
-    """The runner's ``progress(k, n)`` from ours, labelled with the run's name."""
-    if progress is None:
-        return None
-    return functools.partial(progress, f"{backend} {'with' if fusion else 'without'} fusion")
+def _label_of(backend: str, fusion: bool) -> str:
+    return f"{backend} {'with' if fusion else 'without'} fusion"
 
 
 def compare(
     log: MeasurementLog,
     progress: Progress | None = None,
-    backends: Sequence[str] = BACKENDS,
+    backends: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
 ) -> Comparison:
     """Run ``backends`` × ``fusions`` on ``log``.
 
-    Graph backends use the EKF's association decisions of the same fusion setting;
-    the EKF runs once per setting (also when ``"ekf"`` is not among ``backends``:
-    its result is then used for the decisions but not reported).
+    ``backends``: registered estimator names (default :data:`DEFAULT_BACKENDS`).  An
+    estimator that consumes another's result (the graph backends: the EKF's association
+    decisions) gets that estimator's run of the same fusion setting, made once per
+    setting (also when it is not among ``backends``: it is then used but not reported).
     ``progress(label, k, n)`` is called as each run advances, ``label`` naming the run
     (e.g. ``"isam2 without fusion"``).  A log without a known map (Victoria Park) has
     nothing to fuse, so there each backend runs once, without fusion, whatever
     ``fusions`` asks.
     """
-    unknown = [b for b in backends if b not in BACKENDS]
-    if unknown or not backends:
-        raise ValueError(f"backends must be among {', '.join(BACKENDS)}, got {list(backends)}")
+    names = DEFAULT_BACKENDS if backends is None else tuple(backends)
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"backends must be distinct estimator names, got {list(names)}")
+    estimators = [resolve(b) for b in names]
+    consumed = {getattr(e, "consumes", None) for e in estimators}
+    # Estimators whose results others consume run first (stable otherwise).
+    estimators.sort(key=lambda e: e.name not in consumed)
     if not fusions or len(set(fusions)) != len(fusions):
         raise ValueError(f"fusions must be distinct booleans, got {list(fusions)}")
     # Settings that run alike (any, without a known map) run once.
-    fusions = tuple(dict.fromkeys(log.fuses(f) for f in fusions))
+    fusions = tuple(dict.fromkeys(fusion_for(log, f) for f in fusions))
     t0 = time.perf_counter()
-    runs: list[RunOutput] = []
+    runs: list[Run] = []
     for fusion in fusions:
-        ekf = run_backend(log, "ekf", fusion=fusion, progress=_labelled(progress, "ekf", fusion))
-        if "ekf" in backends:
-            runs.append(ekf)
-        for b in BACKENDS[1:]:
-            if b in backends:
-                p = _labelled(progress, b, fusion)
-                runs.append(run_backend(log, b, fusion=fusion, ekf_result=ekf.ekf, progress=p))
+        done: dict[str, EstimatorResult] = {}
+        needed = [c for e in estimators if (c := getattr(e, "consumes", None)) is not None]
+        for name in dict.fromkeys(needed):
+            if name not in names:
+                p = labelled(progress, _label_of(name, fusion))
+                done[name] = run(log, name, fusion=fusion, progress=p).result
+        for est in estimators:
+            p = labelled(progress, _label_of(est.name, fusion))
+            options = consumer_options(est, log, done)
+            r = run(log, est, fusion=fusion, options=options, progress=p)
+            done.setdefault(est.name, r.result)
+            if any(
+                x.estimator == r.estimator and x.fusion is r.fusion for x in runs
+            ):  # an estimator that cannot fuse reports the same run twice
+                continue
+            runs.append(r)
+    # By the fusion each run reports (an estimator that cannot fuse reports none).
+    order = [e.name for e in estimators]
+    runs.sort(
+        key=lambda r: (
+            fusions.index(r.fusion) if r.fusion in fusions else len(fusions),
+            order.index(r.estimator) if r.estimator in order else len(order),
+        )
+    )
     return Comparison(log=log, runs=tuple(runs), wall_time_s=time.perf_counter() - t0)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 # Before numpy loads: the estimators work on small dense matrices, where threaded BLAS
-# on this project's 2-core machines only adds contention (measured ~4x slower).
+# on this project's 2-core machines only adds contention (docs/performance.md).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
@@ -42,7 +42,7 @@ class _Progress:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from mapfuse_core.plotting import world_figure
+    from mapfuse.plotting import world_figure
 
     scenario = load_scenario(args.scenario)
     t0 = time.perf_counter()
@@ -77,7 +77,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> MeasurementLog:
     """The measurement log a command works on: a .npz, a dataset or a simulation."""
-    from mapfuse_graph.runner import prepare_log
+    from mapfuse.run import prepare_log
 
     return prepare_log(
         source,
@@ -87,17 +87,38 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
     )
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    from mapfuse_graph.runner import run_backend, write_outputs
+def _graph_flags(args: argparse.Namespace, estimator: object) -> dict[str, object]:
+    """``--association`` / ``--robust`` as option overrides, when given; only an
+    estimator that consumes another's decisions (the graph backends) takes them."""
+    flags: dict[str, object] = {}
+    given = [f for f in ("association", "robust") if getattr(args, f) is not None]
+    if given and getattr(estimator, "consumes", None) is None:
+        names = " and ".join(f"--{f}" for f in given)
+        raise ValueError(f"{names}: only for the graph backends (batch, isam2), not {args.backend}")
+    if args.association is not None:
+        flags["association"] = args.association
+    if args.robust is not None:
+        flags["robust"] = args.robust
+    return flags
 
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from mapfuse.outputs import write_outputs
+    from mapfuse.run import resolve
+    from mapfuse.run import run as run_estimator
+
+    estimator = resolve(args.backend)
     log = _log_from_args(args, args.scenario, args.seed)
-    run = run_backend(
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {args.steps}")
+        log = log.head(args.steps)
+    run = run_estimator(
         log,
-        args.backend,
+        estimator,
         fusion=args.fusion,
-        association=args.association,
-        robust=args.robust,
         progress=_Progress(args.backend, not args.quiet),
+        **_graph_flags(args, estimator),
     )
     paths = write_outputs(run, args.out)
     print(json.dumps({"metrics": run.metrics, "outputs": paths}, indent=2))
@@ -117,10 +138,16 @@ class _LabelledProgress:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapfuse_graph.compare import compare, write_comparison
+    from mapfuse.compare import compare, write_comparison
+    from mapfuse.run import resolve
 
+    backends = None
+    if args.backends is not None:
+        backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+        for b in backends:
+            resolve(b)  # an unknown name fails before any simulation
     log = _log_from_args(args, args.scenario, args.seed)
-    comparison = compare(log, progress=_LabelledProgress(not args.quiet))
+    comparison = compare(log, progress=_LabelledProgress(not args.quiet), backends=backends)
     simulated = not (args.scenario.endswith(".npz") or args.data)
     scenario = load_scenario(args.scenario) if simulated else None
     paths = write_comparison(comparison, args.out, scenario=scenario)
@@ -130,7 +157,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
-    from mapfuse_graph.baseline import record_baselines, save_baseline
+    from mapfuse.baseline import record_baselines, save_baseline
 
     log = _log_from_args(args, args.scenario, args.seed)
     fusions = (True, False) if args.fusion is None else (args.fusion,)
@@ -141,7 +168,7 @@ def _cmd_baseline_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_baseline_check(args: argparse.Namespace) -> int:
-    from mapfuse_graph.baseline import Tolerance, check_log_against_baseline, load_baseline
+    from mapfuse.baseline import Tolerance, check_log_against_baseline, load_baseline
 
     entries = load_baseline(args.baseline)
     m0 = entries[0]["metrics"]
@@ -188,11 +215,14 @@ def _parser() -> argparse.ArgumentParser:
         "scenario", help="built-in scenario, .toml path, log .npz, carpark or victoria-park"
     )
     run.add_argument(
-        "--backend", default="ekf", choices=["ekf", "batch", "isam2"], help="estimator"
+        "--backend",
+        default="ekf",
+        help="registered estimator (built-in: ekf, batch, isam2; plugins: entry points of "
+        "the 'mapfuse.estimators' group)",
     )
     run.add_argument(
         "--association",
-        default="ekf",
+        default=None,
         choices=["ekf", "truth", "own"],
         help="graph backends: the EKF's saved decisions (default), simulation truth, or "
         "the graph's own χ²-gated nearest neighbour",
@@ -212,6 +242,7 @@ def _parser() -> argparse.ArgumentParser:
         "--no-fusion", dest="fusion", action="store_false", help="SLAM without map fusion"
     )
     run.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
     run.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
     run.add_argument("--out", required=True, help="output directory")
     run.add_argument("--quiet", action="store_true", help="no progress output")
@@ -219,13 +250,19 @@ def _parser() -> argparse.ArgumentParser:
 
     cmp_ = sub.add_parser(
         "compare",
-        help="EKF, batch and iSAM2, with and without fusion, on one log",
-        description="Run {ekf, batch, isam2} x {fusion, no fusion} on one measurement log (no "
+        help="EKF, batch and iSAM2 (or --backends), with and without fusion, on one log",
+        description="Run {ekf, batch, isam2} (or --backends) x {fusion, no fusion} on one "
+        "measurement log (no "
         "fusion only, on a log without a known map) and write OUT/comparison.json, "
         "OUT/report.md and the paper's figures.",
     )
     cmp_.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
     cmp_.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    cmp_.add_argument(
+        "--backends",
+        default=None,
+        help="comma-separated registered estimators (default: ekf,batch,isam2)",
+    )
     cmp_.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
     cmp_.add_argument("--out", required=True, help="output directory")
     cmp_.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -235,7 +272,7 @@ def _parser() -> argparse.ArgumentParser:
     bsub = base.add_subparsers(dest="baseline_command", required=True)
     rec = bsub.add_parser("record", help="record a backend's metrics as a baseline")
     rec.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
-    rec.add_argument("--backend", default="ekf", choices=["ekf", "batch", "isam2"])
+    rec.add_argument("--backend", default="ekf", help="registered estimator")
     rec.add_argument("--seed", type=int, default=None)
     fz = rec.add_mutually_exclusive_group()
     fz.add_argument("--fusion", dest="fusion", action="store_true", default=None)

@@ -1,0 +1,81 @@
+"""Per-dataset defaults of every estimator: one table of :class:`Profile` by dataset name.
+
+A log whose scenario name has a profile runs each estimator with the profile's
+overrides of the estimator's defaults (``options_type()``); any other log runs with
+the defaults.  Why each Victoria Park setting is what it is: ``docs/victoria-park.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from mapfuse.estimator import Estimator
+from mapfuse_core.datasets import VICTORIA_PARK_NAME
+from mapfuse_core.measlog import MeasurementLog
+
+__all__ = ["PROFILES", "Profile", "default_options", "profile_of"]
+
+#: Field overrides of an estimator's options, made on demand (so that a profile of a
+#: graph backend imports gtsam only when that backend runs).
+Overrides = Callable[[], Mapping[str, Any]]
+
+
+@dataclass(frozen=True)
+class Profile:
+    """How the estimators run on one dataset."""
+
+    dataset: str
+    """Scenario name of the dataset's logs (``MeasurementLog.scenario``)."""
+    summary: str
+    """One line on what the profile changes and why."""
+    overrides: Mapping[str, Overrides]
+    """Estimator name → overrides of its default options' fields."""
+
+
+def _victoria_park_ekf() -> Mapping[str, Any]:
+    from ekf_reference.loops import LoopClosureParams
+
+    return {
+        "local_map_steps": 200,
+        "min_obs_to_join": 2,
+        "loop_closure": LoopClosureParams(),
+        "join_circle_sigma_m": 0.1,
+    }
+
+
+def _victoria_park_graph() -> Mapping[str, Any]:
+    from mapfuse_graph.solvers import ISAM2Options
+
+    return {"split_circles_where_exact": True, "isam2": ISAM2Options(relinearize_skip=10)}
+
+
+#: Every dataset with its own defaults, by scenario name.
+PROFILES: Mapping[str, Profile] = {
+    VICTORIA_PARK_NAME: Profile(
+        dataset=VICTORIA_PARK_NAME,
+        summary="long local maps, seen-twice features, loop closure at the joins (EKF); "
+        "split circle landmarks and relinearisation every 10 updates (graph)",
+        overrides={
+            "ekf": _victoria_park_ekf,
+            "batch": _victoria_park_graph,
+            "isam2": _victoria_park_graph,
+        },
+    ),
+}
+
+
+def profile_of(log: MeasurementLog) -> Profile | None:
+    """The profile of ``log``'s dataset, or ``None``."""
+    return PROFILES.get(log.scenario)
+
+
+def default_options(estimator: Estimator, log: MeasurementLog) -> Any:
+    """``estimator``'s options for ``log``: its defaults with the dataset's overrides."""
+    options = estimator.options_type()
+    profile = profile_of(log)
+    if profile is None or estimator.name not in profile.overrides:
+        return options
+    return dataclasses.replace(options, **profile.overrides[estimator.name]())

@@ -1,0 +1,118 @@
+"""Which estimators exist: the ``mapfuse.estimators`` entry points and :func:`register`.
+
+Built-in ``ekf``, ``batch`` and ``isam2`` are entry points of this package
+(``pyproject.toml``), like any plugin's.  Entry points are loaded only when their
+estimator is asked for, so ``mapfuse run --backend ekf`` never imports gtsam.  An
+entry point names an :class:`~mapfuse.estimator.Estimator` instance or a class (or
+any callable) that makes one without arguments.  :func:`register` adds one in a
+running process (a notebook, a test).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from importlib import metadata
+from typing import Any
+
+from mapfuse.estimator import Estimator
+
+__all__ = [
+    "BUILTIN",
+    "ENTRY_POINT_GROUP",
+    "available",
+    "get",
+    "register",
+    "unregister",
+]
+
+ENTRY_POINT_GROUP = "mapfuse.estimators"
+
+#: The built-in estimators, in report order, and their entry-point targets.  Used as
+#: well when the installed package metadata does not declare them (a source tree put
+#: on ``PYTHONPATH`` over another install).
+BUILTIN: dict[str, str] = {
+    "ekf": "mapfuse.estimators.ekf:EKFEstimator",
+    "batch": "mapfuse.estimators.graph:BatchEstimator",
+    "isam2": "mapfuse.estimators.graph:ISAM2Estimator",
+}
+
+_registered: dict[str, Estimator] = {}
+_loaded: dict[str, Estimator] = {}
+
+
+def _entry_points() -> dict[str, metadata.EntryPoint]:
+    out: dict[str, metadata.EntryPoint] = {}
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        out.setdefault(ep.name, ep)
+    return out
+
+
+def available() -> tuple[str, ...]:
+    """Every estimator name, without loading any: built-ins first, then the others."""
+    names = dict.fromkeys([*BUILTIN, *_entry_points(), *_registered])
+    return tuple(names)
+
+
+def _check(est: Any, where: str) -> Estimator:
+    if not isinstance(est, Estimator):
+        raise TypeError(
+            f"{where} is not a mapfuse estimator (needs name, options_type and run()), "
+            f"got {type(est).__name__}"
+        )
+    return est
+
+
+def _make(target: Any, where: str) -> Estimator:
+    if isinstance(target, type) or (not isinstance(target, Estimator) and callable(target)):
+        target = target()
+    return _check(target, where)
+
+
+def _load_target(spec: str) -> Any:
+    module, _, attr = spec.partition(":")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def get(name: str) -> Estimator:
+    """The estimator registered as ``name``; :class:`ValueError` naming the known ones."""
+    if name in _registered:
+        return _registered[name]
+    if name in _loaded:
+        return _loaded[name]
+    eps = _entry_points()
+    if name in eps:
+        est = _make(eps[name].load(), f"entry point {name!r} ({eps[name].value})")
+    elif name in BUILTIN:
+        est = _make(_load_target(BUILTIN[name]), f"built-in estimator {name!r}")
+    else:
+        raise ValueError(f"unknown estimator {name!r}; choose one of {', '.join(available())}")
+    if est.name != name:
+        raise ValueError(f"estimator registered as {name!r} calls itself {est.name!r}")
+    _loaded[name] = est
+    return est
+
+
+def register(estimator: Estimator | Callable[[], Estimator], *, replace: bool = False) -> Estimator:
+    """Make ``estimator`` (or what the callable returns) available under its name.
+
+    A name already registered or provided by an entry point needs ``replace=True``.
+    Returns the registered estimator.
+    """
+    est = _make(estimator, "register()'s argument")
+    if not replace and (est.name in _registered or est.name in available()):
+        raise ValueError(
+            f"an estimator named {est.name!r} exists already; pass replace=True to replace it"
+        )
+    _registered[est.name] = est
+    return est
+
+
+def unregister(name: str) -> None:
+    """Remove an estimator added by :func:`register` (entry points stay)."""
+    if name not in _registered:
+        raise ValueError(f"no estimator {name!r} was added by register()")
+    del _registered[name]

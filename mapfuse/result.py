@@ -1,0 +1,168 @@
+"""What every estimator returns to the harness: :class:`EstimatorResult`.
+
+Metrics (:mod:`mapfuse.metrics`), figures (:mod:`mapfuse.figures`), the comparison
+and the baselines read only this type, never a backend's own result, so a new
+estimator plugs in by returning one (``docs/plugins.md``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from mapfuse_core.decisions import AssociationDecisions
+from mapfuse_core.se2 import FloatArray
+
+__all__ = ["Anchor", "EstimatorResult", "MapEstimate", "PoseTrack"]
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTrack:
+    """One vehicle pose estimate per step, with its covariance."""
+
+    poses: FloatArray
+    """(N, 3) pose ``x^Wglobal_R`` of each step (``Wglobal``: the vehicle at step 0)."""
+    covs: FloatArray
+    """(N, 3, 3) covariance of the absolute ``(x, y, θ)`` error (NaN where not computed)."""
+
+    def __post_init__(self) -> None:
+        p, c = np.asarray(self.poses), np.asarray(self.covs)
+        if p.ndim != 2 or p.shape[1] != 3 or c.shape != (p.shape[0], 3, 3):
+            raise ValueError(
+                f"a pose track needs (N, 3) poses and (N, 3, 3) covariances, got {p.shape} "
+                f"and {c.shape}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class MapEstimate:
+    """The final map, in ``Wglobal``."""
+
+    kinds: np.ndarray
+    """(F,) int8 feature kinds (0 line, 1 circle)."""
+    params: FloatArray
+    """(F, 3) feature parameters (SPmap lines, circles ``(x, y, r)``)."""
+    covs: FloatArray
+    """(F, 3, 3) their covariances (NaN where not computed)."""
+    known_ids: np.ndarray
+    """(F,) known-map id each feature is tied to or merged with, −1 if none."""
+    true_ids: np.ndarray
+    """(F,) world id of the feature's first observation (simulation), −1 if unknown."""
+    n_obs: np.ndarray
+    """(F,) observations of each feature (0: a known feature never observed)."""
+
+    @classmethod
+    def empty(cls) -> MapEstimate:
+        """A map without features (an estimator that keeps none)."""
+        return cls(
+            kinds=np.zeros(0, np.int8),
+            params=np.zeros((0, 3)),
+            covs=np.zeros((0, 3, 3)),
+            known_ids=np.zeros(0, np.int64),
+            true_ids=np.zeros(0, np.int64),
+            n_obs=np.zeros(0, np.int64),
+        )
+
+    @property
+    def matched_known(self) -> int:
+        """Features linked to the known map."""
+        return int(np.sum(np.asarray(self.known_ids) >= 0))
+
+
+@dataclass(frozen=True, eq=False)
+class Anchor:
+    """The estimated pose of the SLAM frame ``Wglobal`` in the known map."""
+
+    x_Wknown_Wglobal: FloatArray
+    """(3,) pose of ``Wglobal`` in ``Wknown`` at the end of the run."""
+    cov: FloatArray
+    """(3, 3) its covariance."""
+    accepted_at_step: int
+    """Step at which the map match was accepted (or entered the estimate)."""
+    pairings: tuple[tuple[int, int], ...]
+    """(true world id of the estimated feature or −1, known-map id) per pairing."""
+
+
+@dataclass(frozen=True, eq=False)
+class EstimatorResult:
+    """One estimator's run on one log: everything metrics and figures need."""
+
+    estimator: str
+    """Registered name of the estimator (``metrics.json``'s ``backend``)."""
+    scenario: str
+    """Scenario name of the log."""
+    seed: int
+    """Seed of the log."""
+    fusion: bool
+    """Whether the known map was fused (never on a log without one)."""
+    timestamps: FloatArray
+    """(N,) time of each estimated step (s); N may be below the log's step count."""
+    step_time_s: FloatArray
+    """(N,) wall time of each step (s); a batch solver shares its solve among the steps."""
+    map: MapEstimate
+    """The final map."""
+    filtered: PoseTrack | None = None
+    """Per-step estimate using steps ``0..k`` only (a filter's, iSAM2's), or ``None``."""
+    smoothed: PoseTrack | None = None
+    """Estimate of every step using the whole log (batch, iSAM2's final), or ``None``."""
+    anchor: Anchor | None = None
+    """The anchor, or ``None`` (no fusion, or no map match accepted)."""
+    decisions: AssociationDecisions | None = None
+    """Association decisions of the run (consumable by another estimator), if any."""
+    association: str | None = None
+    """Where the decisions came from when the estimator takes them as an input (the
+    graph backends: ``"ekf"``, ``"truth"``, ``"own"``, ``"given"``); ``None`` when it
+    has no such choice (reported in ``metrics.json`` only when set)."""
+    upstream: EstimatorResult | None = None
+    """The run whose decisions this one consumed (the EKF's for graph backends), if any."""
+    extras: Mapping[str, Any] = field(default_factory=dict)
+    """Backend-specific results for power users, e.g. ``extras["ekf"]`` the
+    :class:`~ekf_reference.result.EKFResult`, ``extras["graph"]`` the
+    :class:`~mapfuse_graph.solvers.GraphResult`; never read by the harness."""
+
+    def __post_init__(self) -> None:
+        if self.filtered is None and self.smoothed is None:
+            raise ValueError(f"{self.estimator}: a result needs a filtered or a smoothed estimate")
+        n = np.asarray(self.timestamps).shape
+        for name in ("filtered", "smoothed"):
+            track = getattr(self, name)
+            if track is not None and np.asarray(track.poses).shape[0] != n[0]:
+                raise ValueError(
+                    f"{self.estimator}: {name} has {np.asarray(track.poses).shape[0]} poses "
+                    f"for {n[0]} timestamps"
+                )
+        if np.asarray(self.step_time_s).shape != n:
+            raise ValueError(
+                f"{self.estimator}: step_time_s has shape {np.asarray(self.step_time_s).shape}, "
+                f"timestamps {n}"
+            )
+
+    @property
+    def estimate(self) -> Literal["filtered", "smoothed"]:
+        """Which track :attr:`poses` is: the smoothed one when there is one."""
+        return "smoothed" if self.smoothed is not None else "filtered"
+
+    @property
+    def track(self) -> PoseTrack:
+        """The main estimate: :attr:`smoothed` when there is one, else :attr:`filtered`."""
+        track = self.smoothed if self.smoothed is not None else self.filtered
+        assert track is not None  # __post_init__ requires one
+        return track
+
+    @property
+    def poses(self) -> FloatArray:
+        """(N, 3) poses of :attr:`track`."""
+        return self.track.poses
+
+    @property
+    def covs(self) -> FloatArray:
+        """(N, 3, 3) covariances of :attr:`track`."""
+        return self.track.covs
+
+    @property
+    def n_steps(self) -> int:
+        """Number of estimated steps."""
+        return int(np.asarray(self.timestamps).shape[0])
