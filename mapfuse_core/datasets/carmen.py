@@ -26,11 +26,11 @@ from typing import Literal
 
 import numpy as np
 
+from mapfuse_core.ccda import CCDAParams
 from mapfuse_core.datasets.carmen_format import CarmenRecords, LaserMessage, read_carmen
 from mapfuse_core.datasets.common import DatasetError, check_finite, empty_map
 from mapfuse_core.extraction import ExtractionParams, extract_features
 from mapfuse_core.features import FeatureKind
-from mapfuse_core.ccda import CCDAParams
 from mapfuse_core.laser import LaserParams, Scan
 from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog

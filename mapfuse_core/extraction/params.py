@@ -159,8 +159,8 @@ class ExtractionParams:
             max_end_outliers=3,
             min_circle_points=10_000,
             wall_roughness_m=0.01,
-            line_model_sigma_m=0.015,
-            line_model_sigma_rad=math.radians(0.6),
+            line_model_sigma_m=0.02,
+            line_model_sigma_rad=math.radians(0.8),
         )
 
     @classmethod
