@@ -292,7 +292,7 @@ def test_real_log_lines_plan_nees_ccda_and_fusion(data_dir: Path, name: str) -> 
     )
     assert r_plan.anchor is not None
     judged = [same_wall(plan, a, b) for a, b in r_plan.anchor.pairings if a >= 0]
-    # Measured: 14 of 15 (Intel) and 8 of 9 (CSAIL) judged pairings on the right wall.
+    # Measured: 14 of 15 (Intel) and 10 of 11 (CSAIL) judged pairings on the right wall.
     assert sum(judged) >= 0.85 * len(judged)
     err = relative(anchor_truth(log.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
     assert math.hypot(err[0], err[1]) < 0.5
