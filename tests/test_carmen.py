@@ -256,14 +256,13 @@ def _carmen_file(data_dir: Path, name: str) -> Path:
 
 
 _MIN_LINES_PER_SCAN = {"intel": 3.5, "csail": 3.0}
-"""Measured 3.8 (Intel) and 3.4 (CSAIL) lines per scan (``docs/carmen.md``), against
-0.55–0.78 with the default thresholds; the bound leaves 10 % for platform round-off
-in split decisions."""
+"""Lower bounds on lines per scan, about 10 % under the measured values in
+``docs/carmen.md`` (a margin for platform round-off in split decisions)."""
 
 _NEES_RANGE = (0.6, 1.25)
-"""Mean line NEES per dof against the plan without its survey σ: 1.04 (Intel) and
-0.70 (CSAIL) with the profile's model-error terms (``docs/carmen.md``); the terms are
-set on Intel, CSAIL's walls are smoother."""
+"""Accepted mean line NEES per dof against the plan without its survey σ: the
+profile's model-error terms are set on Intel (mean near 1); CSAIL's smoother walls come
+out lower (``docs/carmen.md``)."""
 
 
 @pytest.mark.realdata
@@ -292,7 +291,7 @@ def test_real_log_lines_plan_nees_ccda_and_fusion(data_dir: Path, name: str) -> 
     )
     assert r_plan.anchor is not None
     judged = [same_wall(plan, a, b) for a, b in r_plan.anchor.pairings if a >= 0]
-    # Measured: 14 of 15 (Intel) and 10 of 11 (CSAIL) judged pairings on the right wall.
+    # One wrong pairing among the judged ones on each log (docs/carmen.md): at most 15 %.
     assert sum(judged) >= 0.85 * len(judged)
     err = relative(anchor_truth(log.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
     assert math.hypot(err[0], err[1]) < 0.5
