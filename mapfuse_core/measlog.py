@@ -104,6 +104,9 @@ class MeasurementLog:
     """(G,) times of GPS fixes (real data), on the clock of :attr:`timestamps`."""
     gps_xy: FloatArray | None = None
     """(G, 2) GPS positions (East, North) in metres, the frame of the surveyed known map."""
+    metadata: dict[str, str] = field(default_factory=dict)
+    """Facts about how the log was made, name → text (e.g. ``odometry: simulated from
+    reference``, counts of skipped messages); empty when there is nothing to say."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -262,6 +265,9 @@ def _validate(log: MeasurementLog) -> None:
     for k, v in log.rejected.items():
         if not isinstance(k, str) or not isinstance(v, int) or v < 0:
             raise MeasurementLogError(f"'rejected' entry {k!r}: {v!r} is not a count")
+    for key, text in log.metadata.items():
+        if not isinstance(key, str) or not isinstance(text, str):
+            raise MeasurementLogError(f"'metadata' entry {key!r}: {text!r} is not text")
 
 
 # --------------------------------------------------------------------------- disk format
@@ -280,6 +286,7 @@ _LOG_ARRAYS = tuple(
         "rejected",
         "gps_times",
         "gps_xy",
+        "metadata",
     }
     and not f.name.startswith("_")
 )
@@ -304,6 +311,11 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
             [log.rejected[k] for k in sorted(log.rejected)], dtype=np.int64
         ).reshape(-1),
     }
+    if log.metadata:
+        out["metadata_keys"] = np.array(sorted(log.metadata), dtype=np.str_).reshape(-1)
+        out["metadata_values"] = np.array(
+            [log.metadata[k] for k in sorted(log.metadata)], dtype=np.str_
+        ).reshape(-1)
     for name in _LOG_ARRAYS:
         out[name] = np.asarray(getattr(log, name))
     for prefix, m in (("known", log.known_map), ("world", log.world)):
@@ -383,6 +395,13 @@ def load_log(path: str | Path) -> MeasurementLog:
     counts = _get(arrays, path, "rejected_counts")
     if reasons.shape != counts.shape:
         raise MeasurementLogError(f"{path}: 'rejected_reasons' and 'rejected_counts' differ")
+    metadata: dict[str, str] = {}
+    if "metadata_keys" in arrays or "metadata_values" in arrays:
+        keys = _get(arrays, path, "metadata_keys")
+        values = _get(arrays, path, "metadata_values")
+        if keys.shape != values.shape or keys.dtype.kind != "U" or values.dtype.kind != "U":
+            raise MeasurementLogError(f"{path}: 'metadata_keys' and 'metadata_values' differ")
+        metadata = {str(k): str(v) for k, v in zip(keys, values, strict=True)}
     try:
         return MeasurementLog(
             scenario=str(_get(arrays, path, "scenario")),
@@ -393,6 +412,7 @@ def load_log(path: str | Path) -> MeasurementLog:
             gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
             gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
             rejected={str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
+            metadata=metadata,
             **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},
         )
     except MeasurementLogError as exc:

@@ -1,4 +1,4 @@
-"""Real datasets as measurement logs: the ACFR car park and Victoria Park.
+"""Real datasets as measurement logs: the ACFR car park, Victoria Park, CARMEN logs.
 
 The files are read from a directory the caller gives (the project never ships them);
 ``docs/datasets.md`` describes both datasets, their provenance and their conventions.
@@ -16,13 +16,24 @@ One responsibility per module: :mod:`~mapfuse_core.datasets.odometry` (car model
 odometry integration and its noise), :mod:`~mapfuse_core.datasets.poles` (the car
 park's pole detector), :mod:`~mapfuse_core.datasets.gps` (GPS reference labels),
 :mod:`~mapfuse_core.datasets.carpark` and :mod:`~mapfuse_core.datasets.victoria_park`
-(the two loaders and their options), :mod:`~mapfuse_core.datasets.files` (checked file
-reading) and :mod:`~mapfuse_core.datasets.common` (error type, log builder).
+(the two loaders and their options), :mod:`~mapfuse_core.datasets.carmen_format` and
+:mod:`~mapfuse_core.datasets.carmen` (CARMEN indoor laser logs, ``docs/carmen.md``),
+:mod:`~mapfuse_core.datasets.floorplan` (a wall map from scans at reference poses),
+:mod:`~mapfuse_core.datasets.files` (checked file reading) and
+:mod:`~mapfuse_core.datasets.common` (error type, log builder).
 
 Every missing or malformed input raises :class:`DatasetError` naming the file and the
 problem.
 """
 
+from mapfuse_core.datasets.carmen import (
+    CarmenOptions,
+    IncrementNoise,
+    carmen_association,
+    detect_odometry_kind,
+    load_carmen,
+)
+from mapfuse_core.datasets.carmen_format import read_carmen
 from mapfuse_core.datasets.carpark import (
     CARPARK_NAME,
     CARPARK_ODOMETRY_NOISE,
@@ -30,6 +41,15 @@ from mapfuse_core.datasets.carpark import (
     load_carpark,
 )
 from mapfuse_core.datasets.common import DatasetError
+from mapfuse_core.datasets.floorplan import (
+    FloorPlan,
+    FloorPlanParams,
+    build_floor_plan,
+    label_with_plan,
+    line_nees,
+    reference_labels,
+    same_wall,
+)
 from mapfuse_core.datasets.gps import gps_reference_labels
 from mapfuse_core.datasets.odometry import (
     CarGeometry,
@@ -52,15 +72,28 @@ __all__ = [
     "VICTORIA_PARK_NAME",
     "VICTORIA_PARK_ODOMETRY_NOISE",
     "CarGeometry",
+    "CarmenOptions",
     "CarparkOptions",
     "DatasetError",
+    "FloorPlan",
+    "FloorPlanParams",
+    "IncrementNoise",
     "OdometryNoise",
     "VictoriaParkOptions",
+    "build_floor_plan",
+    "carmen_association",
     "dead_reckoning",
+    "detect_odometry_kind",
     "detect_reflector_poles",
     "gps_reference_labels",
     "integrate_odometry",
+    "label_with_plan",
+    "line_nees",
+    "load_carmen",
     "load_carpark",
     "load_victoria_park",
+    "read_carmen",
     "rear_axle_speed",
+    "reference_labels",
+    "same_wall",
 ]

@@ -94,6 +94,17 @@ from mapfuse_core.extraction.circles import _refine_circle as _refine_circle
 from mapfuse_core.extraction.extract import extract_features
 from mapfuse_core.extraction.noise import _Noise as _Noise
 from mapfuse_core.extraction.noise import _normal_var as _normal_var
-from mapfuse_core.extraction.params import ExtractedFeature, ExtractionParams, ExtractionResult
+from mapfuse_core.extraction.params import (
+    EXTRACTION_PROFILES,
+    ExtractedFeature,
+    ExtractionParams,
+    ExtractionResult,
+)
 
-__all__ = ["ExtractedFeature", "ExtractionParams", "ExtractionResult", "extract_features"]
+__all__ = [
+    "EXTRACTION_PROFILES",
+    "ExtractedFeature",
+    "ExtractionParams",
+    "ExtractionResult",
+    "extract_features",
+]

@@ -46,7 +46,7 @@ def extract_features(
         raise ValueError("scan.bearings must be strictly increasing")
 
     noise = _Noise(
-        var_r=laser.sigma_range_m**2,
+        var_r=laser.sigma_range_m**2 + params.wall_roughness_m**2,
         var_b=laser.sigma_bearing_rad**2,
         floor2=params.sigma_floor_m**2,
     )

@@ -241,6 +241,8 @@ def _line_feature(
     line, J = line_from_normal(fit.rho, fit.alpha, t_mid)
     C = np.zeros((3, 3))
     C[:2, :2] = fit.cov
+    C[0, 0] += params.line_model_sigma_m**2
+    C[1, 1] += params.line_model_sigma_rad**2
     C[2, 2] = length * length / 12.0
     cov = J @ C @ J.T
     return ExtractedFeature(

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.se2 import FloatArray
 
-__all__ = ["ExtractedFeature", "ExtractionParams", "ExtractionResult"]
+__all__ = ["EXTRACTION_PROFILES", "ExtractedFeature", "ExtractionParams", "ExtractionResult"]
 
 
 @dataclass(frozen=True)
@@ -89,6 +89,16 @@ class ExtractionParams:
     sigma_floor_m: float = 1e-6
     """Floor on a point's residual standard deviation (m), so that a noise-free laser
     still gives finite weights; far below any real noise."""
+    wall_roughness_m: float = 0.0
+    """σ (m) of how far a real surface departs from its fitted line at one return
+    (plaster, skirting boards, door frames), added in quadrature to the laser's σρ in
+    every fit.  0 for the simulated worlds, whose walls are exact segments."""
+    line_model_sigma_m: float = 0.0
+    """σ (m) added to every line's ρ: the part of a real wall's deviation from a
+    straight line that is common to all returns of one segment (a bowed wall seen over
+    part of its length), which no number of returns averages out."""
+    line_model_sigma_rad: float = 0.0
+    """σ (rad) added to every line's α, for the same reason as :attr:`line_model_sigma_m`."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.occluded_end_margin, bool):
@@ -128,6 +138,46 @@ class ExtractionParams:
         for name in ("max_line_incidence_rad", "max_circle_incidence_rad"):
             if not 0.0 < getattr(self, name) <= math.pi / 2:
                 raise ValueError(f"ExtractionParams.{name} must be in (0, π/2]")
+
+    @classmethod
+    def indoor_sick(cls) -> ExtractionParams:
+        """Thresholds for a 1° or 0.5° SICK scanner indoors (``docs/carmen.md``).
+
+        Rooms a few metres across: walls of 0.5–1 m between doors and furniture,
+        returns 1–10 cm apart, no trunks (circles off), and plaster walls that are not
+        flat to the laser's σρ, hence the roughness and line model-error terms,
+        estimated on the Intel and CSAIL logs against their floor plans.
+        """
+        return cls(
+            jump_abs_m=0.20,
+            jump_beams=8.0,
+            end_trim=1,
+            min_line_points=5,
+            min_line_length_m=0.4,
+            split_tol_abs_m=0.04,
+            split_tol_sigma=4.0,
+            max_end_outliers=3,
+            min_circle_points=10_000,
+            wall_roughness_m=0.01,
+            line_model_sigma_m=0.02,
+            line_model_sigma_rad=math.radians(0.8),
+        )
+
+    @classmethod
+    def profile(cls, name: str) -> ExtractionParams:
+        """The named profile: one of :data:`EXTRACTION_PROFILES`."""
+        if name == "default":
+            return cls()
+        if name == "indoor_sick":
+            return cls.indoor_sick()
+        raise ValueError(
+            f"unknown extraction profile {name!r}; known: {', '.join(EXTRACTION_PROFILES)}"
+        )
+
+
+EXTRACTION_PROFILES: tuple[str, ...] = ("default", "indoor_sick")
+"""Names :meth:`ExtractionParams.profile` accepts: ``default`` (the simulated laser of
+the paper's Table 1) and ``indoor_sick`` (:meth:`ExtractionParams.indoor_sick`)."""
 
 
 @dataclass(frozen=True)
