@@ -13,7 +13,7 @@ __all__ = ["ekf_metrics"]
 
 def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
     """``metrics.json`` of an EKF run on ``log``."""
-    anchor = anchor_block(result.anchor, log.true_poses)
+    anchor = anchor_block(result.anchor, log.true_poses, log.known_frame)
     return build_metrics(
         scenario=log.scenario,
         seed=log.seed,

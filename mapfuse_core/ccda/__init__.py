@@ -115,7 +115,7 @@ Everything fails cleanly: empty or too small maps and every rejection give a
 
 from mapfuse_core.ccda.clique import _CliqueGraph as _CliqueGraph
 from mapfuse_core.ccda.match import ccda_match
-from mapfuse_core.ccda.params import CCDAParams, CCDAResult
+from mapfuse_core.ccda.params import REASONS, CCDAParams, CCDAResult
 from mapfuse_core.ccda.prepare import _prepare as _prepare
 from mapfuse_core.ccda.residuals import _pair_set as _pair_set
 from mapfuse_core.ccda.residuals import _residuals as _residuals
@@ -129,6 +129,7 @@ from mapfuse_core.ccda.transform import _step as _step
 from mapfuse_core.ccda.transform import estimate_transform
 
 __all__ = [
+    "REASONS",
     "CCDAParams",
     "CCDAResult",
     "ccda_match",
