@@ -251,8 +251,8 @@ HARD_BUDGET = 100_000
 
 
 def test_a_search_that_never_ended_stops_at_its_budget() -> None:
-    # City blocks seen over 70 m: the exact search on this graph ran for minutes
-    # without ending; with a budget it stops with "search_limit", never a guess.
+    # City blocks seen over 70 m: the unbounded exact search on this graph does not
+    # end within minutes; with a budget it stops with "search_limit", never a guess.
     case = known_and_local(manhattan(), 1, radius=70.0)
     t0 = time.perf_counter()
     res = ccda_match(
