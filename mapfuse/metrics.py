@@ -30,11 +30,15 @@ from mapfuse_core.se2 import FloatArray
 __all__ = ["anchor_block", "build_metrics", "run_metrics"]
 
 
-def anchor_block(anchor: Anchor | None, true_poses: FloatArray | None) -> dict[str, Any] | None:
+def anchor_block(
+    anchor: Anchor | None,
+    true_poses: FloatArray | None,
+    known_frame: FloatArray | None = None,
+) -> dict[str, Any] | None:
     """The ``anchor`` block of ``metrics.json`` (``None`` without an anchor)."""
     if anchor is None:
         return None
-    truth = anchor_truth(true_poses) if true_poses is not None else None
+    truth = anchor_truth(true_poses, known_frame) if true_poses is not None else None
     return anchor_metrics(anchor.x_Wknown_Wglobal, truth, anchor.accepted_at_step, anchor.pairings)
 
 
@@ -99,7 +103,7 @@ def run_metrics(
         raise ValueError(f"which must be 'smoothed' or 'filtered', got {which!r}")
     if track is None:
         raise ValueError(f"the {result.estimator} result has no {which} estimate")
-    anchor = anchor_block(result.anchor, log.true_poses)
+    anchor = anchor_block(result.anchor, log.true_poses, log.known_frame)
     n = track.poses.shape[0]
     true_poses = None if log.true_poses is None else log.true_poses[:n]
     out = build_metrics(

@@ -71,9 +71,17 @@ def truth_in_global(true_poses: FloatArray) -> FloatArray:
     return np.array([compose(inv0, p) for p in true_poses])
 
 
-def anchor_truth(true_poses: FloatArray) -> FloatArray:
-    """True ``x^Wknown_Wglobal``: the first true pose (simulation: ``Wknown = W``)."""
-    return np.asarray(true_poses[0], dtype=float).copy()
+def anchor_truth(true_poses: FloatArray, known_frame: FloatArray | None = None) -> FloatArray:
+    """True ``x^Wknown_Wglobal = ⊖x^W_Wknown ⊕ x^W_R0`` (``Wglobal`` is the vehicle at
+    step 0).  ``known_frame`` is ``x^W_Wknown`` (``MeasurementLog.known_frame``);
+    ``None`` means the known map's frame is the world's."""
+    x0 = np.asarray(true_poses[0], dtype=float).copy()
+    if known_frame is None:
+        return x0
+    frame = np.asarray(known_frame, dtype=float)
+    if frame.shape != (3,) or not np.all(np.isfinite(frame)):
+        raise ValueError(f"known_frame must be a finite (3,) pose, got {frame!r}")
+    return compose(inverse(frame), x0)
 
 
 @dataclass(frozen=True)

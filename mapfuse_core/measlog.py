@@ -107,6 +107,10 @@ class MeasurementLog:
     metadata: dict[str, str] = field(default_factory=dict)
     """Facts about how the log was made, name → text (e.g. ``odometry: simulated from
     reference``, counts of skipped messages); empty when there is nothing to say."""
+    known_frame: FloatArray | None = None
+    """(3,) ``x^W_Wknown``, the pose of the known map's frame in the world (simulation),
+    for evaluation only; ``None`` (real data, logs written without it) means the
+    identity."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -257,6 +261,8 @@ def _validate(log: MeasurementLog) -> None:
         _check_map("world", log.world)
     if log.true_poses is not None:
         _check_array("true_poses", log.true_poses, (n, 3))
+    if log.known_frame is not None:
+        _check_array("known_frame", log.known_frame, (3,))
     if (log.gps_times is None) != (log.gps_xy is None):
         raise MeasurementLogError("'gps_times' and 'gps_xy' must be given together")
     if log.gps_times is not None and log.gps_xy is not None:
@@ -287,6 +293,7 @@ _LOG_ARRAYS = tuple(
         "gps_times",
         "gps_xy",
         "metadata",
+        "known_frame",
     }
     and not f.name.startswith("_")
 )
@@ -324,7 +331,7 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
                 out[f"{prefix}_{f}"] = np.asarray(getattr(m, f))
             if m.extents is not None:
                 out[f"{prefix}_extents"] = np.asarray(m.extents)
-    for name in ("true_poses", "gps_times", "gps_xy"):
+    for name in ("true_poses", "gps_times", "gps_xy", "known_frame"):
         value = getattr(log, name)
         if value is not None:
             out[name] = np.asarray(value)
@@ -411,6 +418,7 @@ def load_log(path: str | Path) -> MeasurementLog:
             true_poses=_get(arrays, path, "true_poses") if "true_poses" in arrays else None,
             gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
             gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
+            known_frame=_get(arrays, path, "known_frame") if "known_frame" in arrays else None,
             rejected={str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
             metadata=metadata,
             **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},

@@ -303,6 +303,7 @@ def simulate(
         ),
         world=world_arrays(scenario.world),
         true_poses=motion.true_poses,
+        known_frame=np.array(known.frame, dtype=float),
         rejected={k: int(v) for k, v in sorted(rejected.items())},
     )
     return SimulationResult(log=log, motion=motion, scans=tuple(scans))

@@ -52,10 +52,19 @@ The method, step by step:
    pairings fix the transform, and no competing hypothesis: the nodes that agree
    with the transform are removed, the next maximum clique is searched and
    fitted, and so on while a clique large enough to compete remains; if a
-   hypothesis whose transform is incompatible with the best one has nearly as
-   many pairings (within ``ambiguity_margin``), the map is symmetric or repetitive
-   at the scale of the noise and the match is rejected as ``"ambiguous"`` rather
-   than chosen at random.
+   hypothesis whose transform is incompatible with the best one has comparable
+   support (at least ``max(min_pairings, ⌈rival_fraction · best⌉)`` pairings), the
+   map is symmetric or repetitive at the scale of the noise and the match is
+   rejected as ``"ambiguous"`` rather than chosen by a count.  A search that runs
+   out of its budget (``max_clique_work``, ``max_hypotheses``) before every rival
+   is ruled out returns ``"search_limit"``: refusing is always allowed, accepting
+   an unverified match never.
+
+Both maps are first translated to the centroids of their feature positions, and
+the transform is translated back at the end (:func:`~mapfuse_core.ccda.prepare._centred`):
+invariants, gates and fits then see coordinates of the size of the maps, so the
+result does not depend on where either map's origin is (a surveyed map in
+UTM-like coordinates, 10⁶–10⁷ m, matches as it does at the origin).
 
 Choices the paper leaves open (all configurable in :class:`CCDAParams`):
 
@@ -87,19 +96,43 @@ Choices the paper leaves open (all configurable in :class:`CCDAParams`):
   would leak ``L² sin²δ`` into the lateral one.
 * *(choice)* Every variance gets a small floor (``var_floor_m``,
   ``var_floor_rad``) so that noise-free maps (e.g. the true world, whose
-  covariances are zero) still give invertible gates.
-* *(choice)* The transform is "fixed" when the largest standard deviation of its
-  position (worst direction) is at most ``max_transform_std_xy_m`` and that of its
-  angle at most ``max_transform_std_theta_rad``.  Degenerate sets (only parallel
-  lines, a single circle with lines through it, …) have a rank-deficient
+  covariances are zero) still give invertible gates.  Noisy maps whose covariances
+  are stated as zero or near zero then get gates at the floor: true pairs fail
+  them, the graph stays small, and the call refuses (``"too few pairings"``, or
+  ``"search_limit"`` within the budget) instead of exploding.
+* *(choice)* The transform is "fixed" when the largest standard deviation of the
+  position (worst direction) of the centroid of the paired ``B`` features, mapped
+  into ``A``, is at most ``max_transform_std_xy_m`` and that of its angle at most
+  ``max_transform_std_theta_rad``.  The centroid of the pairings is where the
+  match is judged: the uncertainty at a map's origin adds the lever arm of the
+  angle out to wherever that origin happens to be.  Degenerate sets (only
+  parallel lines, a single circle with lines through it, …) have a rank-deficient
   information matrix; its null directions get a variance of ``1 / 1e-12``.
-* *(choice)* A competing hypothesis counts when its transform differs from the
-  best one beyond the χ²₃ gate of their summed covariances and it has at least
-  ``max(min_pairings, best − ambiguity_margin)`` pairings after re-association
-  (step 4).  Pairings are counted after re-association, not as clique sizes,
-  because removing the best hypothesis' nodes also removes a feature both share
-  (the centre of a rotational symmetry) from the rival's clique; the search for
-  rivals continues down to cliques one node smaller than needed for that reason.
+* *(choice)* Evidence that repetition cannot fool: a competing hypothesis counts
+  when its transform differs from the best one beyond the χ²₃ gate of their summed
+  covariances and it has at least ``max(min_pairings, ⌈rival_fraction · best⌉)``
+  pairings after re-association (step 4), ``rival_fraction = 0.5``.  In a periodic
+  world (city blocks, a grid of identical trees) a shift by one period keeps
+  ``(k − 1)/k`` of the pairings of a local map spanning ``k`` periods inside the
+  known map, and all of them when the local map reaches past the known map's
+  edge (then the wrong shift has *more* support than the truth); either way the
+  rival has at least half the support and the match is refused.  A rule "best
+  beats the runner-up by a fixed margin" accepts those shifts; it remains
+  available (``ambiguity_margin`` set to an integer) for maps known not to repeat.
+  Chance cliques of unrelated features stay near ``min_pairings`` whatever the
+  overlap, so large true matches are not refused for them.  Rivals are searched
+  down to cliques one node smaller than the rival floor, because removing the
+  best hypothesis' nodes also removes a feature both share (the centre of a
+  rotational symmetry) from the rival's clique; the search stops as soon as the
+  match is proven ambiguous.  What no rule can detect: a local map that lies
+  mostly outside the known map, where a wrong placement explains more than half
+  of it and the truth less (``docs/ccda.md``).
+* *(choice)* The exact clique search spends a deterministic budget,
+  ``max_clique_work`` work units (one per branch-and-bound node plus one per
+  candidate vertex it colours or prunes) over all searches of one call, so the
+  outcome is the same on every machine; exhausting it gives ``"search_limit"``.
+  Dense angle-only edges (perpendicular walls of a city grid, covariances stated
+  as zero) make the exact search exponential without it.
 * *(choice)* The returned pairings are those of step 4: consistent with the
   estimated transform leave-one-out, one-to-one, each feature with its nearest
   compatible partner.  ``clique_size`` reports the maximum clique's inliers.
@@ -115,7 +148,7 @@ Everything fails cleanly: empty or too small maps and every rejection give a
 
 from mapfuse_core.ccda.clique import _CliqueGraph as _CliqueGraph
 from mapfuse_core.ccda.match import ccda_match
-from mapfuse_core.ccda.params import CCDAParams, CCDAResult
+from mapfuse_core.ccda.params import REASONS, CCDAParams, CCDAResult
 from mapfuse_core.ccda.prepare import _prepare as _prepare
 from mapfuse_core.ccda.residuals import _pair_set as _pair_set
 from mapfuse_core.ccda.residuals import _residuals as _residuals
@@ -129,6 +162,7 @@ from mapfuse_core.ccda.transform import _step as _step
 from mapfuse_core.ccda.transform import estimate_transform
 
 __all__ = [
+    "REASONS",
     "CCDAParams",
     "CCDAResult",
     "ccda_match",

@@ -8,6 +8,30 @@ from numpy.typing import NDArray
 from mapfuse_core.ccda.prepare import IntArray
 
 
+class _SearchLimitError(Exception):
+    """The branch and bound exhausted its :class:`_SearchBudget`."""
+
+
+class _SearchBudget:
+    """Work units left for the branch and bound of one matching call.
+
+    A unit is one search node or one candidate vertex it colours or prunes, so the
+    units follow the time a search takes, and count the same on every machine.
+    """
+
+    def __init__(self, units: int) -> None:
+        self.limit = units
+        """Units allowed in total."""
+        self.used = 0
+        """Units spent so far."""
+
+    def spend(self, n: int = 1) -> None:
+        """Count ``n`` units; raise :class:`_SearchLimitError` beyond the limit."""
+        self.used += n
+        if self.used > self.limit:
+            raise _SearchLimitError(self.used)
+
+
 class _CliqueGraph:
     """Maximum-clique search on the correspondence graph.
 
@@ -28,7 +52,11 @@ class _CliqueGraph:
        each node, its later neighbours in a degree order, with a k-core prune and
        Tomita's greedy-colouring bound (MCQ), Python integers as bitsets.
 
-    Memory is ``n² / 8`` bytes for ``n`` nodes.
+    Memory is ``n² / 8`` bytes for ``n`` nodes.  Steps 1–3 are vectorised and
+    polynomial; step 4 is exponential in the worst case (dense angle-only edges
+    between perpendicular walls, noise-free maps), so it spends a
+    :class:`_SearchBudget` and stops with :class:`_SearchLimitError` when that runs
+    out.
     """
 
     def __init__(
@@ -51,9 +79,13 @@ class _CliqueGraph:
         """Remove nodes (graph node ids) from later searches."""
         self.alive[graph_nodes] = False
 
-    def max_clique(self, at_least: int = 1) -> IntArray:
+    def max_clique(self, at_least: int = 1, budget: _SearchBudget | None = None) -> IntArray:
         """Graph node ids of a maximum clique among the alive nodes, or an empty array
-        when none has ``at_least`` nodes."""
+        when none has ``at_least`` nodes.
+
+        Raises :class:`_SearchLimitError` when the exact search exhausts ``budget``
+        (unlimited without one).
+        """
         keep = self.alive[self.eu] & self.alive[self.ev]
         if self._common is not None:
             # Common-neighbour counts only fall as nodes are removed, so the counts
@@ -79,7 +111,8 @@ class _CliqueGraph:
         u, v, common = _truss(ids.size, u, v, common, floor + 1, self.fa[ids], self.fb[ids])
         if u.size:
             sub, (su, sv) = _compact(ids.size, u, v)
-            found = _Bitsets(_packed_adjacency(sub.size, su, sv)).exact(floor)
+            bits = _Bitsets(_packed_adjacency(sub.size, su, sv), budget or _SearchBudget(1 << 62))
+            found = bits.exact(floor)
             if len(found) > floor:
                 best = sub[np.array(found, dtype=np.int64)].tolist()
         if len(best) < at_least:
@@ -195,9 +228,12 @@ def _bits(x: int) -> list[int]:
 class _Bitsets:
     """Adjacency as one Python integer per node, for the branch and bound."""
 
-    def __init__(self, W: NDArray[np.uint64]) -> None:
+    def __init__(self, W: NDArray[np.uint64], budget: _SearchBudget) -> None:
         self.adj = [int.from_bytes(row.astype("<u8").tobytes(), "little") for row in W]
         """Neighbour bitset of each node."""
+        self.budget = budget
+        """Work left: every expansion and start vertex spends one unit plus one per
+        candidate vertex."""
         self._best: list[int] = []
         self._floor = 0
 
@@ -224,6 +260,7 @@ class _Bitsets:
         return order, bound
 
     def _expand(self, R: list[int], P: int) -> None:
+        self.budget.spend(1 + P.bit_count())
         order, bound = self._colour_sort(P)
         for idx in range(len(order) - 1, -1, -1):
             # The colours of the remaining candidates bound the clique size.
@@ -254,6 +291,7 @@ class _Bitsets:
         for v in order:
             need = self._size()  # nodes besides v for a strictly larger clique
             P = self.adj[v] & later_mask[v]
+            self.budget.spend(1 + P.bit_count())
             # k-core of the later neighbours: in a clique of need + 1 nodes with v,
             # every other member has need − 1 neighbours among them.
             while P.bit_count() >= need:
@@ -264,6 +302,7 @@ class _Bitsets:
                 if not drop:
                     break
                 P &= ~drop
+                self.budget.spend(P.bit_count())
             if P.bit_count() < need:
                 continue
             if not P:

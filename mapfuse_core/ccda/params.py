@@ -37,11 +37,31 @@ class CCDAParams:
     parallel_along_std_m: float = 10.0
     """Spread of the along-line origins of one wall between the maps, used to widen
     the distance gate of nearly (not exactly) parallel lines."""
-    ambiguity_margin: int = 1
-    """A hypothesis incompatible with the best one and supported by at least
-    ``best − ambiguity_margin`` pairings makes the match ambiguous."""
-    max_hypotheses: int = 10
-    """Most maximum-clique searches (best plus competitors) per call."""
+    ambiguity_margin: int | None = None
+    """``None``: the rivals that count are set by :attr:`rival_fraction`.  An integer
+    ``m``: a hypothesis incompatible with the best one counts as a rival when it has
+    at least ``max(min_pairings, best − m)`` pairings.  That rule accepts the larger
+    of two well-supported hypotheses (10 against 8 with ``m = 1``), which is the
+    wrong one in a periodic world whenever the local map reaches past the known
+    map's edge; use it only on maps known not to repeat."""
+    rival_fraction: float = 0.5
+    """With ``ambiguity_margin = None``, a hypothesis incompatible with the best one
+    makes the match ambiguous when it has at least
+    ``max(min_pairings, ⌈rival_fraction · best⌉)`` pairings.  A shift by one period
+    of a periodic world keeps ``(k − 1)/k`` of the pairings of a local map spanning
+    ``k`` periods inside the known map (all of them for ``k ≤ 1``), so such rivals
+    have at least half the support of the right match; chance cliques of unrelated
+    features stay near ``min_pairings`` whatever the overlap."""
+    max_hypotheses: int = 30
+    """Most maximum-clique searches (best plus competitors) per call.  When the last
+    one still finds a clique that could compete, the search is incomplete and the
+    call returns ``"search_limit"``."""
+    max_clique_work: int = 2_000_000
+    """Budget of the exact clique search over all searches of one call, in work units:
+    one per branch-and-bound node plus one per candidate vertex it colours or prunes
+    (so units follow time; rates in ``docs/ccda.md``).  Exhausting it returns
+    ``"search_limit"``, never a guess.  It counts work, not seconds, so the outcome
+    is the same on every machine."""
     max_edges: int = 5_000_000
     """Largest correspondence graph searched.  The exact search costs about
     ``edges × nodes / 64`` word operations (timings in ``docs/method.md`` §5.1): beyond
@@ -53,6 +73,19 @@ class CCDAParams:
     """Standard deviation (rad) added in quadrature to every angular variance."""
 
 
+#: Every :attr:`CCDAResult.reason`.
+REASONS = (
+    "accepted",
+    "empty map",
+    "too few features",
+    "too few pairings",
+    "degenerate geometry",
+    "ambiguous",
+    "graph too large",
+    "search_limit",
+)
+
+
 @dataclass(frozen=True)
 class CCDAResult:
     """Outcome of :func:`ccda_match`; diagnostics are filled even when rejected."""
@@ -60,8 +93,13 @@ class CCDAResult:
     accepted: bool
     """True when the pairings fix an unambiguous transform."""
     reason: str
-    """``"accepted"``, ``"empty map"``, ``"too few features"``, ``"too few pairings"``,
-    ``"degenerate geometry"``, ``"ambiguous"`` or ``"graph too large"``."""
+    """One of :data:`REASONS`: ``"accepted"``; ``"empty map"``, ``"too few features"``
+    (inputs); ``"too few pairings"`` (best hypothesis below ``min_pairings``);
+    ``"degenerate geometry"`` (its pairings do not fix the transform);
+    ``"ambiguous"`` (an incompatible rival has comparable support, see
+    :attr:`CCDAParams.rival_fraction`); ``"graph too large"`` (``max_edges``);
+    ``"search_limit"`` (the clique search exhausted ``max_clique_work``, or
+    ``max_hypotheses`` ran out before every competitor was ruled out)."""
     pairings: tuple[tuple[int, int], ...]
     """``(index into map_a, index into map_b)``, sorted, of the best hypothesis: its
     maximum clique's inliers, re-associated one-to-one to the nearest partner within
@@ -86,6 +124,9 @@ class CCDAResult:
     best one (0 if none)."""
     n_hypotheses: int = 0
     """Hypotheses (maximum cliques) fitted."""
+    search_work: int = 0
+    """Work units the exact clique searches spent (see
+    :attr:`CCDAParams.max_clique_work`)."""
 
 
 @dataclass(frozen=True)
@@ -114,8 +155,12 @@ def _check_params(p: CCDAParams) -> None:
         raise ValueError(f"max_hypotheses must be >= 1, got {p.max_hypotheses}")
     if p.max_edges < 0:
         raise ValueError(f"max_edges must be >= 0, got {p.max_edges}")
-    if p.ambiguity_margin < 0:
-        raise ValueError(f"ambiguity_margin must be >= 0, got {p.ambiguity_margin}")
+    if p.ambiguity_margin is not None and p.ambiguity_margin < 0:
+        raise ValueError(f"ambiguity_margin must be None or >= 0, got {p.ambiguity_margin}")
+    if not 0.0 < p.rival_fraction <= 1.0:
+        raise ValueError(f"rival_fraction must be in (0, 1], got {p.rival_fraction}")
+    if p.max_clique_work < 1:
+        raise ValueError(f"max_clique_work must be >= 1, got {p.max_clique_work}")
     for name in (
         "max_transform_std_xy_m",
         "max_transform_std_theta_rad",

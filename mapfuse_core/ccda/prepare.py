@@ -7,7 +7,7 @@ A line enters matching only through the 2×2 covariance of its SPmap perturbatio
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -106,6 +106,25 @@ def _prepare(m: KnownMapArrays, name: str, params: CCDAParams) -> _Prep:
     return _Prep(
         kinds=kinds, params=P, covs=covs, circ=circ, line=line, p=p, Sp=Sp, vr=vr, th=th, C=C
     )
+
+
+def _centred(P: _Prep) -> tuple[_Prep, FloatArray]:
+    """``P`` in a frame translated to the centroid of its feature positions, and that
+    centroid (the pose ``(c, 0)`` of the new frame in the old one).
+
+    Matching is then independent of where the map's origin is: invariants, gates and
+    the transform fit see coordinates of the size of the map, not of its distance
+    from the origin (surveyed maps come in UTM-like coordinates, 10⁶–10⁷ m, where
+    the lever arm of the transform's angle would swamp its position, and rounding
+    would swamp the features' metre-level geometry).  A translation leaves angles
+    and covariances unchanged.
+    """
+    if P.n == 0:
+        return P, np.zeros(2)
+    c = P.p.mean(axis=0)
+    params = P.params.copy()
+    params[:, :2] -= c
+    return replace(P, params=params, p=P.p - c), c
 
 
 def _pairing_arrays(
