@@ -119,16 +119,21 @@ def _assert_close(Ja: list[np.ndarray], Jn: list[np.ndarray], scale: float) -> N
 # --------------------------------------------------------------------------- pure models
 
 
-@given(z=line_meas, x=poses(), ra=rho_alpha)
-def test_line_observation_error_is_observe_at_the_foot(
-    z: np.ndarray, x: np.ndarray, ra: np.ndarray
+@given(z=line_meas, x=poses(), ra=rho_alpha, t=coord)
+def test_line_observation_error_is_the_core_model_wherever_the_landmark_frame_is(
+    z: np.ndarray, x: np.ndarray, ra: np.ndarray, t: float
 ) -> None:
+    # The landmark's SPmap frame may sit anywhere along its line: same residual.
     r, _, _ = fx.line_observation_error(z, x, ra)
-    p = compose(x, z)
-    t = fx.rho_alpha_along(ra, p)
     f, _ = line_from_normal(float(ra[0]), float(ra[1]), t)
-    np.testing.assert_allclose(r, observe(FeatureKind.LINE, z, x, f)[0], atol=1e-9)
+    scale = 1.0 + float(np.abs(x[:2]).max() + abs(ra[0]) + abs(t) + np.abs(z[:2]).max())
+    r_core = observe(FeatureKind.LINE, z, x, f)[0]
+    assert abs(r[0] - r_core[0]) <= 1e-12 * scale
+    assert abs(float(wrap_angle_half(r[1] - r_core[1]))) <= 1e-12
     np.testing.assert_allclose(fx.line_observation_residual(z, x, ra), r, atol=1e-12)
+    # The lateral residual is the offset of the observed midpoint from the line.
+    p = compose(x, z)
+    assert abs(r[0] - (ra[0] - p[0] * math.cos(ra[1]) - p[1] * math.sin(ra[1]))) <= 1e-12 * scale
 
 
 @given(z=line_meas, x=poses())
@@ -309,7 +314,7 @@ def test_known_line_prior_noise_is_the_lateral_angle_block() -> None:
     # and their covariance, whatever the along-line σx.
     cov = np.array([[4.0, 0.1, 0.2], [0.1, 0.09, 0.003], [0.2, 0.003, 0.0025]])
     S = fx.known_line_prior_cov(np.array([30.0, 5.0, 0.0]), cov)
-    np.testing.assert_allclose(S, [[0.09, -0.003], [-0.003, 0.0025]], atol=1e-15)
+    np.testing.assert_allclose(S, [[0.09, 0.003], [0.003, 0.0025]], atol=1e-15)
     with pytest.raises(ValueError, match="known line"):
         fx.known_line_prior_factor(K, np.array([0.0, np.nan, 0.0]), cov)
 
@@ -510,8 +515,8 @@ def test_factor_constructors_validate() -> None:
 
 
 def test_line_noise_jacobian_is_the_pairing_jacobian() -> None:
-    # The noise model is ∂pairing(z, f)/∂z at f = z: check against features directly.
+    # The noise model is ∂pairing(f, z)/∂z at f = z: check against features directly.
     z = np.array([4.0, -2.0, 0.7])
-    _, Jz, _ = pairing_residual(FeatureKind.LINE, z, z)
+    _, _, Jz = pairing_residual(FeatureKind.LINE, z, z)
     cov = np.diag([1.0, 0.04, 0.001])
     np.testing.assert_allclose(fx.residual_noise_cov(FeatureKind.LINE, z, cov), Jz @ cov @ Jz.T)

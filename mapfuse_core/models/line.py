@@ -1,0 +1,99 @@
+"""Line measurement model: an observed segment against a line (docs/models.md).
+
+A line is an SPmap frame ``(x, y, θ)`` on it with its x axis along it; an observed
+segment is the SPmap frame of its fitted line placed at the segment's midpoint.  The
+one residual of the model is the pairing of a segment ``Z`` with a target line ``T``
+(estimated or known, the same function)::
+
+    r = pairing(T, Z) = (lateral offset of Z's reference point from line T,
+                         θ_Z − θ_T modulo π, in (−π/2, π/2])
+
+i.e. ``B · (⊖T ⊕ Z)`` with the angle taken modulo π.  It does not depend on where
+``T``'s reference point sits along ``T``, nor on either frame's direction.  Its noise
+is the segment's covariance with the along-line pseudo-variance projected out
+(:func:`bind_line_cov`), propagated through ``∂r/∂Z``.
+
+The observation form takes the target from the world through the sensor pose:
+``r = line_residual(⊖X ⊕ L, z)`` (:func:`line_observation`).
+
+Every function is pure and returns its value with its Jacobians w.r.t. the raw
+parameters (absolute perturbations of ``(x, y, θ)``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapfuse_core.se2 import FloatArray, relative, wrap_scalar_half
+
+__all__ = [
+    "B_LINE",
+    "bind_line_cov",
+    "line_observation",
+    "line_observation_cov",
+    "line_residual",
+    "line_residual_cov",
+]
+
+#: Binding matrix of an SPmap line: keeps the lateral offset and the angle.
+B_LINE: FloatArray = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def line_residual(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Residual of segment ``Z`` against line ``T`` with ``∂r/∂T`` and ``∂r/∂Z`` (2×3 each).
+
+    ``r[0]`` is the signed offset (metres) of ``Z``'s reference point from the line
+    ``T``, along ``T``'s y axis; ``r[1]`` the angle ``θ_Z − θ_T`` modulo π.  Zero when
+    ``Z``'s reference point lies on ``T`` and the two are parallel.
+    """
+    v, JT, JZ = relative(T, Z)
+    r = np.array([v[1], wrap_scalar_half(float(v[2]))])
+    return r, B_LINE @ JT, B_LINE @ JZ
+
+
+def bind_line_cov(line: FloatArray, cov: FloatArray) -> FloatArray:
+    """Covariance of an SPmap line with its along-line component projected out.
+
+    ``Π Σ Πᵀ`` with ``Π = blockdiag(I − u uᵀ, 1)``, ``u`` the line's direction: the
+    reference point's position along its own line is a gauge (a pseudo-variance such
+    as extraction's ``L²/12``), not a noise of the line.
+    """
+    c, s = math.cos(line[2]), math.sin(line[2])
+    P = np.array([[1 - c * c, -c * s, 0.0], [-c * s, 1 - s * s, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = P @ cov @ P.T
+    return out
+
+
+def line_residual_cov(T: FloatArray, Z: FloatArray, cov_Z: FloatArray) -> FloatArray:
+    """Noise of :func:`line_residual` due to the segment: ``J_Z bind(Z, Σ_Z) J_Zᵀ`` (2×2).
+
+    At ``T = Z`` (the zero-residual point) this is the (lateral, angle) block of
+    ``Σ_Z`` in the segment's own frame.
+    """
+    _, _, JZ = line_residual(T, Z)
+    out: FloatArray = JZ @ bind_line_cov(Z, cov_Z) @ JZ.T
+    return 0.5 * (out + out.T)
+
+
+def line_observation(
+    X: FloatArray, L: FloatArray, z: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Residual of segment ``z`` (sensor frame) against world line ``L`` seen from pose ``X``.
+
+    ``r = line_residual(⊖X ⊕ L, z)``: the offset of the observed midpoint ``X ⊕ z_xy``
+    from ``L`` and the angle between them.  Returns ``r`` and ``∂r/∂X``, ``∂r/∂L``
+    (2×3 each).
+    """
+    T, JX, JL = relative(X, L)
+    r, JrT, _ = line_residual(T, z)
+    return r, JrT @ JX, JrT @ JL
+
+
+def line_observation_cov(
+    X: FloatArray, L: FloatArray, z: FloatArray, cov_z: FloatArray
+) -> FloatArray:
+    """Noise of :func:`line_observation`: :func:`line_residual_cov` at ``T = ⊖X ⊕ L``."""
+    T, _, _ = relative(X, L)
+    return line_residual_cov(T, z, cov_z)
