@@ -70,10 +70,16 @@ def line_residual_cov(T: FloatArray, Z: FloatArray, cov_Z: FloatArray) -> FloatA
     """Noise of :func:`line_residual` due to the segment: ``J_Z bind(Z, Σ_Z) J_Zᵀ`` (2×2).
 
     At ``T = Z`` (the zero-residual point) this is the (lateral, angle) block of
-    ``Σ_Z`` in the segment's own frame.
+    ``Σ_Z`` in the segment's own frame.  Evaluated as ``(J_Z Π) Σ_Z (J_Z Π)ᵀ`` with
+    ``Π`` the projection of :func:`bind_line_cov` (it runs for every candidate
+    pairing of the EKF).
     """
-    _, _, JZ = line_residual(T, Z)
-    out: FloatArray = JZ @ bind_line_cov(Z, cov_Z) @ JZ.T
+    c, s = math.cos(T[2]), math.sin(T[2])
+    cz, sz = math.cos(Z[2]), math.sin(Z[2])
+    # J_Z's lateral row is T's normal n = (−s, c); Π removes its component along u_Z.
+    d = c * sz - s * cz
+    M = np.array([[-s - d * cz, c - d * sz, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = M @ cov_Z @ M.T
     return 0.5 * (out + out.T)
 
 
