@@ -431,19 +431,21 @@ def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
 
     With ``n = (cos α, sin α)`` and ``p = X ⊕ z_xy`` (the observed midpoint in the
     world), the landmark frame's y axis is ``−n``, so the offset of ``p`` from the
-    line is ``e = ρ − p·n`` and the angle ``θ + z_θ − α − π/2`` modulo π.  Jacobians,
-    with ``φ = α − θ`` and ``t = p · (−sin α, cos α)``:
+    line is ``e = ρ − p·n``, signed like ``z``'s normal: ``σ e`` with
+    ``σ = sign cos(θ + z_θ − α − π/2)``; the angle is ``θ + z_θ − α − π/2`` modulo π.
+    Jacobians, with ``φ = α − θ`` and ``t = p · (−sin α, cos α)``:
 
-    * body tangent of ``X``: ``[[−cos φ, −sin φ, z_y cos φ − z_x sin φ], [0, 0, 1]]``;
-    * ``(ρ, α)``: ``[[1, −t], [0, −1]]``.
+    * body tangent of ``X``: ``[[−σ cos φ, −σ sin φ, σ (z_y cos φ − z_x sin φ)], [0, 0, 1]]``;
+    * ``(ρ, α)``: ``[[σ, −σ t], [0, −1]]``.
     """
     zx, zy, zt = float(z[0]), float(z[1]), float(z[2])
+    czt, szt = math.cos(zt), math.sin(zt)
     angle_offset = zt - math.pi / 2.0
     # GTSAM copies H[i] on assignment, so one pair of Jacobian buffers per factor can
     # be refilled on every call (cheaper than building two new arrays).  The constant
     # entries are written once here.
     Jx = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    Jl = np.array([[1.0, 0.0], [0.0, -1.0]])
+    Jl = np.array([[0.0, 0.0], [0.0, -1.0]])
 
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
@@ -457,15 +459,20 @@ def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
         ca, sa = math.cos(alpha), math.sin(alpha)
         px = x + c * zx - s * zy
         py = y + s * zx + c * zy
-        r = np.array([rho - px * ca - py * sa, wrap_scalar_half(th - alpha + angle_offset)])
-        if H is None:
-            return r
         cphi = ca * c + sa * s
         sphi = sa * c - ca * s
-        Jx[0, 0] = -cphi
-        Jx[0, 1] = -sphi
-        Jx[0, 2] = zy * cphi - zx * sphi
-        Jl[0, 1] = px * sa - py * ca
+        # σ: sign of cos(θ + z_θ − α − π/2) = sin(θ + z_θ − α).
+        sign = 1.0 if szt * cphi - czt * sphi >= 0.0 else -1.0
+        r = np.array(
+            [sign * (rho - px * ca - py * sa), wrap_scalar_half(th - alpha + angle_offset)]
+        )
+        if H is None:
+            return r
+        Jx[0, 0] = -sign * cphi
+        Jx[0, 1] = -sign * sphi
+        Jx[0, 2] = sign * (zy * cphi - zx * sphi)
+        Jl[0, 0] = sign
+        Jl[0, 1] = sign * (px * sa - py * ca)
         if _Checks.enabled:
             _check("line factor", r, (Jx, Jl), (3, 2))
         H[0] = Jx

@@ -8,8 +8,9 @@ one residual of the model is the pairing of a segment ``Z`` with a target line `
     r = pairing(T, Z) = (lateral offset of Z's reference point from line T,
                          θ_Z − θ_T modulo π, in (−π/2, π/2])
 
-i.e. ``B · (⊖T ⊕ Z)`` with the angle taken modulo π.  It does not depend on where
-``T``'s reference point sits along ``T``, nor on either frame's direction.  Its noise
+i.e. ``B · (⊖T ⊕ Z)`` with the angle taken modulo π and the offset measured along
+``T``'s normal oriented like ``Z``'s.  It does not depend on where ``T``'s reference
+point sits along ``T``, nor on ``T``'s direction.  Its noise
 is the segment's covariance with the along-line pseudo-variance projected out
 (:func:`bind_line_cov`), propagated through ``∂r/∂Z``.
 
@@ -45,12 +46,23 @@ def line_residual(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray,
     """Residual of segment ``Z`` against line ``T`` with ``∂r/∂T`` and ``∂r/∂Z`` (2×3 each).
 
     ``r[0]`` is the signed offset (metres) of ``Z``'s reference point from the line
-    ``T``, along ``T``'s y axis; ``r[1]`` the angle ``θ_Z − θ_T`` modulo π.  Zero when
-    ``Z``'s reference point lies on ``T`` and the two are parallel.
+    ``T``, along ``T``'s normal oriented like ``Z``'s (``T``'s y axis, turned by π when
+    the two frames point more than π/2 apart); ``r[1]`` the angle ``θ_Z − θ_T`` modulo
+    π.  Neither depends on ``T``'s direction, so a target line's direction convention
+    never changes the residual, nor the sign of its lateral/angle correlation (the
+    noise, :func:`line_residual_cov`, is the segment's, in the segment's frame).  Zero
+    when ``Z``'s reference point lies on ``T`` and the two are parallel; discontinuous
+    only where they are perpendicular.
     """
     v, JT, JZ = relative(T, Z)
-    r = np.array([v[1], wrap_scalar_half(float(v[2]))])
-    return r, B_LINE @ JT, B_LINE @ JZ
+    dth = float(v[2])
+    sign = 1.0 if math.cos(dth) >= 0.0 else -1.0
+    r = np.array([sign * v[1], wrap_scalar_half(dth)])
+    JrT = B_LINE @ JT
+    JrZ = B_LINE @ JZ
+    JrT[0] *= sign
+    JrZ[0] *= sign
+    return r, JrT, JrZ
 
 
 def bind_line_cov(line: FloatArray, cov: FloatArray) -> FloatArray:
@@ -76,9 +88,11 @@ def line_residual_cov(T: FloatArray, Z: FloatArray, cov_Z: FloatArray) -> FloatA
     """
     c, s = math.cos(T[2]), math.sin(T[2])
     cz, sz = math.cos(Z[2]), math.sin(Z[2])
-    # J_Z's lateral row is T's normal n = (−s, c); Π removes its component along u_Z.
+    # J_Z's lateral row is ±T's normal n = (−s, c) (oriented like Z's); Π removes its
+    # component along u_Z.
+    sign = 1.0 if c * cz + s * sz >= 0.0 else -1.0
     d = c * sz - s * cz
-    M = np.array([[-s - d * cz, c - d * sz, 0.0], [0.0, 0.0, 1.0]])
+    M = np.array([[sign * (-s - d * cz), sign * (c - d * sz), 0.0], [0.0, 0.0, 1.0]])
     out: FloatArray = M @ cov_Z @ M.T
     return 0.5 * (out + out.T)
 
