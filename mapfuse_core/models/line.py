@@ -54,14 +54,17 @@ def line_residual(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray,
     when ``Z``'s reference point lies on ``T`` and the two are parallel; discontinuous
     only where they are perpendicular.
     """
-    v, JT, JZ = relative(T, Z)
-    dth = float(v[2])
-    sign = 1.0 if math.cos(dth) >= 0.0 else -1.0
-    r = np.array([sign * v[1], wrap_scalar_half(dth)])
-    JrT = B_LINE @ JT
-    JrZ = B_LINE @ JZ
-    JrT[0] *= sign
-    JrZ[0] *= sign
+    # relative() written out: this is the inner loop of every association.
+    c, s = math.cos(T[2]), math.sin(T[2])
+    dx, dy = float(Z[0] - T[0]), float(Z[1] - T[1])
+    lx = c * dx + s * dy
+    dth = float(Z[2] - T[2])
+    # B·(⊖T ⊕ Z) with the lateral row oriented like Z's normal (rows of relative()'s
+    # Jacobians kept by B_LINE, times the orientation).
+    g = 1.0 if math.cos(dth) >= 0.0 else -1.0
+    r = np.array([g * (-s * dx + c * dy), wrap_scalar_half(dth)])
+    JrT = np.array([[g * s, -g * c, -g * lx], [0.0, 0.0, -1.0]])
+    JrZ = np.array([[-g * s, g * c, 0.0], [0.0, 0.0, 1.0]])
     return r, JrT, JrZ
 
 
