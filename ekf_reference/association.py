@@ -4,8 +4,8 @@ A *query* is either a measurement (a feature in the vehicle frame with its
 covariance) or a feature element of the map itself (for the hard pairing
 constraints of map joining and of the known-map fusion).  A *target* is a feature
 element expressed in the vehicle frame, or a known-map feature seen through the
-anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the shared models of
-:mod:`mapfuse_core.features`.
+anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the measurement models
+of :mod:`mapfuse_core.models` (through :mod:`mapfuse_core.features`).
 
 This module linearises the pairings on a :class:`~ekf_reference.state.GaussianMap`;
 the gates, the searches and their settings are the backend-independent ones of
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
-from mapfuse_core.features import FeatureKind, pairing_residual, transform_feature
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from mapfuse_core.features import pairing_cov, pairing_residual, transform_feature
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
@@ -107,7 +107,8 @@ def predict_all_targets(
         preds = np.empty((len(feat) + kn.size, 3))
         preds[: len(feat)] = state.mean[feat]
         if kn.size:
-            # x^R_Wknown ⊕ E for every known feature at once (same model as transform_feature).
+            # x^R_Wknown ⊕ E for every known feature at once: transform_feature vectorised
+            # (tests/test_models.py holds the two equal).
             a = state.mean[anchor]
             c, s = math.cos(a[2]), math.sin(a[2])
             E = state.mean[kn]
@@ -131,32 +132,19 @@ def _target_jacobian(state: GaussianMap, t: int) -> tuple[FloatArray, list[int],
 def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     """Residual, Jacobian and Mahalanobis distance of pairing query ``q`` with target ``t``.
 
-    The residual is ``pairing(q, target)`` (the target's reference point seen from the
-    query's line), except for a known wall, where it is ``pairing(target, q)``: the
-    offset of the query's reference point from the known line.  A known wall reaches
-    the working frame through the anchor, so the position of its reference point *along*
-    the wall carries the anchor's real translation uncertainty (an estimated line's
-    along-line variance is bound to zero, :meth:`GaussianMap.bind_lines`).  Measured at
-    that point, the lateral residual depends on it through ``sin Δθ``, ``Δθ`` the angle
-    between query and wall, which is noise, and the thousands of observations of one
-    wall then pile up information about the anchor's along-wall position that no wall
-    holds.  On loop600 seed 12 with a known map of walls only, that put the anchor
-    10 cm off with σ 23–30 % below the batch smoother's (NEES 74.0, the batch's 0.6);
-    with this residual its NEES is 1.2 and its σ 3–5 % below the batch's.  Over 40
-    seeds with the full known map the anchor NEES averaged 6.1; with this residual and
-    the iterated update when CCDA accepts (:func:`apply_iterated`) it is 3.25 (the
-    batch's 3.06; ``benchmarks/mc_loop600.py``).  The query's own along-line pseudo-variance
-    (extraction: ``L²/12``) would now leak into the lateral variance as
-    ``(L²/12) sin²Δθ``; it is not a noise of the segment's reference point, so it is
-    projected out of a measurement's covariance.
+    The residual is the feature model's ``pairing(target, q)``
+    (:func:`mapfuse_core.features.pairing_residual`): for a line, the offset of the
+    query's reference point (a measured segment's midpoint) from the target line and
+    the angle between them, for an estimated line and a known wall alike, so the
+    target's reference point along its line never enters.  A measurement's noise is
+    the model's (:func:`mapfuse_core.features.pairing_cov`: its covariance with the
+    along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
+    covariance is in the map, so its pairing has none.  docs/models.md says why the
+    segment form.
     """
     pred, tidx, tJ = _target_jacobian(state, t)
     fk = q.kind.feature_kind()
-    known_line = fk == FeatureKind.LINE and state.elements[t].role == Role.KNOWN
-    if known_line:
-        r, Jp, Jq = pairing_residual(fk, pred, q.params)
-    else:
-        r, Jq, Jp = pairing_residual(fk, q.params, pred)
+    r, Jp, Jq = pairing_residual(fk, pred, q.params)
     if q.element >= 0:
         indices = [q.element, *tidx]
         blocks = [Jq] + [Jp @ J for J in tJ]
@@ -164,8 +152,7 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     else:
         indices = tidx
         blocks = [Jp @ J for J in tJ]
-        cov = bind_line_cov(q.params, q.cov) if known_line else q.cov
-        R = Jq @ cov @ Jq.T
+        R = pairing_cov(fk, pred, q.params, q.cov)
     H = np.hstack(blocks)
     S = R + _project(state, indices, H)
     d2 = _mahalanobis(r, S)

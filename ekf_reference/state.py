@@ -22,17 +22,10 @@ from enum import IntEnum
 import numpy as np
 
 from mapfuse_core.features import FeatureKind
+from mapfuse_core.models.line import bind_line_cov
 from mapfuse_core.se2 import FloatArray, wrap_angle
 
 __all__ = ["Element", "ElementKind", "GaussianMap", "Role", "bind_line_cov"]
-
-
-def bind_line_cov(line: FloatArray, cov: FloatArray) -> FloatArray:
-    """Covariance of an SPmap line with its along-line component projected out."""
-    c, s = math.cos(line[2]), math.sin(line[2])
-    P = np.array([[1 - c * c, -c * s, 0.0], [-c * s, 1 - s * s, 0.0], [0.0, 0.0, 1.0]])
-    out: FloatArray = P @ cov @ P.T
-    return out
 
 
 class ElementKind(IntEnum):

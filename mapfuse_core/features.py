@@ -1,19 +1,24 @@
-"""Map features and the measurement models shared by both backends (method.md §2).
+"""Map features: representations, frame changes and dispatch by kind (method.md §2).
 
 Two feature kinds, each a length-3 float array:
 
 * **Line** (SPmap, Castellanos): a frame ``(x, y, θ)`` lying on the line with its x
   axis along the line.  Only the lateral offset and the angle are real degrees of
-  freedom; ``x`` along the line (kept at the observed segment's midpoint) only helps
-  association and never enters a residual.  Angles of lines are compared modulo π.
+  freedom.  An observed segment's reference point is its midpoint, and the residual
+  is that point's offset from the target line, so where a target line's own
+  reference point sits along it never enters a residual.  Angles of lines are
+  compared modulo π.
   Covariances are of the absolute ``(x, y, θ)`` parameters in the frame the line is
   expressed in; the along-line variance is a pseudo-variance (see extraction).
 * **Circle** ``(x, y, r)``: centre and radius; a change of frame moves the centre
   like a point and leaves ``r`` alone.
 
-Every function returns its value together with its Jacobians.  The EKF and the
-factor graph both call :func:`observe` and :func:`pairing_residual`, so the two
-backends linearise exactly the same models.
+Every function returns its value together with its Jacobians.  The measurement
+models themselves live in :mod:`mapfuse_core.models` (one per feature type);
+:func:`pairing_residual`, :func:`pairing_cov` and :func:`observe` only dispatch to
+them by kind.  The EKF evaluates its pairings through :func:`pairing_residual` and
+:func:`pairing_cov`; the factor graph calls the models directly (its hot-path
+callbacks are closed forms of them, held equal by tests).
 """
 
 from __future__ import annotations
@@ -23,13 +28,23 @@ from enum import IntEnum
 
 import numpy as np
 
+from mapfuse_core.models.circle import (
+    circle_observation,
+    circle_residual,
+    circle_residual_cov,
+)
+from mapfuse_core.models.line import (
+    B_LINE,
+    line_observation,
+    line_residual,
+    line_residual_cov,
+)
 from mapfuse_core.se2 import (
     FloatArray,
     compose_jacobians,
     relative,
     transform_point_jacobians,
     wrap_scalar,
-    wrap_scalar_half,
 )
 
 __all__ = [
@@ -45,6 +60,7 @@ __all__ = [
     "line_to_normal",
     "normal_to_line",
     "observe",
+    "pairing_cov",
     "pairing_residual",
     "residual_dim",
     "transform_circle",
@@ -58,10 +74,6 @@ class FeatureKind(IntEnum):
 
     LINE = 0
     CIRCLE = 1
-
-
-#: Binding matrix of an SPmap line: keeps the lateral offset and the angle.
-B_LINE: FloatArray = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def residual_dim(kind: FeatureKind) -> int:
@@ -135,17 +147,8 @@ def express_line_in(T: FloatArray, line: FloatArray) -> tuple[FloatArray, FloatA
     return relative(T, line)
 
 
-def line_pairing(l1: FloatArray, l2: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """SPmap pairing ``B_line · (⊖L1 ⊕ L2)``, angle modulo π; with Jacobians (2×3 each).
-
-    Zero when both frames lie on the same infinite line, whatever their along-line
-    positions and directions.  The first entry is the lateral offset of ``L2``'s
-    origin from line ``L1`` (metres), the second the angle between them in
-    ``(−π/2, π/2]``.
-    """
-    v, Ja, Jb = relative(l1, l2)
-    r = np.array([v[1], wrap_scalar_half(float(v[2]))])
-    return r, B_LINE @ Ja, B_LINE @ Jb
+#: SPmap pairing of two lines: :func:`mapfuse_core.models.line.line_residual`.
+line_pairing = line_residual
 
 
 # --------------------------------------------------------------------------- circles
@@ -179,10 +182,8 @@ def express_circle_in(
     return value, JT, JC
 
 
-def circle_pairing(c1: FloatArray, c2: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Circle pairing ``(x2 − x1, y2 − y1, r2 − r1)`` with Jacobians (3×3 each)."""
-    eye = np.eye(3)
-    return np.asarray(c2 - c1, dtype=np.float64), -eye, eye.copy()
+#: Pairing of two circles: :func:`mapfuse_core.models.circle.circle_residual`.
+circle_pairing = circle_residual
 
 
 # --------------------------------------------------------------------------- dispatch
@@ -203,21 +204,39 @@ def express_in(
 
 
 def pairing_residual(
-    kind: FeatureKind, f1: FloatArray, f2: FloatArray
+    kind: FeatureKind, target: FloatArray, observed: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Pairing residual of two features of ``kind`` given in one frame, by kind."""
-    return line_pairing(f1, f2) if kind == FeatureKind.LINE else circle_pairing(f1, f2)
+    """Residual of ``observed`` against ``target`` (both of ``kind``, in one frame).
+
+    Dispatches to :func:`~mapfuse_core.models.line.line_residual` or
+    :func:`~mapfuse_core.models.circle.circle_residual`; returns the residual and its
+    Jacobians w.r.t. ``target`` and ``observed``.
+    """
+    if kind == FeatureKind.LINE:
+        return line_residual(target, observed)
+    return circle_residual(target, observed)
+
+
+def pairing_cov(
+    kind: FeatureKind, target: FloatArray, observed: FloatArray, cov: FloatArray
+) -> FloatArray:
+    """Noise of :func:`pairing_residual` due to ``observed`` (covariance ``cov``), by kind."""
+    if kind == FeatureKind.LINE:
+        return line_residual_cov(target, observed, cov)
+    return circle_residual_cov(target, observed, cov)
 
 
 def observe(
     kind: FeatureKind, z: FloatArray, x_W_R: FloatArray, f_W: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Observation residual of measurement ``z`` (in the sensor frame ``R``).
+    """Observation residual of measurement ``z`` (in the sensor frame ``R``), by kind.
 
-    ``residual = pairing(z, ⊖x_W_R ⊕ f_W)``: zero when the feature ``f_W`` (in ``W``)
-    seen from pose ``x_W_R`` coincides with the measurement.  Returns the residual
-    (2 for a line, 3 for a circle) and its Jacobians w.r.t. ``x_W_R`` and ``f_W``.
+    ``residual = pairing(⊖x_W_R ⊕ f_W, z)``: zero when the feature ``f_W`` (in ``W``)
+    seen from pose ``x_W_R`` coincides with the measurement.  Dispatches to
+    :func:`~mapfuse_core.models.line.line_observation` or
+    :func:`~mapfuse_core.models.circle.circle_observation`; returns the residual (2 for
+    a line, 3 for a circle) and its Jacobians w.r.t. ``x_W_R`` and ``f_W``.
     """
-    pred, Jp_T, Jp_f = express_in(kind, x_W_R, f_W)
-    r, _, Jr_pred = pairing_residual(kind, z, pred)
-    return r, Jr_pred @ Jp_T, Jr_pred @ Jp_f
+    if kind == FeatureKind.LINE:
+        return line_observation(x_W_R, f_W, z)
+    return circle_observation(x_W_R, f_W, z)

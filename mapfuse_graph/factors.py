@@ -1,10 +1,10 @@
-"""GTSAM factors of the mapfuse measurement models (method.md §7).
+"""GTSAM factors of the mapfuse measurement models (method.md §7, docs/models.md).
 
-Every residual is defined by :mod:`mapfuse_core.features` (the EKF's own model);
-this module only chooses the landmark variables, chains the Jacobians and converts
-them to GTSAM's tangent conventions.  The one exception is the *callbacks* of the
-observation factors (see "Closed-form callbacks" below): they evaluate the same
-functions in closed form, and the tests hold them equal to the shared model.
+Every residual is a model of :mod:`mapfuse_core.models` (the EKF's own); this module
+only chooses the landmark variables, chains the Jacobians and converts them to GTSAM's
+tangent conventions.  The *callbacks* of the observation factors (see "Closed-form
+callbacks" below) evaluate the same functions in closed form, and the tests hold
+them equal to the models.
 
 Variables
 ---------
@@ -18,7 +18,7 @@ Variables
   flips ``α`` by π there).  It has exactly the two real degrees of freedom of a
   line: no along-line coordinate, hence no gauge freedom and no need for the biased
   huge-σ ``BetweenFactorPose2`` trick.  Retraction is plain addition; ``α`` is never
-  wrapped in the variable (residual angles are wrapped modulo π by the pairing).
+  wrapped in the variable (residual angles are wrapped modulo π by the model).
   SPmap ``(x, y, θ)`` ↔ ``(ρ, α)``: ``α = θ − π/2``, ``ρ = x sin θ − y cos θ``
   (:func:`line_to_rho_alpha`); back with :func:`mapfuse_core.features.line_from_normal`.
 * **Circle landmark** a 3-vector ``(x, y, r)``, retraction by addition.
@@ -30,39 +30,34 @@ numpy array) and read with ``Values.atVector``.
 
 Factors
 -------
-* :func:`line_factor` (pose, line): ``observe(LINE, z, X, L)`` with the landmark's
-  SPmap origin placed at the foot of the observed segment's midpoint on the
-  landmark line (see :func:`line_observation_error`).
-* :func:`circle_factor` (pose, circle): ``observe(CIRCLE, z, X, C)``;
+* :func:`line_factor` (pose, line): ``line_observation(X, L(ρ, α), z)``, the offset of
+  the observed segment's midpoint ``X ⊕ z_xy`` from the landmark line and the angle
+  between them (:func:`line_observation_error`).
+* :func:`circle_factor` (pose, circle): ``circle_observation(X, C, z)``;
   :func:`circle_centre_factor` (pose, centre) its first two rows, for a circle held as
   a centre and a separate radius variable (``GraphOptions.split_circles``).
 * :func:`line_tie_factor`, :func:`circle_tie_factor` (anchor, landmark, known): the
   graph form of the paper's eq. 20, ``pairing(L, A ⊕ K) = 0``.
+* :func:`known_line_prior_factor` (known line): ``line_residual(K(ρ, α), K_surveyed)``.
 
-The measurement noise is the observation covariance propagated to the residual at
-the zero-residual point, ``Jz Σz Jzᵀ`` with ``Jz = ∂pairing(z, f)/∂z`` at ``f = z``
-(:func:`residual_noise_cov`): for a line that is the 2×2 (lateral, angle) block of
-``Σz`` in the observed line's own frame, so the along-line pseudo-variance never
-enters.
+The measurement noise is the model's noise at the zero-residual point,
+``line_residual_cov(z, z, Σz)`` (:func:`residual_noise_cov`): for a line the 2×2
+(lateral, angle) block of ``Σz`` in the observed line's own frame, so the along-line
+pseudo-variance never enters.
 
 Closed-form callbacks
 ---------------------
-The line and circle observation factors are most of the graph (on loop600 12.7k of
-15.2k factors) and GTSAM calls a Python callback for each of them on every
-linearisation.  Going through :func:`line_observation_error` (``line_from_normal``,
-``observe``, ``to_body``: about 20 small numpy arrays and 6 matrix products per
-call) cost ~64 µs CPU per linearised line factor (circle ~36 µs) against ~14 µs
-for the same numbers computed from the five scalars ``(x, y, θ, ρ, α)``; an empty
-callback costs ~7 µs, a ``BearingRangeFactor2D`` under 1 µs.  That made batch
-Levenberg–Marquardt 8–14× slower than a same-size graph of GTSAM built-in factors
-instead of ≤ 3× (issue 4; ``benchmarks/bench_graph.py``).  So
-:func:`line_factor` and :func:`circle_factor` hand GTSAM the closed forms of
-:func:`line_observation_error` and :func:`circle_observation_error` with the pose
-Jacobian already in the body tangent.  They are not a second model: the tests
-(``test_*_factor_is_the_shared_model``) check on hypothesis-generated inputs,
-θ and α near ±π included, that residuals and Jacobians equal the shared model
-functions chained through :func:`to_body` to ~1e-12; change the model there first,
-then these.
+The line and circle observation factors are most of the graph and GTSAM calls a
+Python callback for each of them on every linearisation.  Going through the models
+(``line_from_normal``, ``line_observation``, ``to_body``: about 20 small numpy arrays
+and several matrix products per call) costs several times more per call than the same
+numbers computed from the five scalars ``(x, y, θ, ρ, α)`` (``benchmarks/bench_graph.py``,
+docs/models.md).  So :func:`line_factor` and :func:`circle_factor` hand GTSAM the
+closed forms of :func:`line_observation_error` and :func:`circle_observation_error`
+with the pose Jacobian already in the body tangent.  They are not a second model: the
+tests (``test_*_factor_is_the_shared_model``) check on hypothesis-generated inputs,
+θ and α near ±π included, that residuals and Jacobians equal the model functions
+chained through :func:`to_body` to ~1e-12; change the model first, then these.
 
 Jacobian shape guard
 --------------------
@@ -70,7 +65,7 @@ A wrongly shaped Jacobian handed to GTSAM segfaults or silently corrupts the
 system.  With ``MAPFUSE_CHECK_JACOBIANS=1`` in the environment, or after
 :func:`set_jacobian_checks` ``(True)``, every callback checks the residual and each
 Jacobian before giving them to GTSAM and raises :class:`JacobianShapeError` instead.
-The tests turn it on; it costs about 2 µs per factor call.
+The tests turn it on; it adds a small cost to every call, so it is off by default.
 """
 
 from __future__ import annotations
@@ -85,12 +80,14 @@ import numpy as np
 from mapfuse_core.features import (
     FeatureKind,
     line_from_normal,
-    observe,
+    pairing_cov,
     pairing_residual,
     transform_circle,
     transform_feature,
     transform_line,
 )
+from mapfuse_core.models.circle import circle_observation
+from mapfuse_core.models.line import line_observation, line_residual, line_residual_cov
 from mapfuse_core.se2 import FloatArray, wrap_scalar, wrap_scalar_half
 
 __all__ = [
@@ -236,52 +233,27 @@ def landmark_from_observation(kind: FeatureKind, x_W_R: FloatArray, z: FloatArra
 def line_observation_error(
     z: FloatArray, x_W_R: FloatArray, ra: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Line observation residual ``observe(LINE, z, X, L(ρ, α, t*))`` and Jacobians (2×3, 2×2).
+    """Line observation residual ``line_observation(X, L(ρ, α), z)`` and Jacobians (2×3, 2×2).
 
-    ``t*`` puts the landmark's SPmap origin at the foot, on the landmark line, of the
-    observed segment's midpoint ``X ⊕ z_xy``.  The lateral residual is then measured
-    where the observation actually is, so it carries only the observation's lateral
-    noise (no lever arm times its angle noise), which makes the noise model
-    :func:`residual_noise_cov` exact at the solution.  The EKF measures it at an
-    estimated landmark's own reference point (the two differ by angle error ×
-    along-line distance, second order at the solution), and at the observed segment
-    for a known wall (:func:`ekf_reference.association.evaluate` says why).  ``t*``
-    depends on ``X`` and ``α``, and the Jacobians include that dependence.
+    The offset of the observed segment's midpoint ``X ⊕ z_xy`` from the landmark line
+    and the angle between them.  The landmark's SPmap frame is taken at the foot of
+    the normal (``t = 0``); the residual does not depend on where along the line it is.
     """
-    rho, alpha = float(ra[0]), float(ra[1])
-    ca, sa = math.cos(alpha), math.sin(alpha)
-    c, s = math.cos(x_W_R[2]), math.sin(x_W_R[2])
-    zx, zy = float(z[0]), float(z[1])
-    # p = X ⊕ z_xy (world midpoint of the segment); t* = p · (−sin α, cos α).
-    px = x_W_R[0] + c * zx - s * zy
-    py = x_W_R[1] + s * zx + c * zy
-    t = -px * sa + py * ca
-    f, JF = line_from_normal(rho, alpha, t)
-    r, Jx, Jf = observe(FeatureKind.LINE, z, x_W_R, f)
-    Jrf = Jf @ JF  # w.r.t. (ρ, α, t)
-    dt_dx = np.array([-sa, ca, sa * (s * zx + c * zy) + ca * (c * zx - s * zy)])
-    dt_dalpha = -(px * ca + py * sa)
-    J_x = Jx + np.outer(Jrf[:, 2], dt_dx)
-    J_l = Jrf[:, :2].copy()
-    J_l[:, 1] += Jrf[:, 2] * dt_dalpha
-    return r, J_x, J_l
+    f, JF = line_from_normal(float(ra[0]), float(ra[1]), 0.0)
+    r, Jx, Jf = line_observation(x_W_R, f, z)
+    return r, Jx, Jf @ JF[:, :2]
 
 
 def line_observation_residual(z: FloatArray, x_W_R: FloatArray, ra: FloatArray) -> FloatArray:
     """:func:`line_observation_error` without the Jacobians (error-only calls)."""
-    alpha = float(ra[1])
-    c, s = math.cos(x_W_R[2]), math.sin(x_W_R[2])
-    px = x_W_R[0] + c * z[0] - s * z[1]
-    py = x_W_R[1] + s * z[0] + c * z[1]
-    f, _ = line_from_normal(float(ra[0]), alpha, -px * math.sin(alpha) + py * math.cos(alpha))
-    return observe(FeatureKind.LINE, z, x_W_R, f)[0]
+    return line_observation_error(z, x_W_R, ra)[0]
 
 
 def circle_observation_error(
     z: FloatArray, x_W_R: FloatArray, c: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Circle observation residual ``observe(CIRCLE, z, X, C)`` and Jacobians (3×3, 3×3)."""
-    return observe(FeatureKind.CIRCLE, z, x_W_R, c)
+    """Circle observation residual ``circle_observation(X, C, z)`` and Jacobians (3×3, 3×3)."""
+    return circle_observation(x_W_R, c, z)
 
 
 def line_tie_error(
@@ -312,37 +284,27 @@ def circle_tie_error(
 
 
 def known_line_prior_error(ra: FloatArray, known: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Prior of a known wall on its ``(ρ, α)`` variable, in the SPmap midpoint form.
+    """Prior of a known wall on its ``(ρ, α)`` variable: ``line_residual(L(ρ, α), known)``.
 
     ``known = (m_x, m_y, θ₀)`` is the surveyed wall (a point on it and its direction);
-    the residual is ``(ρ − m·n(α), α − α₀)`` with ``n(α) = (cos α, sin α)`` and
-    ``α₀ = θ₀ − π/2``: the offset of the surveyed point from the line and the angle
-    error, the same pairing the EKF uses.  A Gaussian directly on ``(ρ, α)`` would
-    linearise ``ρ`` about the foot of the origin, which for a wall tens of metres
-    from it bends the prior (lateral bias up to 0.29 m on loop600 once the ties fix the
-    angle).  Returns ``(r (2,), ∂r/∂(ρ, α) (2×2))``.
+    the residual is the offset of the surveyed point from the line ``(ρ, α)`` and the
+    angle between them, the line model the EKF pairs a known wall with.  A Gaussian
+    directly on ``(ρ, α)`` would linearise ``ρ`` about the foot of the origin, which
+    for a wall far from it bends the prior (docs/models.md).  Returns
+    ``(r (2,), ∂r/∂(ρ, α) (2×2))``.
     """
-    rho, al = float(ra[0]), float(ra[1])
-    mx, my = float(known[0]), float(known[1])
-    a0 = wrap_scalar(float(known[2]) - math.pi / 2.0)
-    ca, sa = math.cos(al), math.sin(al)
-    r = np.array([rho - (mx * ca + my * sa), wrap_scalar(al - a0)])
-    J = np.array([[1.0, mx * sa - my * ca], [0.0, 1.0]])
-    return r, J
+    f, JF = line_from_normal(float(ra[0]), float(ra[1]), 0.0)
+    r, JT, _ = line_residual(f, known)
+    return r, JT @ JF[:, :2]
 
 
 def known_line_prior_cov(known: FloatArray, cov: FloatArray) -> FloatArray:
     """Covariance of :func:`known_line_prior_error` from the wall's SPmap ``cov`` (3×3).
 
-    The lateral component is the point's variance across the wall, ``nᵀ Σ_xy n``; the
-    angle keeps ``σθ²``; their covariance is ``nᵀ Σ_xθ``.
+    The model's noise at the zero-residual point, ``line_residual_cov(known, known,
+    cov)``: the (lateral, angle) block of ``cov`` in the wall's own frame.
     """
-    a0 = float(known[2]) - math.pi / 2.0
-    n = np.array([math.cos(a0), math.sin(a0)])
-    c = np.asarray(cov, dtype=float)
-    lat = float(n @ c[:2, :2] @ n)
-    cross = float(n @ c[:2, 2])
-    return np.array([[lat, cross], [cross, float(c[2, 2])]])
+    return line_residual_cov(known, known, np.asarray(cov, dtype=float))
 
 
 def known_line_prior_factor(key: int, known: FloatArray, cov: FloatArray) -> gtsam.CustomFactor:
@@ -366,14 +328,13 @@ def known_line_prior_factor(key: int, known: FloatArray, cov: FloatArray) -> gts
 
 
 def residual_noise_cov(kind: FeatureKind, z: FloatArray, cov: FloatArray) -> FloatArray:
-    """Observation covariance propagated to the pairing residual at the zero-residual point.
+    """The model's noise of observation ``z`` (covariance ``cov``) at the zero-residual point.
 
-    ``Jz Σ Jzᵀ`` with ``Jz = ∂pairing(z, f)/∂z`` at ``f = z``: for a line the 2×2
-    (lateral, angle) block of ``Σ`` in the line's own frame, for a circle ``Σ``.
+    ``pairing_cov(kind, z, z, cov)``: for a line the 2×2 (lateral, angle) block of ``Σ``
+    in the line's own frame, for a circle ``Σ``.  A GTSAM noise model is fixed when
+    the factor is made, so it is taken where the residual is zero.
     """
-    _, Jz, _ = pairing_residual(kind, z, z)
-    out: FloatArray = Jz @ cov @ Jz.T
-    return 0.5 * (out + out.T)
+    return pairing_cov(kind, z, z, cov)
 
 
 def _robust(spec: str | None, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
@@ -468,26 +429,23 @@ def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
     Exists for speed only (see "Closed-form callbacks" in the module docstring); it
     must stay equal to ``line_observation_error`` followed by :func:`to_body`.
 
-    With ``n = (cos α, sin α)``, ``p = X ⊕ z_xy``, ``e = ρ − p·n`` (signed distance
-    of ``p`` to the landmark line), ``φ = α − θ`` and ``ψ = φ − z_θ``, the landmark
-    frame at the foot of ``p``, seen from ``X``, is ``z_xy + e (cos φ, sin φ)`` with
-    heading ``α + π/2 − θ``; its SPmap pairing with ``z`` is therefore
-    ``(e sin ψ, α + π/2 − θ − z_θ  mod π)``.  ``t* = p · (−sin α, cos α)`` moves
-    with ``X`` and ``α`` but only along the line, which the lateral residual does
-    not see.  Jacobians, with ``S = sin ψ``, ``C = cos ψ``:
+    With ``n = (cos α, sin α)`` and ``p = X ⊕ z_xy`` (the observed midpoint in the
+    world), the landmark frame's y axis is ``−n``, so the offset of ``p`` from the
+    line is ``e = ρ − p·n``, signed like ``z``'s normal: ``σ e`` with
+    ``σ = sign cos(θ + z_θ − α − π/2)``; the angle is ``θ + z_θ − α − π/2`` modulo π.
+    Jacobians, with ``φ = α − θ`` and ``t = p · (−sin α, cos α)``:
 
-    * body tangent of ``X``: ``[[−S cos φ, −S sin φ, (z_y cos φ − z_x sin φ) S − e C],
-      [0, 0, −1]]``;
-    * ``(ρ, α)``: ``[[S, e C − t* S], [0, 1]]``.
+    * body tangent of ``X``: ``[[−σ cos φ, −σ sin φ, σ (z_y cos φ − z_x sin φ)], [0, 0, 1]]``;
+    * ``(ρ, α)``: ``[[σ, −σ t], [0, −1]]``.
     """
     zx, zy, zt = float(z[0]), float(z[1]), float(z[2])
     czt, szt = math.cos(zt), math.sin(zt)
-    angle_offset = math.pi / 2.0 - zt
+    angle_offset = zt - math.pi / 2.0
     # GTSAM copies H[i] on assignment, so one pair of Jacobian buffers per factor can
-    # be refilled on every call: ~1.5 µs (10 %) less than building two new arrays.
-    # The constant second rows are written once here.
-    Jx = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-    Jl = np.array([[0.0, 0.0], [0.0, 1.0]])
+    # be refilled on every call (cheaper than building two new arrays).  The constant
+    # entries are written once here.
+    Jx = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    Jl = np.array([[0.0, 0.0], [0.0, -1.0]])
 
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
@@ -501,20 +459,20 @@ def _line_cb(z: FloatArray) -> Callable[..., FloatArray]:
         ca, sa = math.cos(alpha), math.sin(alpha)
         px = x + c * zx - s * zy
         py = y + s * zx + c * zy
-        e = rho - px * ca - py * sa
         cphi = ca * c + sa * s
         sphi = sa * c - ca * s
-        S = sphi * czt - cphi * szt
-        r = np.array([e * S, wrap_scalar_half(alpha - th + angle_offset)])
+        # σ: sign of cos(θ + z_θ − α − π/2) = sin(θ + z_θ − α).
+        sign = 1.0 if szt * cphi - czt * sphi >= 0.0 else -1.0
+        r = np.array(
+            [sign * (rho - px * ca - py * sa), wrap_scalar_half(th - alpha + angle_offset)]
+        )
         if H is None:
             return r
-        C = cphi * czt + sphi * szt
-        t = py * ca - px * sa
-        Jx[0, 0] = -S * cphi
-        Jx[0, 1] = -S * sphi
-        Jx[0, 2] = (zy * cphi - zx * sphi) * S - e * C
-        Jl[0, 0] = S
-        Jl[0, 1] = e * C - t * S
+        Jx[0, 0] = -sign * cphi
+        Jx[0, 1] = -sign * sphi
+        Jx[0, 2] = sign * (zy * cphi - zx * sphi)
+        Jl[0, 0] = sign
+        Jl[0, 1] = sign * (px * sa - py * ca)
         if _Checks.enabled:
             _check("line factor", r, (Jx, Jl), (3, 2))
         H[0] = Jx
@@ -530,20 +488,20 @@ def _circle_cb(z: FloatArray, with_radius: bool = True) -> Callable[..., FloatAr
     on a 2-parameter centre).
 
     Exists for speed only, like :func:`_line_cb`.  The centre seen from ``X`` is
-    ``l = R(θ)ᵀ (c − X_xy)``; the residual ``(l − z_xy, r − z_r)`` has the pose
-    Jacobian ``[[−c, −s, l_y], [s, −c, −l_x], 0]`` in raw parameters, which
-    :func:`to_body` turns into ``[[−1, 0, l_y], [0, −1, −l_x], 0]``, and the circle
-    Jacobian ``blockdiag(R(θ)ᵀ, 1)``.
+    ``l = R(θ)ᵀ (c − X_xy)``; the residual ``(z_xy − l, z_r − r)`` has the pose
+    Jacobian ``[[c, s, −l_y], [−s, c, l_x], 0]`` in raw parameters, which
+    :func:`to_body` turns into ``[[1, 0, −l_y], [0, 1, l_x], 0]``, and the circle
+    Jacobian ``−blockdiag(R(θ)ᵀ, 1)``.
     """
     zx, zy, zr = float(z[0]), float(z[1]), float(z[2])
     n = 3 if with_radius else 2
     name = "circle factor" if with_radius else "circle centre factor"
     # Refilled on every call, as in _line_cb.
     Jx = np.zeros((n, 3))
-    Jx[0, 0] = Jx[1, 1] = -1.0
+    Jx[0, 0] = Jx[1, 1] = 1.0
     Jc = np.zeros((n, n))
     if with_radius:
-        Jc[2, 2] = 1.0
+        Jc[2, 2] = -1.0
 
     def cb(
         this: gtsam.CustomFactor, values: gtsam.Values, H: list[FloatArray] | None
@@ -557,17 +515,17 @@ def _circle_cb(z: FloatArray, with_radius: bool = True) -> Callable[..., FloatAr
         lx = c * dx + s * dy
         ly = -s * dx + c * dy
         if with_radius:
-            r = np.array([lx - zx, ly - zy, float(v[2]) - zr])
+            r = np.array([zx - lx, zy - ly, zr - float(v[2])])
         else:
-            r = np.array([lx - zx, ly - zy])
+            r = np.array([zx - lx, zy - ly])
         if H is None:
             return r
-        Jx[0, 2] = ly
-        Jx[1, 2] = -lx
-        Jc[0, 0] = c
-        Jc[0, 1] = s
-        Jc[1, 0] = -s
-        Jc[1, 1] = c
+        Jx[0, 2] = -ly
+        Jx[1, 2] = lx
+        Jc[0, 0] = -c
+        Jc[0, 1] = -s
+        Jc[1, 0] = s
+        Jc[1, 1] = -c
         if _Checks.enabled:
             _check(name, r, (Jx, Jc), (3, n))
         H[0] = Jx

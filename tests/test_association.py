@@ -1,4 +1,5 @@
-"""Pairings of the EKF with known walls, and the iterated update used when CCDA accepts."""
+"""Pairings of the EKF with known walls and estimated lines, and the iterated update used when
+CCDA accepts."""
 
 from __future__ import annotations
 
@@ -156,6 +157,84 @@ def test_known_wall_jacobian_matches_numerical_derivative(case: tuple[GaussianMa
     Jz = numerical_jacobian(lambda z: _known_wall_residual(x, z), q.params, angle_rows=(1,))
     np.testing.assert_allclose(ce.H[:, :3], Jz, atol=ATOL, rtol=RTOL)
     np.testing.assert_allclose(ce.H[:, 3:], J, atol=ATOL, rtol=RTOL)
+
+
+def _map_with_estimated_line(line: np.ndarray) -> GaussianMap:
+    """One estimated line (σ 2 cm, 1 mrad, bound) in the vehicle frame."""
+    m = GaussianMap()
+    m.add(
+        Element(ElementKind.LINE, Role.FEATURE, moving=True, track=0),
+        line,
+        bind_line_cov(line, np.diag([0.02**2, 0.02**2, 0.001**2])),
+    )
+    return m
+
+
+@st.composite
+def estimated_line_cases(draw: st.DrawFn) -> tuple[GaussianMap, Query]:
+    """A map with one estimated line, and a measured segment of it."""
+    line = draw(poses())
+    z = compose(line, np.array([draw(slides), draw(offsets), draw(offsets)]))
+    return _map_with_estimated_line(line), Query(
+        ElementKind.LINE, z, _line_cov(z, PSEUDO), (-5.0, 5.0)
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(estimated_line_cases(), slides)
+def test_estimated_line_pairing_ignores_where_the_lines_reference_point_lies(
+    case: tuple[GaussianMap, Query], s: float
+) -> None:
+    m1, q = case
+    m2 = _map_with_estimated_line(m1.mean[0])
+    m2.mean[0], m2.cov[0:3, 0:3] = _slid(m1.mean[0], m1.block(0), s)
+    c1, c2 = evaluate(m1, q, 0), evaluate(m2, q, 0)
+    np.testing.assert_allclose(c2.residual, c1.residual, atol=1e-9)
+    np.testing.assert_allclose(c2.R, c1.R, atol=1e-15)
+    assert math.isclose(c2.d2, c1.d2, rel_tol=1e-6, abs_tol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(estimated_line_cases())
+def test_estimated_line_jacobian_matches_numerical_derivative(
+    case: tuple[GaussianMap, Query],
+) -> None:
+    m, q = case
+    c = evaluate(m, q, 0)
+    assert c.indices == [0]
+    J = numerical_jacobian(
+        lambda v: pairing_residual(FeatureKind.LINE, v, q.params)[0], m.mean[0], angle_rows=(1,)
+    )
+    np.testing.assert_allclose(c.H, J, atol=ATOL, rtol=RTOL)
+
+
+@settings(max_examples=40, deadline=None)
+@given(estimated_line_cases())
+def test_estimated_line_noise_ignores_the_along_line_pseudo_variance(
+    case: tuple[GaussianMap, Query],
+) -> None:
+    m, q = case
+    loose = Query(q.kind, q.params, _line_cov(q.params, 1e4 * PSEUDO), q.extent)
+    c, c_loose = evaluate(m, q, 0), evaluate(m, loose, 0)
+    np.testing.assert_allclose(c_loose.R, c.R, atol=1e-12)
+    assert math.isclose(c.R[1, 1], LINE_SIGMA[1] ** 2, rel_tol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(known_wall_cases())
+def test_known_wall_and_estimated_line_are_one_model(case: tuple[GaussianMap, Query]) -> None:
+    # A known wall seen through an exact anchor is an estimated line at the same place
+    # with the same covariance: same residual, noise and χ².
+    m, q = case
+    m.cov[0:3, :] = 0.0
+    m.cov[:, 0:3] = 0.0
+    pred, _, JK = transform_feature(FeatureKind.LINE, m.mean[0], m.mean[1])
+    e = _map_with_estimated_line(pred)
+    e.cov[:, :] = JK @ m.block(1) @ JK.T
+    ck, ce = evaluate(m, q, 1), evaluate(e, q, 0)
+    np.testing.assert_allclose(ce.residual, ck.residual, atol=1e-9)
+    np.testing.assert_allclose(ce.R, ck.R, atol=1e-15)
+    assert math.isclose(ce.d2, ck.d2, rel_tol=1e-6, abs_tol=1e-9)
 
 
 TRUTH = np.array([3.0, -2.0, 0.4])

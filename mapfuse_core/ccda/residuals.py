@@ -153,12 +153,14 @@ def _residuals_of(
         thb = P.thb0 + T[2]
         nb = np.stack([-np.sin(thb), np.cos(thb)], axis=1)
         rel = qb[lin] - P.l_ap
-        r[lin, 0] = np.einsum("mi,mi->m", na, rel)
+        # The line model measures the offset along a's normal oriented like b's.
+        sign = np.where(np.cos(thb - P.tha) >= 0.0, 1.0, -1.0)
+        r[lin, 0] = sign * np.einsum("mi,mi->m", na, rel)
         r[lin, 1] = wrap_angle_half(thb - P.tha)
         if jacobian:
             Jl = np.zeros((P.li.size, 3, 3))
-            Jl[:, 0, :2] = na
-            Jl[:, 0, 2] = np.einsum("mi,mi->m", na, dq[lin])
+            Jl[:, 0, :2] = sign[:, None] * na
+            Jl[:, 0, 2] = sign * np.einsum("mi,mi->m", na, dq[lin])
             Jl[:, 1, 2] = 1.0
             J[lin] = Jl
         lx = np.einsum("mi,mi->m", P.ta, rel)
@@ -171,6 +173,8 @@ def _residuals_of(
         Jb = np.zeros((P.li.size, 2, 2))
         Jb[:, 0, 0] = np.einsum("mi,mi->m", na, nb)
         Jb[:, 1, 1] = 1.0
+        Ja[:, 0, :] *= sign[:, None]
+        Jb[:, 0, :] *= sign[:, None]
         Sl = np.zeros((P.li.size, 3, 3))
         Sl[:, :2, :2] = Ja @ P.l_ac @ Ja.transpose(0, 2, 1) + Jb @ P.l_bc @ Jb.transpose(0, 2, 1)
         Sl[:, 2, 2] = 1.0

@@ -1,0 +1,35 @@
+"""Measurement models, one per feature type (numpy only; docs/models.md).
+
+Each model is the residual of an observed feature ``Z`` against a target ``T`` of the
+same type, estimated or known, with its Jacobians and its noise, plus the observation
+form through a sensor pose.  The EKF (:mod:`ekf_reference.association`) and the factor
+graph (:mod:`mapfuse_graph.factors`) both linearise these functions.
+"""
+
+from mapfuse_core.models.circle import (
+    circle_observation,
+    circle_observation_cov,
+    circle_residual,
+    circle_residual_cov,
+)
+from mapfuse_core.models.line import (
+    B_LINE,
+    bind_line_cov,
+    line_observation,
+    line_observation_cov,
+    line_residual,
+    line_residual_cov,
+)
+
+__all__ = [
+    "B_LINE",
+    "bind_line_cov",
+    "circle_observation",
+    "circle_observation_cov",
+    "circle_residual",
+    "circle_residual_cov",
+    "line_observation",
+    "line_observation_cov",
+    "line_residual",
+    "line_residual_cov",
+]
