@@ -139,6 +139,7 @@ def compare(
     progress: Progress | None = None,
     backends: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Comparison:
     """Run ``backends`` × ``fusions`` on ``log``.
 
@@ -149,12 +150,18 @@ def compare(
     ``progress(label, k, n)`` is called as each run advances, ``label`` naming the run
     (e.g. ``"isam2 without fusion"``).  A log without a known map (Victoria Park) has
     nothing to fuse, so there each backend runs once, without fusion, whatever
-    ``fusions`` asks.
+    ``fusions`` asks.  ``overrides``: option fields per estimator name (e.g.
+    ``{"batch": {"robust": "huber"}}``, :func:`mapfuse.run.make_options`); a name not
+    among ``backends`` is an error.
     """
     names = DEFAULT_BACKENDS if backends is None else tuple(backends)
     if not names or len(set(names)) != len(names):
         raise ValueError(f"backends must be distinct estimator names, got {list(names)}")
     estimators = [resolve(b) for b in names]
+    overrides = dict(overrides or {})
+    stray = sorted(set(overrides) - set(names))
+    if stray:
+        raise ValueError(f"overrides for {', '.join(stray)}, which are not among the backends")
     consumed = {getattr(e, "consumes", None) for e in estimators}
     # Estimators whose results others consume run first (stable otherwise).
     estimators.sort(key=lambda e: e.name not in consumed)
@@ -173,7 +180,7 @@ def compare(
                 done[name] = run(log, name, fusion=fusion, progress=p).result
         for est in estimators:
             p = labelled(progress, _label_of(est.name, fusion))
-            options = consumer_options(est, log, done)
+            options = consumer_options(est, log, done, **overrides.get(est.name, {}))
             r = run(log, est, fusion=fusion, options=options, progress=p)
             done.setdefault(est.name, r.result)
             if any(
