@@ -196,6 +196,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     flags = _check_graph_flags(args, [args.backend])
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
+    if args.export_graph and args.backend not in ("batch", "isam2"):
+        raise UsageError(f"--export-graph: only for the graph backends, not {args.backend}")
     out = _check_out(args)
     log = _log_from_args(args, args.scenario, args.seed)
     if args.steps is not None:
@@ -204,6 +206,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         log, estimator, fusion=args.fusion, progress=_progress(args.backend, args), **flags
     )
     paths = write_outputs(run, out)
+    if args.export_graph:
+        from mapfuse_graph.export import export_graph
+
+        ex = export_graph(run.result.extras["graph"], out)
+        paths.update({"graph_g2o": str(ex.g2o), "graph_sidecar": str(ex.sidecar)})
+        _note(ex.summary())
     _emit({"metrics": run.metrics, "outputs": paths})
     return 0
 
@@ -403,6 +411,12 @@ def _parser() -> argparse.ArgumentParser:
     _add_graph_flags(run)
     _add_fusion(run, True, "run")
     run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
+    run.add_argument(
+        "--export-graph",
+        action="store_true",
+        help="graph backends: also write the solved graph, OUT/graph.g2o (poses and "
+        "odometry) and OUT/graph.json (what g2o cannot hold, by name)",
+    )
     _add_common(run)
     run.set_defaults(func=_cmd_run)
 

@@ -103,6 +103,7 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
         (["run", "carpark", "--data", "{tmp}/none"], "is not a directory"),
         (["run", "victoria-park", "--data", "{tmp}", "--seed", "1"], "--seed does not apply"),
         (["run", "{npz}", "--steps", "0"], "--steps must be >= 1"),
+        (["run", "{npz}", "--export-graph"], "--export-graph: only for the graph backends"),
         (["run", "{npz}", "--backend", "nope"], "unknown estimator 'nope'"),
         (["run", "{tmp}/missing.npz"], "does not exist"),
         (["run", "no-such-scenario"], "no-such-scenario"),
@@ -261,3 +262,17 @@ def test_sigint_during_a_simulation(tmp_path: Path) -> None:
     assert out == b""
     assert (seen + err).decode().rstrip().splitlines()[-1].endswith("mapfuse: interrupted")
     assert b"Traceback" not in seen + err
+
+
+def test_run_export_graph_writes_g2o_and_names_what_it_leaves_out(
+    log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["run", str(log_npz), "--backend", "batch", "--export-graph", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    cap = capsys.readouterr()
+    outputs = json.loads(cap.out)["outputs"]
+    assert outputs["graph_g2o"] == str(tmp_path / "graph.g2o")
+    assert "left out (in graph.json)" in cap.err
+    assert "circle observation" in cap.err
+    side = json.loads((tmp_path / "graph.json").read_text())
+    assert side["left_out"]["factors"]
