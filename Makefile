@@ -14,7 +14,7 @@ export MKL_NUM_THREADS ?= 1
 # Two workers match the 2-core CI machine.
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv demo test lint typecheck unit bench clean
+.PHONY: venv demo test lint typecheck unit docs bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -38,7 +38,11 @@ typecheck: venv
 unit: venv
 	MAPFUSE_DATA=$(DATA) $(PY) -m pytest -n $(PYTEST_WORKERS) -q
 
-test: lint typecheck unit
+# API reference from the docstrings and docs/*.md into build/site; warnings are errors.
+docs: venv
+	$(VENV)/bin/mkdocs build --strict --quiet
+
+test: lint typecheck docs unit
 
 bench: venv
 	$(PY) benchmarks/bench_simulate.py

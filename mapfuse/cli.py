@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from mapfuse_core.measlog import MeasurementLog, save_log
 from mapfuse_core.scenario import ScenarioError, list_builtin_scenarios, load_scenario
@@ -22,35 +23,132 @@ from mapfuse_core.simulate import simulate
 
 __all__ = ["main"]
 
+#: Exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
+EXIT_INTERRUPTED = 130
 
-class _Progress:
-    """A one-line progress indicator on stderr, silent when not a terminal or ``--quiet``."""
 
-    def __init__(self, label: str, enabled: bool) -> None:
-        self.label = label
-        self.enabled = enabled and sys.stderr.isatty()
-        self._last = -1
+class UsageError(ValueError):
+    """An option that does not apply, or a bad option value, found before any work."""
 
-    def __call__(self, k: int, n: int) -> None:
-        if not self.enabled:
-            return
-        pct = 100 * k // max(n, 1)
-        if pct != self._last:
-            self._last = pct
-            end = "\n" if k >= n else ""
-            print(f"\r{self.label}: {pct:3d}% ({k}/{n})", end=end, file=sys.stderr, flush=True)
+
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("mapfuse")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def _emit(obj: Any) -> None:
+    """The command's result: JSON alone on stdout."""
+    print(json.dumps(obj, indent=2))
+
+
+def _note(text: str) -> None:
+    """A message for the user, on stderr."""
+    print(text, file=sys.stderr)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _is_dataset(source: str) -> bool:
+    from mapfuse.run import DATASETS
+
+    return source in DATASETS
+
+
+def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> None:
+    """The input and the options that depend on it, checked before any work."""
+    data = getattr(args, "data", None)
+    if source.endswith(".npz"):
+        if not Path(source).is_file():
+            raise UsageError(f"log file {source} does not exist")
+        if seed is not None:
+            raise UsageError(f"--seed does not apply to a saved log ({source}): it is simulated")
+    elif _is_dataset(source):
+        if seed is not None:
+            raise UsageError(f"--seed does not apply to the real dataset {source!r}")
+        if data is None:
+            raise UsageError(f"dataset {source!r} needs a data directory (--data DIR)")
+        if not Path(data).is_dir():
+            raise UsageError(f"--data {data} is not a directory")
+    else:
+        load_scenario(source)  # ScenarioError names what is wrong
+    if data is not None and not _is_dataset(source):
+        raise UsageError(f"--data applies to carpark and victoria-park only, not {source!r}")
+
+
+def _check_graph_flags(args: argparse.Namespace, backends: Sequence[str]) -> dict[str, Any]:
+    """``--association`` / ``--robust`` as option overrides for the backends that take
+    them (those consuming another's decisions: the graph backends); an error when none
+    of ``backends`` does, or when a value is bad."""
+    from mapfuse.run import resolve
+
+    given = {f: getattr(args, f) for f in ("association", "robust") if getattr(args, f) is not None}
+    if not given:
+        return {}
+    takers = [b for b in backends if getattr(resolve(b), "consumes", None) is not None]
+    if not takers:
+        names = " and ".join(f"--{f}" for f in given)
+        raise UsageError(
+            f"{names}: only for the graph backends (batch, isam2), not {', '.join(backends)}"
+        )
+    if "robust" in given:
+        from mapfuse_graph.graph import GraphOptions
+
+        try:
+            GraphOptions(robust=given["robust"])
+        except ValueError as exc:
+            raise UsageError(f"--robust: {exc}") from None
+    return given
+
+
+def _check_out(args: argparse.Namespace) -> Path:
+    from mapfuse.outdir import prepare_output_dir
+
+    return prepare_output_dir(args.out, force=args.force)
+
+
+def _check_file_out(path: str) -> Path:
+    """A file to write: its folder must exist or be creatable, and be writable."""
+    import tempfile
+
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"--out {p} is a folder; give a file name")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=p.parent, prefix=".mapfuse-probe-"):
+            pass
+    except OSError as exc:
+        raise UsageError(f"--out {p}: folder not writable: {exc.strerror or exc}") from None
+    return p
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def _progress(label: str, args: argparse.Namespace) -> Any:
+    from mapfuse.progress import progress_bar
+
+    return progress_bar(label, enabled=not args.quiet)
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from mapfuse.plotting import world_figure
 
     scenario = load_scenario(args.scenario)
+    if args.plot_step is not None and args.plot_step < 0:
+        raise UsageError(f"--plot-step must be >= 0, got {args.plot_step}")
+    out = _check_out(args)
     t0 = time.perf_counter()
-    result = simulate(scenario, seed=args.seed, progress=_Progress("simulate", not args.quiet))
+    result = simulate(scenario, seed=args.seed, progress=_progress("simulate", args))
     elapsed = time.perf_counter() - t0
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     log = result.log
+    if args.plot_step is not None and args.plot_step >= log.n_steps:
+        raise UsageError(f"--plot-step {args.plot_step} beyond the log's {log.n_steps} steps")
     log_path = save_log(log, out / "log.npz")
     counts = [log.feature_slice(k).stop - log.feature_slice(k).start for k in range(log.n_steps)]
     step = (
@@ -61,17 +159,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     fig = world_figure(scenario.world, log, result.scans[step], step)
     fig_path = out / "world.png"
     fig.savefig(fig_path, dpi=120)
-    summary = {
-        "scenario": log.scenario,
-        "seed": log.seed,
-        "steps": log.n_steps,
-        "features": log.n_features,
-        "rejected": log.rejected,
-        "log": str(log_path),
-        "figure": str(fig_path),
-        "wall_time_s": round(elapsed, 3),
-    }
-    print(json.dumps(summary, indent=2))
+    _emit(
+        {
+            "scenario": log.scenario,
+            "seed": log.seed,
+            "steps": log.n_steps,
+            "features": log.n_features,
+            "rejected": log.rejected,
+            "log": str(log_path),
+            "figure": str(fig_path),
+            "wall_time_s": round(elapsed, 3),
+        }
+    )
     return 0
 
 
@@ -82,24 +181,9 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
     return prepare_log(
         source,
         seed=seed,
-        progress=_Progress("simulate", not args.quiet),
+        progress=_progress("simulate", args),
         data_dir=getattr(args, "data", None),
     )
-
-
-def _graph_flags(args: argparse.Namespace, estimator: object) -> dict[str, object]:
-    """``--association`` / ``--robust`` as option overrides, when given; only an
-    estimator that consumes another's decisions (the graph backends) takes them."""
-    flags: dict[str, object] = {}
-    given = [f for f in ("association", "robust") if getattr(args, f) is not None]
-    if given and getattr(estimator, "consumes", None) is None:
-        names = " and ".join(f"--{f}" for f in given)
-        raise ValueError(f"{names}: only for the graph backends (batch, isam2), not {args.backend}")
-    if args.association is not None:
-        flags["association"] = args.association
-    if args.robust is not None:
-        flags["robust"] = args.robust
-    return flags
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -108,72 +192,91 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from mapfuse.run import run as run_estimator
 
     estimator = resolve(args.backend)
+    _check_source(args, args.scenario, args.seed)
+    flags = _check_graph_flags(args, [args.backend])
+    if args.steps is not None and args.steps < 1:
+        raise UsageError(f"--steps must be >= 1, got {args.steps}")
+    if args.export_graph and args.backend not in ("batch", "isam2"):
+        raise UsageError(f"--export-graph: only for the graph backends, not {args.backend}")
+    out = _check_out(args)
     log = _log_from_args(args, args.scenario, args.seed)
     if args.steps is not None:
-        if args.steps < 1:
-            raise ValueError(f"--steps must be >= 1, got {args.steps}")
         log = log.head(args.steps)
     run = run_estimator(
-        log,
-        estimator,
-        fusion=args.fusion,
-        progress=_Progress(args.backend, not args.quiet),
-        **_graph_flags(args, estimator),
+        log, estimator, fusion=args.fusion, progress=_progress(args.backend, args), **flags
     )
-    paths = write_outputs(run, args.out)
-    print(json.dumps({"metrics": run.metrics, "outputs": paths}, indent=2))
+    paths = write_outputs(run, out)
+    if args.export_graph:
+        from mapfuse_graph.export import export_graph
+
+        ex = export_graph(run.result.extras["graph"], out)
+        paths.update({"graph_g2o": str(ex.g2o), "graph_sidecar": str(ex.sidecar)})
+        _note(ex.summary())
+    _emit({"metrics": run.metrics, "outputs": paths})
     return 0
 
 
-class _LabelledProgress:
-    """Adapts ``progress(label, k, n)`` callbacks to one :class:`_Progress` per label."""
-
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
-        self._bars: dict[str, _Progress] = {}
-
-    def __call__(self, label: str, k: int, n: int) -> None:
-        bar = self._bars.setdefault(label, _Progress(label, self.enabled))
-        bar(k, n)
-
-
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapfuse.compare import compare, write_comparison
+    from mapfuse.compare import DEFAULT_BACKENDS, compare, write_comparison
+    from mapfuse.progress import LabelledProgress
     from mapfuse.run import resolve
 
-    backends = None
+    backends = list(DEFAULT_BACKENDS)
     if args.backends is not None:
         backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-        for b in backends:
-            resolve(b)  # an unknown name fails before any simulation
+        if not backends or len(set(backends)) != len(backends):
+            raise UsageError(f"--backends needs distinct names, got {args.backends!r}")
+    for b in backends:
+        resolve(b)  # an unknown name fails before any work
+    _check_source(args, args.scenario, args.seed)
+    flags = _check_graph_flags(args, backends)
+    overrides = {
+        b: flags for b in backends if flags and getattr(resolve(b), "consumes", None) is not None
+    }
+    fusions = (True, False) if args.fusion is None else (args.fusion,)
+    out = _check_out(args)
     log = _log_from_args(args, args.scenario, args.seed)
-    comparison = compare(log, progress=_LabelledProgress(not args.quiet), backends=backends)
-    simulated = not (args.scenario.endswith(".npz") or args.data)
+    progress = LabelledProgress(not args.quiet)
+    comparison = compare(
+        log, progress=progress, backends=backends, fusions=fusions, overrides=overrides
+    )
+    progress.close()
+    simulated = not (args.scenario.endswith(".npz") or _is_dataset(args.scenario))
     scenario = load_scenario(args.scenario) if simulated else None
-    paths = write_comparison(comparison, args.out, scenario=scenario)
-    print(json.dumps({"outputs": paths}, indent=2))
-    print(f"Report: {paths['report']}")
+    paths = write_comparison(comparison, out, scenario=scenario)
+    _emit({"outputs": paths})
+    if not args.quiet:
+        _note(f"Report: {paths['report']}")
     return 0
 
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse.baseline import record_baselines, save_baseline
+    from mapfuse.run import resolve
 
+    resolve(args.backend)
+    _check_source(args, args.scenario, args.seed)
+    out = _check_file_out(args.out)
     log = _log_from_args(args, args.scenario, args.seed)
     fusions = (True, False) if args.fusion is None else (args.fusion,)
     entries = record_baselines(log, backends=(args.backend,), fusions=fusions, note=args.note)
-    save_baseline(entries, args.out)
-    print(json.dumps({"baseline": str(args.out), "entries": len(entries)}))
+    save_baseline(entries, out)
+    _emit({"baseline": str(out), "entries": len(entries)})
     return 0
 
 
 def _cmd_baseline_check(args: argparse.Namespace) -> int:
     from mapfuse.baseline import Tolerance, check_log_against_baseline, load_baseline
 
+    if args.tolerance is not None and not args.tolerance > 0:
+        raise UsageError(f"--tolerance must be > 0, got {args.tolerance}")
     entries = load_baseline(args.baseline)
     m0 = entries[0]["metrics"]
     source = args.scenario or m0["scenario"]
-    log = _log_from_args(args, source, m0["seed"])
+    simulated = not (source.endswith(".npz") or _is_dataset(source))
+    seed = m0["seed"] if simulated else None
+    _check_source(args, source, seed)
+    log = _log_from_args(args, source, seed)
     tolerances = None
     if args.tolerance is not None:
         tolerances = Tolerance(rel=args.tolerance)
@@ -183,106 +286,191 @@ def _cmd_baseline_check(args: argparse.Namespace) -> int:
     return 0 if all(r.passed for r in reports) else 1
 
 
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every option's default, except where there is none to show."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is argparse.SUPPRESS or action.nargs == 0:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def _sources() -> str:
+    from mapfuse.run import DATASETS
+
+    return (
+        f"built-in scenario ({', '.join(list_builtin_scenarios())}), a scenario .toml path, "
+        f"a saved log .npz, or a real dataset ({', '.join(DATASETS)}; needs --data)"
+    )
+
+
+def _add_common(
+    p: argparse.ArgumentParser, *, seed: bool = True, data: bool = True, out: str | None = "dir"
+) -> None:
+    if seed:
+        p.add_argument(
+            "--seed",
+            type=int,
+            default=None,
+            help="random seed of the simulation (default: the scenario's); not for a saved "
+            "log or a real dataset",
+        )
+    if data:
+        p.add_argument(
+            "--data",
+            default=None,
+            help="data directory of the real datasets (carpark, victoria-park)",
+        )
+    if out == "dir":
+        p.add_argument("--out", required=True, help="output folder")
+        p.add_argument(
+            "--force",
+            action="store_true",
+            help="replace the files of another run in --out (without it such a folder is refused)",
+        )
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _add_fusion(p: argparse.ArgumentParser, default: bool | None, what: str) -> None:
+    fusion = p.add_mutually_exclusive_group()
+    fusion.add_argument(
+        "--fusion",
+        dest="fusion",
+        action="store_true",
+        default=default,
+        help=f"{what} with map fusion only" if default is None else "fuse the known map (default)",
+    )
+    fusion.add_argument(
+        "--no-fusion",
+        dest="fusion",
+        action="store_false",
+        help=f"{what} without map fusion only" if default is None else "SLAM without map fusion",
+    )
+
+
+def _add_graph_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--association",
+        default=None,
+        choices=["ekf", "truth", "own"],
+        help="graph backends only: the EKF's decisions (their default), simulation truth, "
+        "or the graph's own χ²-gated nearest neighbour",
+    )
+    p.add_argument(
+        "--robust",
+        default=None,
+        help="graph backends only: robust kernel on observations, huber[:k] or cauchy[:k] "
+        "(default: none)",
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="mapfuse",
-        description="Map fusion SLAM toolkit: simulate, run the EKF reference or the GTSAM mirror.",
+        description="Map fusion SLAM toolkit: simulate, run the EKF reference or the GTSAM "
+        "mirror, compare them, keep baselines.  Results are JSON on stdout; progress and "
+        "messages go to stderr.",
+        formatter_class=_Formatter,
     )
-    sub = p.add_subparsers(dest="command", required=True)
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim = sub.add_parser(
         "simulate",
         help="simulate a scenario into a measurement log",
-        description="Simulate SCENARIO (built-in name or TOML path) and write "
-        "OUT/log.npz and OUT/world.png.",
+        description="Simulate SCENARIO and write OUT/log.npz and OUT/world.png.",
+        formatter_class=_Formatter,
     )
     sim.add_argument(
         "scenario",
         help=f"built-in scenario ({', '.join(list_builtin_scenarios())}) or a .toml path",
     )
-    sim.add_argument("--seed", type=int, default=None, help="random seed (default: the scenario's)")
-    sim.add_argument("--out", required=True, help="output directory")
-    sim.add_argument("--plot-step", type=int, default=None, help="step whose scan world.png shows")
-    sim.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_common(sim, data=False)
+    sim.add_argument(
+        "--plot-step",
+        type=int,
+        default=None,
+        help="step whose scan world.png shows (default: the one with most features)",
+    )
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser(
         "run",
-        help="run an estimator on a scenario or a log",
-        description="Run BACKEND on SCENARIO (built-in name, TOML path, or a log.npz) and "
-        "write OUT/metrics.json, OUT/trajectory.tum and OUT/errors.png.",
+        help="run an estimator on a scenario, a log or a dataset",
+        description="Run BACKEND on SCENARIO and write OUT/metrics.json, the TUM "
+        "trajectories (trajectory.tum, trajectory_known.tum, truth.tum, ...) and the "
+        "error figures.",
+        formatter_class=_Formatter,
     )
-    run.add_argument(
-        "scenario", help="built-in scenario, .toml path, log .npz, carpark or victoria-park"
-    )
+    run.add_argument("scenario", help=_sources())
     run.add_argument(
         "--backend",
         default="ekf",
         help="registered estimator (built-in: ekf, batch, isam2; plugins: entry points of "
         "the 'mapfuse.estimators' group)",
     )
-    run.add_argument(
-        "--association",
-        default=None,
-        choices=["ekf", "truth", "own"],
-        help="graph backends: the EKF's saved decisions (default), simulation truth, or "
-        "the graph's own χ²-gated nearest neighbour",
-    )
-    run.add_argument(
-        "--robust", default=None, help="robust kernel on observations: huber[:k] or cauchy[:k]"
-    )
-    fusion = run.add_mutually_exclusive_group()
-    fusion.add_argument(
-        "--fusion",
-        dest="fusion",
-        action="store_true",
-        default=True,
-        help="fuse the known map (default)",
-    )
-    fusion.add_argument(
-        "--no-fusion", dest="fusion", action="store_false", help="SLAM without map fusion"
-    )
-    run.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    _add_graph_flags(run)
+    _add_fusion(run, True, "run")
     run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
-    run.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
-    run.add_argument("--out", required=True, help="output directory")
-    run.add_argument("--quiet", action="store_true", help="no progress output")
+    run.add_argument(
+        "--export-graph",
+        action="store_true",
+        help="graph backends: also write the solved graph, OUT/graph.g2o (poses and "
+        "odometry) and OUT/graph.json (what g2o cannot hold, by name)",
+    )
+    _add_common(run)
     run.set_defaults(func=_cmd_run)
 
     cmp_ = sub.add_parser(
         "compare",
-        help="EKF, batch and iSAM2 (or --backends), with and without fusion, on one log",
-        description="Run {ekf, batch, isam2} (or --backends) x {fusion, no fusion} on one "
-        "measurement log (no "
+        help="several backends, with and without fusion, on one log",
+        description="Run BACKENDS x {fusion, no fusion} on one measurement log (without "
         "fusion only, on a log without a known map) and write OUT/comparison.json, "
-        "OUT/report.md and the paper's figures.",
+        "OUT/report.md, the paper's figures and each run's files in OUT/runs/.",
+        formatter_class=_Formatter,
     )
-    cmp_.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
-    cmp_.add_argument("--seed", type=int, default=None, help="random seed for simulation")
+    cmp_.add_argument("scenario", help=_sources())
     cmp_.add_argument(
         "--backends",
-        default=None,
-        help="comma-separated registered estimators (default: ekf,batch,isam2)",
+        default="ekf,batch,isam2",
+        help="comma-separated registered estimators",
     )
-    cmp_.add_argument("--data", default=None, help="data directory for carpark / victoria-park")
-    cmp_.add_argument("--out", required=True, help="output directory")
-    cmp_.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_fusion(cmp_, None, "compare")
+    _add_graph_flags(cmp_)
+    _add_common(cmp_)
     cmp_.set_defaults(func=_cmd_compare)
 
-    base = sub.add_parser("baseline", help="record or check regression baselines")
-    bsub = base.add_subparsers(dest="baseline_command", required=True)
-    rec = bsub.add_parser("record", help="record a backend's metrics as a baseline")
-    rec.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    base = sub.add_parser(
+        "baseline",
+        help="record or check regression baselines",
+        description="Record a backend's metrics as a baseline JSON file, or re-run and "
+        "check against one.",
+        formatter_class=_Formatter,
+    )
+    bsub = base.add_subparsers(dest="baseline_command", required=True, metavar="SUBCOMMAND")
+    rec = bsub.add_parser(
+        "record",
+        help="record a backend's metrics as a baseline",
+        description="Run BACKEND on SCENARIO (with and without fusion unless one is "
+        "chosen) and write its metrics to the baseline file OUT.",
+        formatter_class=_Formatter,
+    )
+    rec.add_argument("scenario", help=_sources())
     rec.add_argument("--backend", default="ekf", help="registered estimator")
-    rec.add_argument("--seed", type=int, default=None)
-    fz = rec.add_mutually_exclusive_group()
-    fz.add_argument("--fusion", dest="fusion", action="store_true", default=None)
-    fz.add_argument("--no-fusion", dest="fusion", action="store_false")
+    _add_fusion(rec, None, "record")
     rec.add_argument("--note", default="", help="free text stored with the baseline")
     rec.add_argument("--out", required=True, help="baseline JSON file to write")
-    rec.add_argument("--quiet", action="store_true")
+    _add_common(rec, out=None)
     rec.set_defaults(func=_cmd_baseline_record)
-    chk = bsub.add_parser("check", help="re-run and compare against a stored baseline")
-    chk.add_argument("scenario", nargs="?", default=None, help="default: the baseline's")
+    chk = bsub.add_parser(
+        "check",
+        help="re-run and compare against a stored baseline",
+        description="Re-run the baseline's runs and compare their metrics; exit 1 when "
+        "one is out of tolerance.",
+        formatter_class=_Formatter,
+    )
+    chk.add_argument(
+        "scenario", nargs="?", default=None, help="input to re-run (default: the baseline's)"
+    )
     chk.add_argument("--baseline", required=True, help="baseline JSON file")
     chk.add_argument(
         "--tolerance",
@@ -290,18 +478,31 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="relative tolerance for every checked metric (default: per-metric defaults)",
     )
-    chk.add_argument("--quiet", action="store_true")
+    _add_common(chk, seed=False, out=None)
     chk.set_defaults(func=_cmd_baseline_check)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``mapfuse`` command."""
+    """Entry point of the ``mapfuse`` command.
+
+    Exit status: 0 done, 1 a baseline check failed, 2 a usage or input error (one line
+    on stderr), 130 interrupted by Ctrl-C.
+    """
     args = _parser().parse_args(argv)
     try:
         code: int = args.func(args)
+    except KeyboardInterrupt:
+        from mapfuse.progress import close_all
+
+        close_all()
+        _note("mapfuse: interrupted")
+        return EXIT_INTERRUPTED
     except (ScenarioError, ValueError, OSError) as exc:
-        print(f"mapfuse: error: {exc}", file=sys.stderr)
+        from mapfuse.progress import close_all
+
+        close_all()
+        _note(f"mapfuse: error: {exc}")
         return 2
     return code
 

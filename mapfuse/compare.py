@@ -33,6 +33,7 @@ from mapfuse.figures import (
     nees_figure,
     timing_figure,
 )
+from mapfuse.outputs import write_outputs
 from mapfuse.result import EstimatorResult
 from mapfuse.run import Run, consumer_options, fusion_for, labelled, resolve, run
 from mapfuse_core.evaluation import CHI2_3_95, path_length
@@ -47,10 +48,12 @@ if TYPE_CHECKING:
 __all__ = [
     "DEFAULT_BACKENDS",
     "FIGURE_FILES",
+    "RUNS_DIR",
     "Comparison",
     "compare",
     "comparison_figures",
     "report_markdown",
+    "run_folder_name",
     "write_comparison",
 ]
 
@@ -64,6 +67,9 @@ FIGURE_FILES: Mapping[str, str] = {
     "gps_errors.png": "position error against GPS over time (real data)",
     "gps_trajectories.png": "estimated trajectories over the GPS track (real data)",
 }
+
+#: Sub-folder of a comparison holding one folder of files per run.
+RUNS_DIR = "runs"
 
 # Figures that compare with truth: not written for a log without true poses.
 _NEEDS_TRUTH = ("fig6_errors_bounds.png", "fig7_error_fusion.png", "nees.png")
@@ -133,6 +139,7 @@ def compare(
     progress: Progress | None = None,
     backends: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Comparison:
     """Run ``backends`` × ``fusions`` on ``log``.
 
@@ -143,12 +150,18 @@ def compare(
     ``progress(label, k, n)`` is called as each run advances, ``label`` naming the run
     (e.g. ``"isam2 without fusion"``).  A log without a known map (Victoria Park) has
     nothing to fuse, so there each backend runs once, without fusion, whatever
-    ``fusions`` asks.
+    ``fusions`` asks.  ``overrides``: option fields per estimator name (e.g.
+    ``{"batch": {"robust": "huber"}}``, :func:`mapfuse.run.make_options`); a name not
+    among ``backends`` is an error.
     """
     names = DEFAULT_BACKENDS if backends is None else tuple(backends)
     if not names or len(set(names)) != len(names):
         raise ValueError(f"backends must be distinct estimator names, got {list(names)}")
     estimators = [resolve(b) for b in names]
+    overrides = dict(overrides or {})
+    stray = sorted(set(overrides) - set(names))
+    if stray:
+        raise ValueError(f"overrides for {', '.join(stray)}, which are not among the backends")
     consumed = {getattr(e, "consumes", None) for e in estimators}
     # Estimators whose results others consume run first (stable otherwise).
     estimators.sort(key=lambda e: e.name not in consumed)
@@ -167,7 +180,7 @@ def compare(
                 done[name] = run(log, name, fusion=fusion, progress=p).result
         for est in estimators:
             p = labelled(progress, _label_of(est.name, fusion))
-            options = consumer_options(est, log, done)
+            options = consumer_options(est, log, done, **overrides.get(est.name, {}))
             r = run(log, est, fusion=fusion, options=options, progress=p)
             done.setdefault(est.name, r.result)
             if any(
@@ -480,11 +493,15 @@ def report_markdown(
 def write_comparison(
     comparison: Comparison, out_dir: str | Path, scenario: Scenario | None = None
 ) -> dict[str, str]:
-    """Write ``comparison.json``, ``report.md`` and the figures into ``out_dir``.
+    """Write ``comparison.json``, ``report.md`` and the figures into ``out_dir``, and
+    each run's own files (:func:`mapfuse.outputs.write_outputs` without figures: its
+    ``metrics.json`` and TUM trajectories) into ``out_dir/runs/<backend>_<fusion>/``
+    (:func:`run_folder_name`).
 
     ``scenario`` (optional) adds its description to the report and draws the true
     world's walls in Fig. 10.  Returns ``{name: path}`` of everything written (figure
-    entries keyed by file name without ``.png``).
+    entries keyed by file name without ``.png``, a run's files by
+    ``runs/<folder>/<name>``).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -497,4 +514,14 @@ def write_comparison(
         paths[name.removesuffix(".png")] = p
     paths["report"] = out / "report.md"
     paths["report"].write_text(report_markdown(comparison, tuple(figures), scenario))
-    return {k: str(v) for k, v in paths.items()}
+    result = {k: str(v) for k, v in paths.items()}
+    for r in comparison.runs:
+        name = run_folder_name(r)
+        files = write_outputs(r, out / RUNS_DIR / name, figures=False)
+        result.update({f"{RUNS_DIR}/{name}/{k}": v for k, v in files.items()})
+    return result
+
+
+def run_folder_name(r: Run) -> str:
+    """Sub-folder of :data:`RUNS_DIR` holding a run's own files, e.g. ``isam2_fusion``."""
+    return f"{r.estimator}_{'fusion' if r.fusion else 'no_fusion'}"

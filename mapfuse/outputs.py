@@ -1,5 +1,5 @@
-"""The files of one run: ``metrics.json``, ``trajectory.tum``, the error figures and
-the association decisions."""
+"""The files of one run: ``metrics.json``, the TUM trajectories
+(:mod:`mapfuse.trajectories`), the error figures and the association decisions."""
 
 from __future__ import annotations
 
@@ -7,26 +7,42 @@ import json
 from pathlib import Path
 
 from mapfuse.run import Run
-from mapfuse_core.evaluation import pose_errors, truth_in_global, write_tum
+from mapfuse.trajectories import write_trajectories
+from mapfuse_core.evaluation import pose_errors, truth_in_global
 
 __all__ = ["write_outputs"]
 
 
-def write_outputs(run: Run, out: str | Path) -> dict[str, str]:
-    """Write ``metrics.json``, ``trajectory.tum``, ``errors.png`` and, when the run
-    decided its own associations, ``associations.npz``.
+def write_outputs(run: Run, out: str | Path, figures: bool = True) -> dict[str, str]:
+    """Write ``metrics.json``, the TUM trajectories (``trajectory.tum`` and the others
+    of :data:`mapfuse.trajectories.TRAJECTORY_FILES` the run has), ``errors.png`` and,
+    when the run decided its own associations, ``associations.npz``.
 
     Real data with GPS gets ``gps_errors.png`` and ``gps_trajectory.png`` instead of
-    ``errors.png``, which needs true poses.
+    ``errors.png``, which needs true poses.  ``figures=False`` writes no figure.
+    Returns ``{name: path}``; trajectory entries are keyed by file name without
+    ``.tum`` (``trajectory``, ``truth_known``, ...).
     """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"metrics": out / "metrics.json"}
+    paths["metrics"].write_text(json.dumps(run.metrics, indent=2) + "\n")
+    for name, p in write_trajectories(run, out).items():
+        paths[name.removesuffix(".tum")] = p
+    if figures:
+        paths.update(_figures(run, out))
+    decisions = run.result.decisions
+    if decisions is not None and run.result.association is None:
+        paths["associations"] = decisions.save(out / "associations.npz")
+    return {k: str(v) for k, v in paths.items()}
+
+
+def _figures(run: Run, out: Path) -> dict[str, Path]:
+    """``errors.png`` (simulation) or the GPS figures (real data)."""
     from mapfuse.figures import gps_error_figure, gps_trajectory_figure
     from mapfuse.plotting import errors_figure
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"metrics": out / "metrics.json", "trajectory": out / "trajectory.tum"}
-    paths["metrics"].write_text(json.dumps(run.metrics, indent=2) + "\n")
-    write_tum(paths["trajectory"], run.timestamps, run.poses)
+    paths: dict[str, Path] = {}
     if run.log.true_poses is not None:
         n = run.poses.shape[0]
         err = pose_errors(run.poses, truth_in_global(run.log.true_poses[:n]))
@@ -44,7 +60,4 @@ def write_outputs(run: Run, out: str | Path) -> dict[str, str]:
         gps_error_figure([run]).savefig(paths["gps_errors"], dpi=110)
         paths["gps_trajectory"] = out / "gps_trajectory.png"
         gps_trajectory_figure([run]).savefig(paths["gps_trajectory"], dpi=110)
-    decisions = run.result.decisions
-    if decisions is not None and run.result.association is None:
-        paths["associations"] = decisions.save(out / "associations.npz")
-    return {k: str(v) for k, v in paths.items()}
+    return paths

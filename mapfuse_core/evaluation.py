@@ -475,9 +475,20 @@ def runtime_metrics(step_time_s: FloatArray) -> dict[str, float]:
     }
 
 
-def write_tum(path: str | Path, timestamps: FloatArray, poses: FloatArray) -> Path:
-    """TUM trajectory (``t x y z qx qy qz qw``), readable by evo; z = 0, yaw about z."""
+def write_tum(
+    path: str | Path, timestamps: FloatArray, poses: FloatArray, comment: str | None = None
+) -> Path:
+    """TUM trajectory (``t x y z qx qy qz qw``), readable by evo; z = 0, yaw about z.
+
+    ``comment`` (one line) goes first in the ``#`` header, e.g. what the poses are and
+    in which frame.
+    """
     path = Path(path)
+    header = "timestamp tx ty tz qx qy qz qw"
+    if comment:
+        if "\n" in comment:
+            raise ValueError("a TUM header comment must be a single line")
+        header = f"{comment}\n{header}"
     half = 0.5 * poses[:, 2]
     rows = np.column_stack(
         [
@@ -491,7 +502,7 @@ def write_tum(path: str | Path, timestamps: FloatArray, poses: FloatArray) -> Pa
             np.cos(half),
         ]
     )
-    np.savetxt(path, rows, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
+    np.savetxt(path, rows, fmt="%.9f", header=header)
     return path
 
 

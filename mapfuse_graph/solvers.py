@@ -49,6 +49,7 @@ from mapfuse_graph.graph import (
     pose_key,
     radius_key,
 )
+from mapfuse_graph.keys import key_map
 
 __all__ = [
     "BACKENDS",
@@ -278,6 +279,23 @@ class GraphResult:
     joint_pose_cov: JointPoseCovariance | None = None
     """Batch with ``joint_stride``: the joint covariance of every ``joint_stride``-th pose,
     for consistency statistics that need it (``evaluation.nees_mean_distribution``)."""
+    graph: gtsam.NonlinearFactorGraph | None = field(default=None, compare=False, repr=False)
+    """The final nonlinear factor graph, to optimise with another solver or export
+    (:mod:`mapfuse_graph.export`); its keys are named by :attr:`keys`.  The observation
+    and tie factors are Python ``CustomFactor`` objects: GTSAM's serialisation and
+    ``writeG2o`` cannot hold them."""
+    values: gtsam.Values | None = field(default=None, compare=False, repr=False)
+    """The final estimate of every variable."""
+    initial: gtsam.Values | None = field(default=None, compare=False, repr=False)
+    """The values the solver started from (batch: Levenberg–Marquardt's start; iSAM2:
+    each variable's value when it was added)."""
+
+    @property
+    def keys(self) -> dict[str, str]:
+        """``{symbol: what it is}`` of every variable (:func:`mapfuse_graph.keys.key_map`)."""
+        if self.values is None:
+            return {}
+        return key_map(self.values)
 
     @property
     def obs_known_id(self) -> np.ndarray:
@@ -330,6 +348,8 @@ class _Solved:
     """Diagnostics."""
     joint_pose_cov: JointPoseCovariance | None = None
     """Batch with ``joint_stride``: the joint pose covariance."""
+    initial: gtsam.Values | None = None
+    """The values the solver started from."""
 
 
 # --------------------------------------------------------------------------- helpers
@@ -694,6 +714,7 @@ def _run_batch(
     build = time.perf_counter() - t_build
     t0 = time.perf_counter()
     exact = builder.options.robust is None
+    initial = gtsam.Values(values)
     values, report, lin = _levenberg_marquardt(graph, values, lm, exact)
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -730,6 +751,7 @@ def _run_batch(
         lm=report,
         extra=extra,
         joint_pose_cov=joint,
+        initial=initial,
     )
 
 
@@ -840,6 +862,7 @@ def _run_isam2(
     # Held for the whole run: callbacks then receive this object, not a deep copy.
     linearization_point = isam.getLinearizationPoint()
     graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
     f_poses = np.zeros((n, 3))
     f_covs = np.zeros((n, 3, 3))
     est = _ISAM2Estimate(isam, f_covs)
@@ -857,6 +880,7 @@ def _run_isam2(
         res = isam.update(sg.factors, sg.values, [], order)
         relin += int(res.getVariablesRelinearized())
         graph.push_back(sg.factors)
+        initial.insert(sg.values)
         x, P, fast = _newest_pose_marginal(isam, linearization_point, xk)
         shortcuts += fast
         f_poses[k] = x
@@ -902,6 +926,7 @@ def _run_isam2(
         landmarks=landmarks,
         lm=None,
         extra=extra,
+        initial=initial,
     )
 
 
@@ -1017,6 +1042,9 @@ def run_graph(
         lm=out.lm,
         extra=out.extra,
         joint_pose_cov=out.joint_pose_cov,
+        graph=out.graph,
+        values=out.values,
+        initial=out.initial,
     )
 
 

@@ -1,0 +1,48 @@
+"""What each variable of the mapfuse factor graph is, by its GTSAM symbol.
+
+Keys are ``gtsam.symbol(char, index)`` (:func:`mapfuse_graph.graph.pose_key` and its
+siblings); :func:`key_map` names every variable of a ``Values``, e.g. ``"x12"`` →
+``"vehicle pose x^Wglobal_R of step 12 (Pose2)"``, so a user of
+:attr:`mapfuse_graph.solvers.GraphResult.graph` knows what the keys of its factors are.
+"""
+
+from __future__ import annotations
+
+import gtsam
+
+__all__ = ["KEY_KINDS", "describe_key", "key_map", "symbol_name"]
+
+#: What the variables of each symbol character are (``{i}``: the symbol's index).
+KEY_KINDS: dict[str, str] = {
+    "x": "vehicle pose x^Wglobal_R of step {i} (Pose2)",
+    "l": "line landmark {i} in Wglobal, (ρ, α) (Vector2)",
+    "c": "circle landmark {i} in Wglobal, (x, y, r) (Vector3; its centre (x, y) alone "
+    "with split circles)",
+    "r": "radius of circle landmark {i} with split circles (Vector1)",
+    "k": "known line {i} (row of the known map) in Wknown, (ρ, α) (Vector2)",
+    "q": "known circle {i} (row of the known map) in Wknown, (x, y, r) (Vector3)",
+    "a": "anchor A = x^Wglobal_Wknown, the known map's frame in Wglobal (Pose2)",
+}
+
+
+def symbol_name(key: int) -> str:
+    """``"x12"`` for the key ``gtsam.symbol("x", 12)``."""
+    s = gtsam.Symbol(int(key))
+    return f"{chr(s.chr())}{s.index()}"
+
+
+def describe_key(key: int) -> str:
+    """What the variable of ``key`` is; :class:`ValueError` for a key mapfuse never makes."""
+    s = gtsam.Symbol(int(key))
+    ch = chr(s.chr())
+    if ch not in KEY_KINDS:
+        raise ValueError(f"key {symbol_name(key)} is not a mapfuse graph variable")
+    return KEY_KINDS[ch].format(i=s.index())
+
+
+def key_map(values: gtsam.Values) -> dict[str, str]:
+    """``{symbol name: what it is}`` for every variable of ``values``, poses first."""
+    # Bound to a name first: gtsam's key containers must outlive their iteration.
+    held = values.keys()  # a gtsam.Values is not iterable itself
+    keys = sorted((int(k) for k in held), key=lambda k: (symbol_name(k)[0] != "x", k))
+    return {symbol_name(k): describe_key(k) for k in keys}

@@ -1,0 +1,278 @@
+"""The ``mapfuse`` command line: options checked before any work, help and defaults,
+JSON alone on stdout, output folders, Ctrl-C, progress bars."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import mapfuse.run
+from mapfuse.cli import EXIT_INTERRUPTED, _parser, main
+from mapfuse_core.measlog import save_log
+from tests.synthetic import synthetic_log
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def log_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return save_log(synthetic_log(60, 0), tmp_path_factory.mktemp("log") / "log.npz")
+
+
+@pytest.fixture
+def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any attempt to load or simulate a log fails the test: errors must come first."""
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise AssertionError("work started before the options were checked")
+
+    monkeypatch.setattr(mapfuse.run, "prepare_log", fail)
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
+
+
+def _mapfuse(*args: str, **kw: object) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "mapfuse.cli", *args],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=600,
+        check=False,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _subparsers(p: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    out = [p]
+    for a in p._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sp in a.choices.values():
+                out += _subparsers(sp)
+    return out
+
+
+def test_every_option_has_help_and_shows_its_default() -> None:
+    for p in _subparsers(_parser()):
+        assert isinstance(p.formatter_class, type)
+        assert issubclass(p.formatter_class, argparse.ArgumentDefaultsHelpFormatter), p.prog
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                continue
+            assert a.help, f"{p.prog} {a.option_strings or a.dest} has no help"
+    helps = {sp.prog: " ".join(sp.format_help().split()) for sp in _subparsers(_parser())}
+    assert "(default: ekf)" in helps["mapfuse run"]
+    assert "(default: ekf,batch,isam2)" in helps["mapfuse compare"]
+    assert "(default: ekf)" in helps["mapfuse baseline record"]
+    for ds in ("carpark", "victoria-park", "loop600", ".npz"):
+        assert ds in helps["mapfuse compare"].replace("victoria- park", "victoria-park")
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out.strip()
+    assert out.startswith("mapfuse ")
+    assert len(out.split()) >= 2
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["run", "{npz}", "--backend", "batch", "--robust", "tukey"], "--robust: unknown robust"),
+        (["run", "{npz}", "--backend", "batch", "--robust", "huber:-1"], "must be > 0"),
+        (["run", "{npz}", "--robust", "huber"], "only for the graph backends"),
+        (["run", "{npz}", "--association", "truth"], "only for the graph backends"),
+        (["run", "{npz}", "--seed", "3"], "--seed does not apply to a saved log"),
+        (["run", "loop600", "--data", "{tmp}"], "--data applies to carpark and victoria-park"),
+        (["run", "carpark"], "needs a data directory"),
+        (["run", "carpark", "--data", "{tmp}/none"], "is not a directory"),
+        (["run", "victoria-park", "--data", "{tmp}", "--seed", "1"], "--seed does not apply"),
+        (["run", "{npz}", "--steps", "0"], "--steps must be >= 1"),
+        (["run", "{npz}", "--export-graph"], "--export-graph: only for the graph backends"),
+        (["run", "{npz}", "--backend", "nope"], "unknown estimator 'nope'"),
+        (["run", "{tmp}/missing.npz"], "does not exist"),
+        (["run", "no-such-scenario"], "no-such-scenario"),
+        (["compare", "{npz}", "--backends", "ekf", "--robust", "huber"], "only for the graph"),
+        (["compare", "{npz}", "--backends", "batch", "--robust", "x"], "unknown robust kernel"),
+        (["compare", "{npz}", "--backends", "ekf,nope"], "unknown estimator 'nope'"),
+        (["compare", "{npz}", "--backends", "ekf,ekf"], "distinct names"),
+        (["compare", "{npz}", "--seed", "1"], "--seed does not apply"),
+        (["simulate", "loop600", "--plot-step", "-1"], "--plot-step must be >= 0"),
+    ],
+)
+def test_bad_options_fail_before_any_work(
+    argv: list[str],
+    message: str,
+    log_npz: Path,
+    tmp_path: Path,
+    no_work: None,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    args = [a.format(npz=log_npz, tmp=tmp_path) for a in argv]
+    if "--out" not in args:
+        args += ["--out", str(tmp_path / "out")]
+    assert main([*args, "--quiet"]) == 2
+    err = capsys.readouterr()
+    assert err.out == ""
+    lines = err.err.strip().splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith("mapfuse: error: ")
+    assert message in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_unwritable_out_fails_before_any_work(
+    log_npz: Path, tmp_path: Path, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for cmd in (["run", str(log_npz)], ["compare", str(log_npz)]):
+        assert main([*cmd, "--out", str(blocker / "sub"), "--quiet"]) == 2
+        assert "is not writable" in capsys.readouterr().err
+        assert main([*cmd, "--out", str(blocker), "--quiet"]) == 2
+        assert "is a file" in capsys.readouterr().err
+    rec = ["baseline", "record", str(log_npz), "--out", str(blocker / "b.json"), "--quiet"]
+    assert main(rec) == 2
+    assert "not writable" in capsys.readouterr().err
+
+
+def test_force_refuses_then_clears_another_runs_files(
+    log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    base = ["run", str(log_npz), "--backend", "ekf", "--no-fusion", "--out", str(out), "--quiet"]
+    assert main(base) == 0
+    capsys.readouterr()
+    stale = out / "associations.npz"
+    assert stale.is_file()  # the EKF decides its own associations
+    (out / "trajectory_filtered.tum").write_text("# from another backend\n")
+    (out / "notes.txt").write_text("mine")
+    before = (out / "metrics.json").stat().st_mtime_ns
+    time.sleep(0.01)
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "holds another run's files" in err
+    assert "--force" in err
+    assert (out / "metrics.json").stat().st_mtime_ns == before  # untouched
+    # A graph run writes no associations.npz: with --force the EKF's must not stay.
+    graph = [*base[:3], "batch", *base[4:], "--force", "--association", "truth"]
+    assert main(graph) == 0
+    capsys.readouterr()
+    assert not stale.exists()
+    assert not (out / "trajectory_filtered.tum").exists()  # batch has no filtered estimate
+    assert (out / "notes.txt").read_text() == "mine"  # not a mapfuse file: kept
+    assert json.loads((out / "metrics.json").read_text())["backend"] == "batch"
+
+
+def test_compare_options_choose_backends_fusion_association_robust(
+    log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "cmp"
+    argv = ["compare", str(log_npz), "--backends", "ekf,batch", "--no-fusion"]
+    argv += ["--association", "truth", "--robust", "huber", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    printed = json.loads(capsys.readouterr().out)
+    metrics = json.loads((out / "comparison.json").read_text())
+    assert [(m["backend"], m["fusion"]) for m in metrics] == [("ekf", False), ("batch", False)]
+    assert metrics[1]["association"] == "truth"
+    assert printed["outputs"]["comparison"] == str(out / "comparison.json")
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["batch_no_fusion", "ekf_no_fusion"]
+
+
+def test_compare_stdout_is_json_alone(log_npz: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cmp"
+    # With progress bars on: they go to stderr.
+    proc = _mapfuse("compare", str(log_npz), "--backends", "ekf,isam2", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    parsed = json.loads(proc.stdout)
+    assert parsed["outputs"]["report"] == str(out / "report.md")
+    assert f"Report: {out / 'report.md'}" in proc.stderr
+    # The check a user runs: mapfuse compare ... | python -c 'json.load(sys.stdin)'.
+    check = subprocess.run(
+        [sys.executable, "-c", "import json,sys; json.load(sys.stdin)"],
+        input=proc.stdout,
+        text=True,
+        check=False,
+    )
+    assert check.returncode == 0
+
+
+def test_progress_bars_show_rate_and_eta_and_quiet_silences_them(
+    log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["run", str(log_npz), "--backend", "ekf", "--out", str(tmp_path / "a")]
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    json.loads(cap.out)
+    assert "ekf: 100%" in cap.err
+    assert "60/60" in cap.err
+    assert "step/s" in cap.err  # the rate
+    assert "<" in cap.err  # elapsed<remaining, tqdm's ETA
+    assert main([*argv[:-1], str(tmp_path / "b"), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_ctrl_c_is_one_line_and_exit_130(
+    log_npz: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mapfuse.run, "prepare_log", interrupted)
+    assert main(["run", str(log_npz), "--out", str(tmp_path / "o")]) == EXIT_INTERRUPTED
+    assert capsys.readouterr().err == "mapfuse: interrupted\n"
+
+
+@pytest.mark.slow
+def test_sigint_during_a_simulation(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapfuse.cli", "simulate", "loop600", "--out", str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=_env(),
+    )
+    assert proc.stderr is not None
+    # Wait until the simulation runs (its progress bar appears), then press Ctrl-C.
+    seen = b""
+    while b"simulate" not in seen:
+        chunk = proc.stderr.read1(256)  # type: ignore[attr-defined]
+        assert chunk, "the simulation ended without a progress bar"
+        seen += chunk
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_INTERRUPTED
+    assert out == b""
+    assert (seen + err).decode().rstrip().splitlines()[-1].endswith("mapfuse: interrupted")
+    assert b"Traceback" not in seen + err
+
+
+def test_run_export_graph_writes_g2o_and_names_what_it_leaves_out(
+    log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["run", str(log_npz), "--backend", "batch", "--export-graph", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    cap = capsys.readouterr()
+    outputs = json.loads(cap.out)["outputs"]
+    assert outputs["graph_g2o"] == str(tmp_path / "graph.g2o")
+    assert "left out (in graph.json)" in cap.err
+    assert "circle observation" in cap.err
+    side = json.loads((tmp_path / "graph.json").read_text())
+    assert side["left_out"]["factors"]
