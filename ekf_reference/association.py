@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.features import pairing_cov, pairing_residual, transform_feature
+from mapfuse_core.features import FeatureKind, pairing_cov, pairing_residual, transform_feature
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
