@@ -25,7 +25,7 @@ $(VENV)/.installed: pyproject.toml
 venv: $(VENV)/.installed
 
 demo: venv
-	$(VENV)/bin/mapfuse compare loop600 --seed 0 --out $(OUT)
+	$(VENV)/bin/mapfuse compare loop600 --seed 0 --out $(OUT) --force
 	@echo "Demo done: open $(OUT)/report.md and the figures beside it."
 
 lint: venv
