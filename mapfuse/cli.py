@@ -268,6 +268,11 @@ def _parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--quiet", action="store_true", help="no progress bar")
     cmp_.set_defaults(func=_cmd_compare)
 
+    from mapfuse.campaign.cli import add_montecarlo, add_world
+
+    add_montecarlo(sub)
+    add_world(sub)
+
     base = sub.add_parser("baseline", help="record or check regression baselines")
     bsub = base.add_subparsers(dest="baseline_command", required=True)
     rec = bsub.add_parser("record", help="record a backend's metrics as a baseline")

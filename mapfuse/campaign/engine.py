@@ -139,7 +139,8 @@ def run_campaign(
                 if serial
                 else _distributed(spec, todo, workers, scheduler)
             )
-            for outcome, n_workers in stream:
+            for outcome, used in stream:
+                n_workers = used
                 store.write(outcome)
                 ran.append(outcome.seed)
                 bad = sum(r["status"] != "ok" for r in outcome.rows)

@@ -53,7 +53,8 @@ class RunOutcome:
     columns)."""
     arrays: dict[str, np.ndarray]
     """Per-step arrays by :func:`array_key` (``dx`` (N, 3) estimate − truth, ``nees``
-    (N,), ``sigma`` (N, 3) standard deviations, ``position_error`` (N,) m)."""
+    (N,), ``sigma`` (N, 3) standard deviations, ``position_error`` (N,) m), and
+    ``timestamps`` (the log's step times, s)."""
     wall_time_s: float
     """Wall time of the whole run (simulation included), s."""
 
@@ -141,7 +142,9 @@ def _failed_row(error: str) -> dict[str, Any]:
     return {"status": "error", "error": error}
 
 
-def run_seed(spec: CampaignSpec, seed: int, clock: Callable[[], float] = time.perf_counter) -> RunOutcome:
+def run_seed(
+    spec: CampaignSpec, seed: int, clock: Callable[[], float] = time.perf_counter
+) -> RunOutcome:
     """Run ``seed`` of ``spec``: simulate once, then every estimator × fusion setting.
 
     Row columns: ``seed``, ``estimator``, ``fusion``, ``status`` (``"ok"`` or
@@ -196,6 +199,7 @@ def run_seed(spec: CampaignSpec, seed: int, clock: Callable[[], float] = time.pe
                     failed[name] = _error_text(exc)
             if name in failed and name in spec.estimators:
                 rows[(name, fusion)] = _failed_row(failed[name])
+    arrays["timestamps"] = np.asarray(log.timestamps, dtype=float)
     return _outcome(seed, keys, rows, arrays, log.scenario, clock() - t0)
 
 
