@@ -69,7 +69,7 @@ def plot_max_errors(ax: Axes, groups: Sequence[GroupSummary]) -> None:
     data = [g.values("max_m") for g in groups]
     keep = [i for i, d in enumerate(data) if d]
     if keep:
-        ax.boxplot([data[i] for i in keep], vert=False)
+        ax.boxplot([data[i] for i in keep], orientation="horizontal")
         ax.set_yticks(range(1, len(keep) + 1), [_label(groups[i]) for i in keep])
     ax.axvline(MAX_ERROR_LIMIT_M, color="k", ls=":", lw=1, label=f"{MAX_ERROR_LIMIT_M} m")
     ax.set_xlabel("maximum position error of a run (m)")

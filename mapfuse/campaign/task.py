@@ -12,6 +12,7 @@ every row of the run.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import time
@@ -81,8 +82,14 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
 
 
 def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
-    """The log of run ``seed`` (simulated in this process, cut to ``spec.steps``)."""
-    log = simulate(run_scenario(spec, seed), seed=seed, workers=1).log
+    """The log of run ``seed``, simulated in this process, of its first ``spec.steps``
+    steps.  A drive through waypoints is simulated for those steps only (its draws come
+    step by step, so the log is the head of the full one); a drive by a table of
+    controls is simulated whole and cut."""
+    scenario = run_scenario(spec, seed)
+    if spec.steps is not None and not scenario.controls and spec.steps < scenario.steps:
+        scenario = dataclasses.replace(scenario, steps=spec.steps)
+    log = simulate(scenario, seed=seed, workers=1).log
     return log if spec.steps is None else log.head(spec.steps)
 
 
