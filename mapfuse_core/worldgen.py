@@ -117,7 +117,8 @@ def _unit_curve(params: WorldParams, rng: np.random.Generator, n: int) -> FloatA
                 xy[i] = (R * math.cos(a), R * math.sin(a))
     theta = rng.uniform(0, 2 * math.pi)
     c, s_ = math.cos(theta), math.sin(theta)
-    return xy @ np.array([[c, s_], [-s_, c]])
+    out: FloatArray = xy @ np.array([[c, s_], [-s_, c]])
+    return out
 
 
 def _arc(xy: FloatArray) -> FloatArray:
@@ -125,23 +126,35 @@ def _arc(xy: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(np.hypot(d[:, 0], d[:, 1]))])
 
 
-def _path(params: WorldParams, rng: np.random.Generator) -> FloatArray:
-    """(n, 2) closed path of length ``loop_length_m``, sampled about every 0.1 m."""
-    n = max(2000, int(params.loop_length_m / 0.1))
-    xy = _unit_curve(params, rng, n)
-    xy *= params.loop_length_m / _arc(xy)[-1]
-    # Smallest radius of curvature, from three consecutive points.
+def _min_radius(xy: FloatArray) -> float:
+    """Smallest radius of curvature of a closed polyline, from consecutive triples."""
     a, b, c = xy, np.roll(xy, -1, axis=0), np.roll(xy, -2, axis=0)
     ab, bc, ca = (np.hypot(*(q - p).T) for p, q in ((a, b), (b, c), (c, a)))
     cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
     with np.errstate(divide="ignore"):
         radius = np.where(cross > 0, ab * bc * ca / (2 * np.maximum(cross, 1e-300)), np.inf)
-    if radius.min() < _MIN_TURN_RADIUS_M:
-        raise ValueError(
-            f"a {params.shape} of {params.loop_length_m:g} m turns on a {radius.min():.1f} m "
-            f"radius, below {_MIN_TURN_RADIUS_M:g} m: make the loop longer"
-        )
-    return xy
+    return float(radius.min())
+
+
+def _path(params: WorldParams, rng: np.random.Generator) -> FloatArray:
+    """(n, 2) closed path of length ``loop_length_m``, sampled about every 0.1 m.
+
+    A draw that turns tighter than the vehicle follows well (8 m) is drawn again, up
+    to 50 times, so a campaign's generated worlds do not fail on an unlucky shape.
+    """
+    n = max(2000, int(params.loop_length_m / 0.1))
+    tightest = np.inf
+    for _ in range(50):
+        xy = _unit_curve(params, rng, n)
+        xy *= params.loop_length_m / _arc(xy)[-1]
+        r = _min_radius(xy)
+        if r >= _MIN_TURN_RADIUS_M:
+            return xy
+        tightest = min(tightest, r)
+    raise ValueError(
+        f"a {params.shape} of {params.loop_length_m:g} m turns on a {tightest:.1f} m "
+        f"radius or less, below {_MIN_TURN_RADIUS_M:g} m: make the loop longer"
+    )
 
 
 def _dist_to(points: FloatArray, path: FloatArray) -> FloatArray:

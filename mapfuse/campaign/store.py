@@ -122,7 +122,8 @@ class CampaignStore:
         """Store one finished run: its arrays, then (one write) its rows."""
         path = self.array_path(outcome.seed)
         tmp = path.with_name(path.stem + ".tmp.npz")
-        np.savez_compressed(tmp, **outcome.arrays)
+        arrays: dict[str, Any] = dict(outcome.arrays)
+        np.savez_compressed(tmp, **arrays)
         os.replace(tmp, path)
         wall = round(outcome.wall_time_s, 3)
         text = "".join(json.dumps({**r, "wall_s": wall}) + "\n" for r in outcome.rows)

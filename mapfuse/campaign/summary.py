@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -143,7 +144,7 @@ def _group(
 
 def summarise(store: CampaignStore | str) -> list[GroupSummary]:
     """Every (estimator, fusion) of the stored spec, in its order (fusion first)."""
-    store = store if isinstance(store, CampaignStore) else CampaignStore(store)
+    store = store if isinstance(store, CampaignStore) else CampaignStore(Path(store))
     spec = store.spec()
     rows = store.rows()
     seeds = sorted({r["seed"] for r in rows if r["status"] == "ok"})
