@@ -12,6 +12,9 @@ from mapfuse_core.scenario import list_builtin_scenarios
 __all__ = ["add_montecarlo", "add_world", "parse_world_args"]
 
 
+_KIND_NAMES = {int: "an integer", float: "a number", str: "text"}
+
+
 def parse_world_args(text: str) -> dict[str, Any]:
     """``--world-per-run`` arguments, ``"walls=6,trees=40,shape=figure8"``, as the
     generator's keywords (numbers converted; the seed comes from each run)."""
@@ -38,7 +41,8 @@ def parse_world_args(text: str) -> dict[str, Any]:
             out[key] = kind(value)
         except ValueError:
             raise ValueError(
-                f"--world-per-run: {key} must be a {kind.__name__}, got {value!r}"
+                f"--world-per-run: {key} must be "
+                f"{_KIND_NAMES.get(kind, kind.__name__)}, got {value!r}"
             ) from None
     WorldParams(seed=0, **out)  # validates the values now, not on the workers
     return out

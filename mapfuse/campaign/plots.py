@@ -85,6 +85,8 @@ def _figure(width: float, height: float) -> Figure:
 
 def anees_figure(groups: Sequence[GroupSummary]) -> Figure:
     """One panel per estimator: its ANEES with bounds, each fusion setting."""
+    from matplotlib.ticker import ScalarFormatter
+
     names = list(dict.fromkeys(g.estimator for g in groups))
     fig = _figure(10, 3.2 * len(names))
     axes = fig.subplots(len(names), 1, squeeze=False)[:, 0]
@@ -94,6 +96,9 @@ def anees_figure(groups: Sequence[GroupSummary]) -> Figure:
                 plot_anees(ax, g)
         ax.axhline(3.0, color="k", lw=0.6, ls=":")
         ax.set_yscale("log")
+        # Plain numbers on the log axis (2, 3, 4, not 2×10⁰).
+        ax.yaxis.set_major_formatter(ScalarFormatter())
+        ax.yaxis.set_minor_formatter(ScalarFormatter())
         ax.set_xlabel("time (s)")
         ax.set_ylabel("ANEES")
         ax.set_title(f"{name}: ANEES over runs with its two-sided 95 % bounds (shaded)")
