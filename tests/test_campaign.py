@@ -21,6 +21,7 @@ import pytest
 from scipy.stats import binomtest, chi2
 from scipy.stats import t as student_t
 
+from mapfuse import registry
 from mapfuse.campaign import CampaignSpec, CampaignStore, parse_seeds, run_campaign
 from mapfuse.campaign.report import write_report
 from mapfuse.campaign.stats import (
@@ -155,6 +156,8 @@ def test_failing_run_is_recorded_and_the_others_go_on(tmp_path: Path) -> None:
     )
     summary = run_campaign(spec, tmp_path, serial=True, quiet=True)
     assert summary.failed_rows == 1
+    # The plugins were registered for the runs only.
+    assert not {"toy", "fails_on_odd"} & set(registry.available())
     rows = {(r["seed"], r["estimator"]): r for r in CampaignStore(tmp_path).rows()}
     assert len(rows) == 6
     bad = rows[(1, "fails_on_odd")]

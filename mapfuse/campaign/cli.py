@@ -52,6 +52,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from mapfuse.campaign.engine import run_campaign
     from mapfuse.campaign.report import write_report
     from mapfuse.campaign.spec import CampaignSpec, parse_fusion, parse_seeds
+    from mapfuse.campaign.task import plugins_registered
     from mapfuse.run import resolve
     from mapfuse_core.scenario import load_scenario
 
@@ -63,7 +64,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         seeds = parse_seeds(args.seeds)
     estimators = tuple(e.strip() for e in args.estimators.split(",") if e.strip())
     plugins = tuple(args.plugin or ())
-    if not plugins:
+    with plugins_registered(plugins):
         for e in estimators:
             resolve(e)  # an unknown name fails before any cluster starts
     world = None if args.world_per_run is None else parse_world_args(args.world_per_run)

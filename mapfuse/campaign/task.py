@@ -17,7 +17,8 @@ import importlib
 import math
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +33,14 @@ from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.scenario import Scenario, load_scenario
 from mapfuse_core.simulate import simulate
 
-__all__ = ["ARRAY_FIELDS", "RunOutcome", "array_key", "make_log", "run_seed"]
+__all__ = [
+    "ARRAY_FIELDS",
+    "RunOutcome",
+    "array_key",
+    "make_log",
+    "plugins_registered",
+    "run_seed",
+]
 
 #: Per-step arrays of every (estimator, fusion) of a run, in its ``.npz``.
 ARRAY_FIELDS = ("dx", "nees", "sigma", "position_error")
@@ -60,15 +68,31 @@ class RunOutcome:
     """Wall time of the whole run (simulation included), s."""
 
 
-def _register_plugins(plugins: tuple[str, ...]) -> None:
-    for spec in plugins:
-        module, _, attr = spec.partition(":")
-        if not module or not attr:
-            raise ValueError(f"a plugin must look like module:attribute, got {spec!r}")
-        obj: Any = importlib.import_module(module)
-        for part in attr.split("."):
-            obj = getattr(obj, part)
-        registry.register(obj, replace=True)
+@contextmanager
+def plugins_registered(plugins: tuple[str, ...]) -> Iterator[None]:
+    """Register the ``module:attribute`` estimators for the duration of one run; those
+    not registered before are removed again (a serial campaign leaves the registry of
+    its process as it found it)."""
+    before = set(registry.available())
+    added: list[str] = []
+    try:
+        for spec in plugins:
+            module, _, attr = spec.partition(":")
+            if not module or not attr:
+                raise ValueError(f"a plugin must look like module:attribute, got {spec!r}")
+            try:
+                obj: Any = importlib.import_module(module)
+                for part in attr.split("."):
+                    obj = getattr(obj, part)
+            except (ImportError, AttributeError) as e:
+                raise ValueError(f"plugin {spec!r} cannot be loaded: {e}") from None
+            est = registry.register(obj, replace=True)
+            if est.name not in before:
+                added.append(est.name)
+        yield
+    finally:
+        for name in added:
+            registry.unregister(name)
 
 
 def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
@@ -165,7 +189,11 @@ def run_seed(
     spec and the seed alone.
     """
     t0 = clock()
-    _register_plugins(spec.plugins)
+    with plugins_registered(spec.plugins):
+        return _run(spec, seed, clock, t0)
+
+
+def _run(spec: CampaignSpec, seed: int, clock: Callable[[], float], t0: float) -> RunOutcome:
     keys = [(e, f) for f in spec.fusions for e in spec.estimators]
     rows: dict[tuple[str, bool], dict[str, Any]] = {}
     arrays: dict[str, np.ndarray] = {}
