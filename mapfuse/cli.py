@@ -439,6 +439,11 @@ def _parser() -> argparse.ArgumentParser:
     _add_common(cmp_)
     cmp_.set_defaults(func=_cmd_compare)
 
+    from mapfuse.campaign.cli import add_montecarlo, add_world
+
+    add_montecarlo(sub)
+    add_world(sub)
+
     base = sub.add_parser(
         "baseline",
         help="record or check regression baselines",

@@ -57,6 +57,7 @@ __all__ = [
     "features_in_view",
     "list_builtin_scenarios",
     "load_scenario",
+    "scenario_from_toml",
     "simulate_drive",
 ]
 
@@ -255,9 +256,17 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         raw = res.read_bytes()
         stem = name
     try:
-        doc = tomllib.loads(raw.decode("utf-8"))
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise ScenarioError(source, "", f"not UTF-8 text: {e}") from None
+    return scenario_from_toml(text, source, stem)
+
+
+def scenario_from_toml(text: str, source: str = "<string>", stem: str = "scenario") -> Scenario:
+    """Parse and validate a scenario from TOML text, as :func:`load_scenario` does a
+    file (``source`` names it in errors; ``stem`` is the name when it gives none)."""
+    try:
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(source, "", f"invalid TOML: {e}") from None
     return _parse(doc, source, stem)

@@ -25,6 +25,7 @@ NOTEBOOKS = (
     "04_ccda_matching",
     "05_real_data_carpark",
     "06_victoria_park",
+    "07_montecarlo",
 )
 # Notebooks that read the real datasets: skipped, like the real-data tests, without them.
 NEEDS_DATA = ("05_real_data_carpark", "06_victoria_park")

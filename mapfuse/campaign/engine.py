@@ -1,0 +1,160 @@
+"""Run a campaign: :func:`run_campaign` on dask.distributed, or serially in this process.
+
+By default a ``LocalCluster`` of ``workers`` processes (default: the cores) with one
+thread each and single-threaded BLAS: a run is pure Python and small dense algebra,
+so processes, not threads, use the cores.  ``scheduler`` connects to an existing
+cluster instead (``dask scheduler`` / ``dask worker``, ``docs/montecarlo.md``).
+``serial=True`` runs every seed in this process, without dask (the reference the
+engine's overhead is measured against).  Results are stored as each run completes,
+in completion order; finished runs are skipped.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mapfuse.campaign.spec import CampaignSpec
+from mapfuse.campaign.store import CampaignStore
+from mapfuse.campaign.task import RunOutcome, run_seed
+
+__all__ = ["BLAS_ENV", "CampaignSummary", "run_campaign"]
+
+#: Environment of every local worker: one BLAS thread each.
+BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@dataclass(frozen=True)
+class CampaignSummary:
+    """What one :func:`run_campaign` call did."""
+
+    out: Path
+    """The campaign directory."""
+    ran: tuple[int, ...]
+    """Seeds run by this call, in completion order."""
+    skipped: tuple[int, ...]
+    """Seeds already finished in the directory."""
+    failed_rows: int
+    """Rows of this call's runs recorded with an error."""
+    wall_time_s: float
+    """Wall time of the call (s), cluster start-up included."""
+    workers: int
+    """Workers that ran the seeds (1 when serial)."""
+
+
+def _progress(total: int, initial: int, quiet: bool) -> Any:
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, unit="run", disable=quiet, desc="montecarlo")
+
+
+def _serial(spec: CampaignSpec, todo: list[int]) -> Iterator[RunOutcome]:
+    for seed in todo:
+        yield run_seed(spec, seed)
+
+
+def _distributed(
+    spec: CampaignSpec, todo: list[int], workers: int | None, scheduler: str | None
+) -> Iterator[tuple[RunOutcome, int]]:
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler is None:
+        n = workers if workers is not None else (os.cpu_count() or 1)
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            env=BLAS_ENV,
+        )
+        client = Client(cluster)
+    else:
+        client = Client(scheduler)
+    try:
+        n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
+        tag = uuid.uuid4().hex[:8]
+        futures = [
+            client.submit(run_seed, spec, seed, key=f"mapfuse-run-{seed}-{tag}", pure=False)
+            for seed in todo
+        ]
+        for fut in as_completed(futures):
+            outcome = fut.result()
+            fut.release()
+            yield outcome, n_workers
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_campaign(
+    spec: CampaignSpec,
+    out: str | Path,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    serial: bool = False,
+    quiet: bool = False,
+    retry_failed: bool = False,
+) -> CampaignSummary:
+    """Run the seeds of ``spec`` not yet finished in ``out`` and store each as it ends.
+
+    ``workers``: local worker processes (default: the cores); ``scheduler``: the address
+    of an existing dask scheduler (``tcp://host:8786``) instead; ``serial``: no dask.
+    ``retry_failed``: run again the seeds with a row recorded as an error.
+    """
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if serial and scheduler is not None:
+        raise ValueError("serial and scheduler exclude each other")
+    t0 = time.perf_counter()
+    for k, v in BLAS_ENV.items():
+        os.environ.setdefault(k, v)
+    store = CampaignStore.open(out, spec)
+    per_run = len(spec.estimators) * len(spec.fusions)
+    rows = store.rows()
+    seeds_with_rows = {r["seed"] for r in rows}
+    finished = store.finished(per_run)
+    if retry_failed:
+        finished -= {r["seed"] for r in rows if r["status"] != "ok"}
+    stale = (seeds_with_rows - finished) & set(spec.seeds)
+    if stale:
+        store.drop(stale)
+    todo = [s for s in spec.seeds if s not in finished]
+    skipped = tuple(s for s in spec.seeds if s in finished)
+    ran: list[int] = []
+    failed = 0
+    n_workers = 1
+    bar = _progress(len(spec.seeds), len(skipped), quiet)
+    try:
+        if todo:
+            stream: Iterator[tuple[RunOutcome, int]] = (
+                ((o, 1) for o in _serial(spec, todo))
+                if serial
+                else _distributed(spec, todo, workers, scheduler)
+            )
+            for outcome, used in stream:
+                n_workers = used
+                store.write(outcome)
+                ran.append(outcome.seed)
+                bad = sum(r["status"] != "ok" for r in outcome.rows)
+                failed += bad
+                bar.update(1)
+                if bad:
+                    bar.set_postfix(failed_rows=failed)
+    finally:
+        bar.close()
+    return CampaignSummary(
+        out=store.root,
+        ran=tuple(ran),
+        skipped=skipped,
+        failed_rows=failed,
+        wall_time_s=time.perf_counter() - t0,
+        workers=n_workers,
+    )

@@ -1,0 +1,253 @@
+"""One campaign run on a worker: :func:`run_seed` simulates one seed and runs every
+estimator of the spec on that log, for each fusion setting.
+
+It returns plain data (:class:`RunOutcome`: table rows and per-step arrays), never
+writes files, so a worker on another machine needs no access to the campaign
+directory.  An estimator that consumes another's result (the graph backends, the
+EKF's association decisions) gets that estimator's run of the same fusion setting,
+as in :func:`mapfuse.compare.compare`.  An estimator that raises is recorded with its
+error (so are its consumers), and the others go on; a log that cannot be made fails
+every row of the run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mapfuse import registry
+from mapfuse.campaign.spec import CampaignSpec
+from mapfuse.result import EstimatorResult
+from mapfuse.run import consumer_options, fusion_for, make_options, resolve, run
+from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors, truth_in_global
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.scenario import Scenario, load_scenario
+from mapfuse_core.simulate import simulate
+
+__all__ = [
+    "ARRAY_FIELDS",
+    "RunOutcome",
+    "array_key",
+    "make_log",
+    "plugins_registered",
+    "run_seed",
+]
+
+#: Per-step arrays of every (estimator, fusion) of a run, in its ``.npz``.
+ARRAY_FIELDS = ("dx", "nees", "sigma", "position_error")
+
+
+def array_key(estimator: str, fusion: bool, name: str) -> str:
+    """Name of one array in a run's ``.npz``, e.g. ``ekf/fused/nees``."""
+    return f"{estimator}/{'fused' if fusion else 'plain'}/{name}"
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What one run hands back to the campaign."""
+
+    seed: int
+    """The run's seed."""
+    rows: tuple[dict[str, Any], ...]
+    """One table row per estimator × fusion setting (:func:`run_seed` documents the
+    columns)."""
+    arrays: dict[str, np.ndarray]
+    """Per-step arrays by :func:`array_key` (``dx`` (N, 3) estimate − truth, ``nees``
+    (N,), ``sigma`` (N, 3) standard deviations, ``position_error`` (N,) m), and
+    ``timestamps`` (the log's step times, s)."""
+    wall_time_s: float
+    """Wall time of the whole run (simulation included), s."""
+
+
+@contextmanager
+def plugins_registered(plugins: tuple[str, ...]) -> Iterator[None]:
+    """Register the ``module:attribute`` estimators for the duration of one run; those
+    not registered before are removed again (a serial campaign leaves the registry of
+    its process as it found it)."""
+    before = set(registry.available())
+    added: list[str] = []
+    try:
+        for spec in plugins:
+            module, _, attr = spec.partition(":")
+            if not module or not attr:
+                raise ValueError(f"a plugin must look like module:attribute, got {spec!r}")
+            try:
+                obj: Any = importlib.import_module(module)
+                for part in attr.split("."):
+                    obj = getattr(obj, part)
+            except (ImportError, AttributeError) as e:
+                raise ValueError(f"plugin {spec!r} cannot be loaded: {e}") from None
+            est = registry.register(obj, replace=True)
+            if est.name not in before:
+                added.append(est.name)
+        yield
+    finally:
+        for name in added:
+            registry.unregister(name)
+
+
+def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
+    """The scenario of run ``seed``: the spec's, or a world generated from the seed."""
+    if spec.world is None:
+        return load_scenario(spec.scenario)
+    from mapfuse_core.worldgen import WorldParams, generate_scenario
+
+    base = load_scenario(spec.scenario)
+    return generate_scenario(WorldParams(seed=seed, **dict(spec.world)), base=base)
+
+
+def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
+    """The log of run ``seed``, simulated in this process, of its first ``spec.steps``
+    steps.  A drive through waypoints is simulated for those steps only (its draws come
+    step by step, so the log is the head of the full one); a drive by a table of
+    controls is simulated whole and cut."""
+    scenario = run_scenario(spec, seed)
+    if spec.steps is not None and not scenario.controls and spec.steps < scenario.steps:
+        scenario = dataclasses.replace(scenario, steps=spec.steps)
+    log = simulate(scenario, seed=seed, workers=1).log
+    return log if spec.steps is None else log.head(spec.steps)
+
+
+def _error_text(exc: BaseException) -> str:
+    tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
+    return f"{type(exc).__name__}: {exc}\n{''.join(tb[-3:])}".strip()
+
+
+def _finite(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _row_and_arrays(
+    result: EstimatorResult, log: MeasurementLog, metrics: dict[str, Any]
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The table row and per-step arrays of one finished estimator run."""
+    assert log.true_poses is not None
+    n = result.n_steps
+    truth = truth_in_global(log.true_poses[:n])
+    err = pose_errors(result.poses, truth)
+    nees = nees_series(err.dx, result.covs)
+    sigma = np.sqrt(np.clip(np.diagonal(result.covs, axis1=1, axis2=2), 0.0, None))
+    pe = metrics["position_error_m"]
+    nm = metrics["nees"]
+    a = metrics["anchor"]
+    anchor_nees = None
+    if result.anchor is not None:
+        d = pose_errors(result.anchor.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None])
+        anchor_nees = float(nees_series(d.dx, result.anchor.cov[None])[0])
+    row: dict[str, Any] = {
+        "status": "ok",
+        "error": None,
+        "estimate": result.estimate,
+        "steps": n,
+        "rmse_m": pe["rmse"],
+        "max_m": pe["max"],
+        "final_m": pe["final"],
+        "heading_rmse_rad": metrics["heading_error_rad"]["rmse"],
+        "nees_mean": _finite(nm["mean"]),
+        "nees_within": _finite(nm["fraction_within_chi2_95"]),
+        "anchor": a is not None,
+        "anchor_m": None if a is None else a["position_error_m"],
+        "anchor_rad": None if a is None else a["heading_error_rad"],
+        "anchor_nees": _finite(anchor_nees),
+        "accepted_at_step": None if a is None else a["accepted_at_step"],
+        "pairings": None if a is None else a["pairings"],
+        "wrong_pairings": None if a is None else a["pairings"] - a["correct_pairings"],
+        "map_features": metrics["map"]["features"],
+        "matched_known": metrics["map"]["matched_known"],
+        "runtime_s": metrics["runtime_s"]["total"],
+    }
+    arrays = {"dx": err.dx, "nees": nees, "sigma": sigma, "position_error": err.position}
+    return row, arrays
+
+
+def _failed_row(error: str) -> dict[str, Any]:
+    return {"status": "error", "error": error}
+
+
+def run_seed(
+    spec: CampaignSpec, seed: int, clock: Callable[[], float] = time.perf_counter
+) -> RunOutcome:
+    """Run ``seed`` of ``spec``: simulate once, then every estimator × fusion setting.
+
+    Row columns: ``seed``, ``estimator``, ``fusion``, ``status`` (``"ok"`` or
+    ``"error"``), ``error`` (message and the end of the traceback), ``estimate``
+    (``filtered``/``smoothed``), ``steps``, ``rmse_m``, ``max_m``, ``final_m``,
+    ``heading_rmse_rad``, ``nees_mean``, ``nees_within`` (fraction of steps with NEES ≤
+    χ²(3, 0.95)), ``anchor`` (whether one was accepted), ``anchor_m``, ``anchor_rad``,
+    ``anchor_nees``, ``accepted_at_step``, ``pairings``, ``wrong_pairings``,
+    ``map_features``, ``matched_known``, ``runtime_s`` (the estimator's summed step
+    times), ``scenario`` (the log's).  Every value but ``runtime_s`` depends on the
+    spec and the seed alone.
+    """
+    t0 = clock()
+    with plugins_registered(spec.plugins):
+        return _run(spec, seed, clock, t0)
+
+
+def _run(spec: CampaignSpec, seed: int, clock: Callable[[], float], t0: float) -> RunOutcome:
+    keys = [(e, f) for f in spec.fusions for e in spec.estimators]
+    rows: dict[tuple[str, bool], dict[str, Any]] = {}
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        log = make_log(spec, seed)
+        if log.true_poses is None:
+            raise ValueError(f"scenario {spec.scenario!r} gave a log without true poses")
+    except Exception as exc:
+        text = _error_text(exc)
+        rows = {k: _failed_row(f"simulation failed: {text}") for k in keys}
+        return _outcome(seed, keys, rows, arrays, "", clock() - t0)
+    for fusion in spec.fusions:
+        done: dict[str, EstimatorResult] = {}
+        failed: dict[str, str] = {}
+        wanted = [resolve(e) for e in spec.estimators]
+        consumed = [c for e in wanted if (c := getattr(e, "consumes", None)) is not None]
+        order = list(dict.fromkeys([*consumed, *spec.estimators]))
+        for name in order:
+            est = resolve(name)
+            upstream = getattr(est, "consumes", None)
+            if upstream is not None and upstream in failed:
+                failed[name] = f"its upstream {upstream} failed: {failed[upstream]}"
+            else:
+                try:
+                    options = (
+                        consumer_options(est, log, done)
+                        if upstream is not None
+                        else make_options(est, log)
+                    )
+                    r = run(log, est, fusion=fusion_for(log, fusion), options=options)
+                    done[name] = r.result
+                    if name in spec.estimators:
+                        row, arr = _row_and_arrays(r.result, log, r.metrics)
+                        rows[(name, fusion)] = row
+                        for k, v in arr.items():
+                            arrays[array_key(name, fusion, k)] = v
+                except Exception as exc:
+                    failed[name] = _error_text(exc)
+            if name in failed and name in spec.estimators:
+                rows[(name, fusion)] = _failed_row(failed[name])
+    arrays["timestamps"] = np.asarray(log.timestamps, dtype=float)
+    return _outcome(seed, keys, rows, arrays, log.scenario, clock() - t0)
+
+
+def _outcome(
+    seed: int,
+    keys: list[tuple[str, bool]],
+    rows: dict[tuple[str, bool], dict[str, Any]],
+    arrays: dict[str, np.ndarray],
+    scenario: str,
+    wall: float,
+) -> RunOutcome:
+    out = tuple(
+        {"seed": seed, "estimator": e, "fusion": f, "scenario": scenario, **rows[(e, f)]}
+        for e, f in keys
+    )
+    return RunOutcome(seed=seed, rows=out, arrays=arrays, wall_time_s=wall)

@@ -1,0 +1,38 @@
+"""Estimators for the campaign tests, registered on the workers by ``--plugin``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mapfuse.result import EstimatorResult
+from mapfuse_core.measlog import MeasurementLog
+from tests.toy_estimator import DeadReckoning, DeadReckoningOptions
+
+
+class FailsOnOddSeeds(DeadReckoning):
+    """The toy dead-reckoning estimator, raising on logs of odd seeds."""
+
+    name = "fails_on_odd"
+    options_type = DeadReckoningOptions
+
+    def run(
+        self,
+        log: MeasurementLog,
+        options: DeadReckoningOptions,
+        *,
+        fusion: bool,
+        progress: Any = None,
+    ) -> EstimatorResult:
+        if log.seed % 2:
+            raise RuntimeError(f"deliberate failure on seed {log.seed}")
+        res = super().run(log, options, fusion=fusion, progress=progress)
+        return EstimatorResult(
+            estimator=self.name,
+            scenario=res.scenario,
+            seed=res.seed,
+            fusion=res.fusion,
+            timestamps=res.timestamps,
+            step_time_s=res.step_time_s,
+            map=res.map,
+            filtered=res.filtered,
+        )

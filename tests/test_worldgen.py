@@ -1,0 +1,88 @@
+"""The world generator (mapfuse_core.worldgen) and ``mapfuse world generate``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfuse.cli import main
+from mapfuse_core import worldgen
+from mapfuse_core.scenario import load_scenario
+from mapfuse_core.worldgen import SHAPES, WorldParams, generate_scenario, world_toml
+
+SMALL = {"walls": 4, "trees": 12, "laser_range_m": 30.0}
+
+
+@pytest.mark.parametrize(
+    ("shape", "length"), [("loop", 150.0), ("figure8", 250.0), ("corridor", 300.0)]
+)
+def test_generated_world_is_a_valid_scenario_of_the_asked_size(shape: str, length: float) -> None:
+    sc = generate_scenario(WorldParams(seed=2, shape=shape, loop_length_m=length, **SMALL))
+    assert (len(sc.world.segments), len(sc.world.circles)) == (4, 12)
+    assert sc.laser.max_range_m == 30.0
+    # 0.25 m per step over the whole length, the start pose included.
+    assert sc.steps == math.ceil(length / 0.25) + 1
+    assert set(sc.known_map.world_ids) <= {s.id for s in sc.world.segments} | {
+        c.id for c in sc.world.circles
+    }
+
+
+def test_same_seed_gives_the_same_world_and_another_seed_another() -> None:
+    p = dict(loop_length_m=150.0, **SMALL)
+    assert world_toml(WorldParams(seed=5, **p)) == world_toml(WorldParams(seed=5, **p))
+    assert world_toml(WorldParams(seed=5, **p)) != world_toml(WorldParams(seed=6, **p))
+
+
+def test_features_keep_their_clearance_from_the_path() -> None:
+    params = WorldParams(seed=0, walls=6, trees=20, loop_length_m=300.0)
+    rng = np.random.default_rng(1)
+    path = worldgen._path(params, rng)
+    walls, trees = worldgen._place(params, rng, path)
+    for c, r in trees:
+        assert worldgen._dist_to(c[None], path)[0] >= 3.6 + r
+    for p1, p2 in walls:
+        assert worldgen._dist_to(worldgen._segment_points(p1, p2), path).min() >= 4.0
+
+
+def test_known_fraction_holds_features_near_the_start_and_about_the_asked_share() -> None:
+    sc = generate_scenario(WorldParams(seed=3, loop_length_m=600.0, known_fraction=0.5))
+    assert len(sc.known_map.world_ids) >= round(0.5 * 57)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"shape": "spiral"}, "shape must be one of"),
+        ({"walls": -1}, "walls must be"),
+        ({"known_fraction": 1.5}, "known_fraction"),
+        ({"loop_length_m": 30.0}, "loop_length_m must be"),
+        ({"walls": 0, "trees": 0}, "at least one"),
+    ],
+)
+def test_bad_generator_arguments_are_named(kwargs: dict[str, object], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        WorldParams(seed=0, **kwargs)  # type: ignore[arg-type]
+
+
+def test_too_short_a_figure8_is_refused_with_the_reason() -> None:
+    with pytest.raises(ValueError, match="make the loop longer"):
+        generate_scenario(WorldParams(seed=0, shape="figure8", loop_length_m=100.0, **SMALL))
+
+
+def test_cli_world_generate_writes_a_file_the_loader_reads(tmp_path: Path) -> None:
+    out = tmp_path / "w.toml"
+    code = main(
+        ["world", "generate", "--seed", "4", "--shape", "corridor", "--loop-length", "300",
+         "--walls", "3", "--trees", "10", "--out", str(out)]
+    )  # fmt: skip
+    assert code == 0
+    sc = load_scenario(out)
+    assert sc.name == "world-corridor-4"
+    assert len(sc.world.circles) == 10
+
+
+def test_every_shape_is_listed() -> None:
+    assert SHAPES == ("loop", "figure8", "corridor")
