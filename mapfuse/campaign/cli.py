@@ -114,6 +114,7 @@ def add_montecarlo(sub: Any) -> None:
         "without fusion, on each log; results go to OUT (runs.jsonl, arrays/, "
         "report.md and figures) as runs complete. A stopped campaign resumes: finished "
         "seeds are skipped.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     mc.add_argument(
         "scenario",
@@ -122,10 +123,10 @@ def add_montecarlo(sub: Any) -> None:
     which = mc.add_mutually_exclusive_group(required=True)
     which.add_argument("--runs", type=int, help="seeds 0..N-1")
     which.add_argument("--seeds", help="seeds, e.g. 0-39 or 0,3,7")
+    mc.add_argument("--estimators", default="ekf", help="comma-separated registered estimators")
     mc.add_argument(
-        "--estimators", default="ekf", help="comma-separated registered estimators (default: ekf)"
+        "--fusion", default="both", choices=["on", "off", "both"], help="fusion settings to run"
     )
-    mc.add_argument("--fusion", default="both", choices=["on", "off", "both"])
     mc.add_argument("--out", required=True, help="campaign directory (created or resumed)")
     mc.add_argument(
         "--workers", type=int, default=None, help="local worker processes (default: cores)"
@@ -190,37 +191,41 @@ def add_world(sub: Any) -> None:
     from mapfuse_core.worldgen import SHAPES, WorldParams
 
     d = WorldParams(seed=0)
-    world = sub.add_parser("world", help="generate random worlds (scenario TOML files)")
+    world = sub.add_parser(
+        "world",
+        help="generate random worlds (scenario TOML files)",
+        description="Generate random worlds as scenario TOML files.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     wsub = world.add_subparsers(dest="world_command", required=True)
     gen = wsub.add_parser(
         "generate",
         help="write a random world as a scenario TOML",
         description="Draw a closed drive with walls and trees beside it from SEED and "
         "write it as a scenario the loader validates.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     gen.add_argument("--seed", type=int, required=True, help="seed of the layout")
-    gen.add_argument(
-        "--walls", type=int, default=d.walls, help="wall segments (default: %(default)s)"
-    )
-    gen.add_argument("--trees", type=int, default=d.trees, help="trees (default: %(default)s)")
+    gen.add_argument("--walls", type=int, default=d.walls, help="wall segments")
+    gen.add_argument("--trees", type=int, default=d.trees, help="trees")
     gen.add_argument(
         "--laser-range",
         type=float,
         default=d.laser_range_m,
-        help="laser range, m (default: %(default)s)",
+        help="laser range, m",
     )
     gen.add_argument(
         "--loop-length",
         type=float,
         default=d.loop_length_m,
-        help="drive length, m (default: %(default)s)",
+        help="drive length, m",
     )
-    gen.add_argument("--shape", choices=SHAPES, default=d.shape)
+    gen.add_argument("--shape", choices=SHAPES, default=d.shape, help="shape of the drive")
     gen.add_argument(
         "--known-fraction",
         type=float,
         default=d.known_fraction,
-        help="fraction of the features in the known map (default: %(default)s)",
+        help="fraction of the features in the known map",
     )
     gen.add_argument(
         "--base", default="loop600", help="scenario whose vehicle, laser and map noise to use"
