@@ -451,6 +451,19 @@ class GraphBuilder(OwnAssociation):
         w = np.linalg.eigvalsh(P[:2, :2])
         return bool(math.sqrt(max(w.max(), 0.0)) <= sxy and math.sqrt(max(P[2, 2], 0.0)) <= sth)
 
+    def planned_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Fixed association: ``(obs_landmark, obs_known_id)`` of every observation as
+        planned (dense landmark index; known-map id of its pairing with fusion, else −1)."""
+        if self._mode != "fixed":
+            raise ValueError("planned_arrays needs a fixed association, not 'own'")
+        lm = self.obs_landmark.copy()
+        kn = np.full(lm.shape, -1, dtype=np.int64)
+        for j in np.nonzero(lm >= 0)[0]:
+            row = self._planned_known.get(int(lm[j]))
+            if row is not None:
+                kn[j] = int(self.known.ids[row])
+        return lm, kn
+
     def landmark_kinds(self) -> np.ndarray:
         """(L,) int8 kinds of the landmarks created so far."""
         return np.array([int(lmk.kind) for lmk in self.landmarks], dtype=np.int8)

@@ -31,7 +31,7 @@ from mapfuse_graph.results import (
     _Solved,
 )
 
-__all__ = ["ISAM2Options"]
+__all__ = ["ISAM2Options", "isam2_params"]
 
 
 _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
@@ -207,18 +207,12 @@ def _newest_pose_marginal(
     return x, P, elim.shortcut
 
 
-def _run_isam2(
-    builder: GraphBuilder,
-    options: ISAM2Options | None,
-    marginals: bool,
-    progress: Callable[[int, int], None] | None,
-) -> _Solved:
-    opts = options or ISAM2Options()
-    n = builder.n_steps
+def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
+    """GTSAM parameters of ``opts`` (also those of the fixed-lag smoother's iSAM2)."""
     params = gtsam.ISAM2Params()
     th = opts.relinearize_threshold
     if isinstance(th, dict):
-        if builder.split_circles and "c" in th:
+        if split_circles and "c" in th:
             # The circle's (x, y, r) thresholds go to its centre and radius variables.
             th = {**th, "c": tuple(th["c"][:2]), "r": tuple(th["c"][2:])}
         tmap = gtsam.ISAM2ThresholdMap()
@@ -229,7 +223,18 @@ def _run_isam2(
         params.setRelinearizeThreshold(float(th))
     params.relinearizeSkip = opts.relinearize_skip
     params.setFactorization(opts.factorization)
-    isam = gtsam.ISAM2(params)
+    return params
+
+
+def _run_isam2(
+    builder: GraphBuilder,
+    options: ISAM2Options | None,
+    marginals: bool,
+    progress: Callable[[int, int], None] | None,
+) -> _Solved:
+    opts = options or ISAM2Options()
+    n = builder.n_steps
+    isam = gtsam.ISAM2(isam2_params(opts, builder.split_circles))
     # Held for the whole run: callbacks then receive this object, not a deep copy.
     linearization_point = isam.getLinearizationPoint()
     graph = gtsam.NonlinearFactorGraph()

@@ -41,6 +41,7 @@ from mapfuse_graph.batch import LMOptions, _run_batch, levenberg_marquardt
 from mapfuse_graph.batch import _joint_pose_cov as _joint_pose_cov
 from mapfuse_graph.batch import _ValuesEstimate as _ValuesEstimate
 from mapfuse_graph.builder import GraphBuilder
+from mapfuse_graph.fixedlag import FixedLagOptions, _run_fixedlag, split_by_lag
 from mapfuse_graph.isam2 import ISAM2Options, _run_isam2
 from mapfuse_graph.isam2 import _ISAM2Estimate as _ISAM2Estimate
 from mapfuse_graph.isam2 import _newest_last as _newest_last
@@ -57,6 +58,7 @@ from mapfuse_graph.results import (
 
 __all__ = [
     "BACKENDS",
+    "FixedLagOptions",
     "GraphAnchor",
     "GraphLandmarks",
     "GraphResult",
@@ -70,10 +72,8 @@ __all__ = [
     "tree_marginals",
 ]
 
-BACKENDS: tuple[str, ...] = ("batch", "isam2")
-
-
-Backend = Literal["batch", "isam2"]
+BACKENDS: tuple[str, ...] = ("batch", "isam2", "fixedlag")
+Backend = Literal["batch", "isam2", "fixedlag"]
 
 
 def run_graph(
@@ -88,6 +88,7 @@ def run_graph(
     associations: tuple[np.ndarray, np.ndarray] | None = None,
     lm: LMOptions | None = None,
     isam2: ISAM2Options | None = None,
+    fixedlag: FixedLagOptions | None = None,
     steps: int | None = None,
     init: str = "auto",
     init_poses: FloatArray | None = None,
@@ -97,8 +98,9 @@ def run_graph(
 ) -> GraphResult:
     """Build the factor graph of ``log`` and solve it with ``backend``.
 
-    ``backend``: ``"batch"`` (Levenberg–Marquardt over all steps) or ``"isam2"`` (one
-    update per step; also gives per-step filtered estimates).  ``association``:
+    ``backend``: ``"batch"`` (Levenberg–Marquardt over all steps), ``"isam2"`` (one
+    update per step; also gives per-step filtered estimates) or ``"fixedlag"`` (iSAM2
+    over a window of ``fixedlag.lag_s`` seconds, :mod:`mapfuse_graph.fixedlag`).  ``association``:
     ``"ekf"`` (needs ``decisions``, the EKF's), ``"truth"`` or ``"own"`` (for
     ``batch``, decided by an iSAM2 pass first); ``associations`` (arrays) overrides it.
     ``fusion`` and ``robust`` override the same fields of ``options``.  ``steps`` solves
@@ -152,6 +154,20 @@ def run_graph(
         if pre.anchor_added:
             assert pre.anchor_init is not None
             anchor_given = (pre.anchor_init, pre.anchor_step, pre.anchor_source)
+    label = association if associations is None else "given"
+    fl = fixedlag or FixedLagOptions()
+    if backend == "fixedlag" and fl.landmarks == "window":
+        if associations is None and association == "own":
+            raise ValueError(
+                "fixedlag with landmarks='window' needs a fixed association ('ekf', 'truth' "
+                "or arrays): a marginalised landmark cannot be matched again"
+            )
+        pre = GraphBuilder(log, opts, decisions, associations, steps)
+        lm_ids, kn_ids = pre.planned_arrays()
+        associations = (
+            split_by_lag(lm_ids, kn_ids, log.feat_step, log.timestamps, fl.lag_s),
+            kn_ids,
+        )
     builder = GraphBuilder(log, opts, decisions, associations, steps)
     if anchor_given is not None:
         builder.anchor_init, builder.anchor_step, builder.anchor_source = anchor_given
@@ -161,6 +177,8 @@ def run_graph(
             raise ValueError("init 'given' needs init_poses")
         start = None if init == "odometry" or init_poses is None else init_poses[:n]
         out = _run_batch(builder, lm, start, marginals, progress, joint_stride)
+    elif backend == "fixedlag":
+        out = _run_fixedlag(builder, fl, isam2, marginals, progress)
     else:
         out = _run_isam2(builder, isam2, marginals, progress)
     return GraphResult(
@@ -168,7 +186,7 @@ def run_graph(
         seed=log.seed,
         backend=backend,
         fusion=opts.fusion,
-        association=association if associations is None else "given",
+        association=label,
         poses=out.poses,
         covs=out.covs,
         filtered_poses=out.filtered_poses,
