@@ -292,6 +292,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     chk.add_argument("--quiet", action="store_true")
     chk.set_defaults(func=_cmd_baseline_check)
+    from mapfuse.spectrum import add_spectrum_parser
+
+    add_spectrum_parser(sub)
     return p
 
 
