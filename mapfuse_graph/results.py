@@ -95,22 +95,24 @@ class GraphResult:
     seed: int
     """Seed of the log."""
     backend: str
-    """``"batch"`` or ``"isam2"``."""
+    """``"batch"``, ``"isam2"`` or ``"fixedlag"``."""
     fusion: bool
     """Whether the known map was fused."""
     association: str
     """Association source used."""
     poses: FloatArray
-    """(N, 3) final (smoothed) pose ``x^Wglobal_R`` of every step."""
+    """(N, 3) final (smoothed) pose ``x^Wglobal_R`` of every step (fixedlag: each pose as
+    it left the window, see :mod:`mapfuse_graph.fixedlag`)."""
     covs: FloatArray
-    """(N, 3, 3) smoothed marginal covariances, absolute ``(x, y, θ)`` (NaN if not computed)."""
+    """(N, 3, 3) smoothed marginal covariances, absolute ``(x, y, θ)`` (NaN if not computed;
+    fixedlag: the marginal of :attr:`poses` when it was read)."""
     filtered_poses: FloatArray | None
-    """(N, 3) iSAM2 only: estimate of ``X_k`` right after update ``k`` (uses steps 0..k):
+    """(N, 3) iSAM2 and fixedlag: estimate of ``X_k`` right after update ``k`` (uses steps 0..k):
     its linearisation point moved by the exact solution of that update's linear system."""
     filtered_covs: FloatArray | None
-    """(N, 3, 3) iSAM2 only: its absolute covariance."""
+    """(N, 3, 3) iSAM2 and fixedlag: its absolute covariance."""
     step_time_s: FloatArray
-    """(N,) iSAM2: wall time of each step (build + update + filtered estimate and
+    """(N,) iSAM2, fixedlag: wall time of each step (build + update + filtered estimate and
     marginal).  Batch: each step's build time plus an equal share of the solve and the
     marginals, so that the sum is the run's cost (per-step percentiles are meaningless)."""
     build_time_s: float
