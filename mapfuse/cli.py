@@ -485,6 +485,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_common(chk, seed=False, out=None)
     chk.set_defaults(func=_cmd_baseline_check)
+    from mapfuse.spectrum import add_spectrum_parser
+
+    add_spectrum_parser(sub)
     return p
 
 

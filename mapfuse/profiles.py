@@ -62,6 +62,7 @@ PROFILES: Mapping[str, Profile] = {
             "ekf": _victoria_park_ekf,
             "batch": _victoria_park_graph,
             "isam2": _victoria_park_graph,
+            "fixedlag": _victoria_park_graph,
         },
     ),
 }

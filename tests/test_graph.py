@@ -361,7 +361,7 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
     """The EKF's CCDA call and the graph's own CCDA call both receive the parameters of
     the one AssociationConfig they are given, and the graph gates with its χ² probability."""
     import ekf_reference.pipeline
-    import mapfuse_graph.graph
+    import mapfuse_graph.own_association
     from mapfuse_core import ccda
 
     cfg = AssociationConfig(gate_prob=0.995, ccda=CCDAParams(min_pairings=5))
@@ -375,7 +375,7 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
         return call
 
     monkeypatch.setattr(ekf_reference.pipeline, "ccda_match", spy("ekf"))
-    monkeypatch.setattr(mapfuse_graph.graph, "ccda_match", spy("graph"))
+    monkeypatch.setattr(mapfuse_graph.own_association, "ccda_match", spy("graph"))
     log = synthetic_log(steps=120, seed=0)
     run_ekf(log, EKFConfig(fusion=True, data_association=cfg))
     opts = GraphOptions(association="own", data_association=cfg)

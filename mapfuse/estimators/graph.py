@@ -1,4 +1,5 @@
-"""The GTSAM mirror (:mod:`mapfuse_graph`) as two harness estimators, batch and iSAM2."""
+"""The GTSAM mirror (:mod:`mapfuse_graph`) as harness estimators: batch, iSAM2 and the
+fixed-lag smoother."""
 
 from __future__ import annotations
 
@@ -13,9 +14,21 @@ from mapfuse.profiles import default_options
 from mapfuse.result import Anchor, EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.graph import ASSOCIATIONS, GraphOptions, centre_radius_correlated
-from mapfuse_graph.solvers import GraphResult, ISAM2Options, LMOptions, run_graph
+from mapfuse_graph.solvers import (
+    FixedLagOptions,
+    GraphResult,
+    ISAM2Options,
+    LMOptions,
+    run_graph,
+)
 
-__all__ = ["BatchEstimator", "GraphRunOptions", "ISAM2Estimator", "to_result"]
+__all__ = [
+    "BatchEstimator",
+    "FixedLagEstimator",
+    "GraphRunOptions",
+    "ISAM2Estimator",
+    "to_result",
+]
 
 
 @dataclass(frozen=True)
@@ -29,7 +42,10 @@ class GraphRunOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)
     """Graph options (``fusion``, ``association`` and ``robust`` are set from the run)."""
     isam2: ISAM2Options = field(default_factory=ISAM2Options)
-    """iSAM2 settings (also batch's iSAM2 pass with ``association="own"``)."""
+    """iSAM2 settings (also batch's iSAM2 pass with ``association="own"``, and the
+    fixed-lag smoother's iSAM2)."""
+    fixedlag: FixedLagOptions = field(default_factory=FixedLagOptions)
+    """Fixed-lag smoother: the lag (``lag_s``) and what happens to landmarks."""
     lm: LMOptions | None = None
     """Batch: Levenberg–Marquardt settings (``None``: the defaults)."""
     split_circles_where_exact: bool = False
@@ -121,6 +137,7 @@ class _GraphEstimator:
             options=graph,
             lm=options.lm,
             isam2=options.isam2,
+            fixedlag=options.fixedlag if self.name == "fixedlag" else None,
             init_poses=None if upstream is None else upstream.poses,
             progress=progress,
             joint_stride=options.joint_stride,
@@ -138,3 +155,10 @@ class ISAM2Estimator(_GraphEstimator):
     """iSAM2, one update per step (filtered and smoothed estimates)."""
 
     name = "isam2"
+
+
+class FixedLagEstimator(_GraphEstimator):
+    """GTSAM's incremental fixed-lag smoother over the iSAM2 graph (filtered estimates,
+    and each pose as final when it leaves the window; :mod:`mapfuse_graph.fixedlag`)."""
+
+    name = "fixedlag"

@@ -1,0 +1,441 @@
+"""The filtering–smoothing spectrum: position RMSE and ANEES against the smoother's lag.
+
+``mapfuse spectrum SCENARIO --lags 0,1,5,30,inf --seeds 0-4`` runs, per seed and in
+series, the EKF (the filter: lag 0), the fixed-lag smoother
+(:mod:`mapfuse_graph.fixedlag`) at each lag, and batch (the full smoother: lag ∞).  The
+graph runs consume the EKF's association decisions of the same seed (or ``--association
+truth``), so that the lag is the only difference between the fixed-lag rows.  Each
+fixed-lag run is scored on its *final* poses (a pose as it leaves the window), the
+estimate a user with that latency gets.
+
+ANEES is the mean over seeds of each run's mean NEES (3 degrees of freedom); the two
+sided 95 % bounds of a consistent estimator's ANEES are printed beside it, from the
+per-run intervals of :func:`~mapfuse_core.evaluation.nees_mean_interval` averaged over
+seeds (approximate: it treats the seeds as independent and each run's interval as
+that of its mean).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+__all__ = [
+    "SpectrumResult",
+    "SpectrumRow",
+    "add_spectrum_parser",
+    "parse_lags",
+    "parse_seeds",
+    "plot_spectrum",
+    "spectrum",
+    "spectrum_figure",
+    "spectrum_markdown",
+]
+
+
+def parse_lags(text: str) -> tuple[float, ...]:
+    """``"0,1,5,30,inf"`` → lags in seconds, ascending, each ``>= 0`` (``inf`` allowed)."""
+    lags: list[float] = []
+    for part in text.split(","):
+        s = part.strip().lower()
+        if not s:
+            continue
+        try:
+            v = float(s)
+        except ValueError:
+            raise ValueError(f"--lags: {part.strip()!r} is not a number (or 'inf')") from None
+        if math.isnan(v) or v < 0:
+            raise ValueError(f"--lags: a lag must be >= 0 seconds or inf, got {part.strip()!r}")
+        lags.append(v)
+    if not lags:
+        raise ValueError("--lags: give at least one lag, e.g. 0,1,5,30,inf")
+    return tuple(sorted(set(lags)))
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``"0-4"``, ``"3"`` or ``"0,2,7"`` (ranges inclusive) → seeds in the given order."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        s = part.strip()
+        if not s:
+            continue
+        try:
+            if "-" in s[1:]:
+                a, b = s.split("-", 1) if not s.startswith("-") else (s, "")
+                lo, hi = int(a), int(b)
+                if hi < lo:
+                    raise ValueError
+                seeds.extend(range(lo, hi + 1))
+            else:
+                seeds.append(int(s))
+        except ValueError:
+            raise ValueError(
+                f"--seeds: {s!r} is not a seed or an ascending range A-B of seeds"
+            ) from None
+    if not seeds or any(x < 0 for x in seeds):
+        raise ValueError(f"--seeds: need non-negative seeds, got {text!r}")
+    return tuple(dict.fromkeys(seeds))
+
+
+@dataclass(frozen=True)
+class SpectrumRow:
+    """One estimator at one lag, over every seed."""
+
+    estimator: str
+    """``"ekf"``, ``"fixedlag"`` or ``"batch"``."""
+    lag_s: float
+    """Lag in seconds: 0 for the EKF, ``inf`` for batch."""
+    rmse_m: tuple[float, ...]
+    """Per seed: position RMSE (m) of the evaluated poses."""
+    nees: tuple[float, ...]
+    """Per seed: mean NEES of the run."""
+    nees_bounds: tuple[tuple[float, float], ...]
+    """Per seed: two-sided 95 % interval of a consistent run's mean NEES."""
+    time_s: tuple[float, ...]
+    """Per seed: the estimator's total step time (s)."""
+
+    @property
+    def label(self) -> str:
+        """``"ekf"``, ``"batch"`` or ``"fixedlag 5 s"``."""
+        return self.estimator if self.estimator != "fixedlag" else f"fixedlag {_lag(self.lag_s)}"
+
+    @property
+    def mean_rmse_m(self) -> float:
+        """Mean of :attr:`rmse_m` over seeds."""
+        return float(sum(self.rmse_m) / len(self.rmse_m))
+
+    @property
+    def anees(self) -> float:
+        """Mean of :attr:`nees` over seeds."""
+        return float(sum(self.nees) / len(self.nees))
+
+    @property
+    def anees_bounds(self) -> tuple[float, float]:
+        """Seed average of :attr:`nees_bounds` (approximate two-sided 95 % bounds)."""
+        n = len(self.nees_bounds)
+        return (
+            sum(b[0] for b in self.nees_bounds) / n,
+            sum(b[1] for b in self.nees_bounds) / n,
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (``inf`` lag as the string ``"inf"``)."""
+        lo, hi = self.anees_bounds
+        return {
+            "estimator": self.estimator,
+            "lag_s": self.lag_s if math.isfinite(self.lag_s) else "inf",
+            "rmse_m": round(self.mean_rmse_m, 5),
+            "anees": round(self.anees, 4),
+            "anees_bounds_95": [round(lo, 4), round(hi, 4)],
+            "per_seed": {
+                "rmse_m": [round(v, 5) for v in self.rmse_m],
+                "nees": [round(v, 4) for v in self.nees],
+                "time_s": [round(v, 3) for v in self.time_s],
+            },
+        }
+
+
+@dataclass(frozen=True)
+class SpectrumResult:
+    """The spectrum of one scenario."""
+
+    scenario: str
+    """Scenario (or log) it was run on."""
+    seeds: tuple[int, ...]
+    """Seeds, in run order."""
+    fusion: bool
+    """Whether the known map was fused."""
+    association: str
+    """Association of the graph runs."""
+    landmarks: str
+    """Fixed-lag landmark policy (:attr:`~mapfuse_graph.fixedlag.FixedLagOptions.landmarks`)."""
+    rows: tuple[SpectrumRow, ...]
+    """EKF, fixed-lag rows by ascending lag, batch."""
+    wall_time_s: float = 0.0
+    """Wall time of the whole spectrum."""
+    steps: int | None = field(default=None)
+    """Steps of each log used (``None``: all)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary."""
+        return {
+            "scenario": self.scenario,
+            "seeds": list(self.seeds),
+            "fusion": self.fusion,
+            "association": self.association,
+            "landmarks": self.landmarks,
+            "steps": self.steps,
+            "rows": [r.as_dict() for r in self.rows],
+            "wall_time_s": round(self.wall_time_s, 2),
+        }
+
+
+def _lag(v: float) -> str:
+    return "∞" if math.isinf(v) else f"{v:g} s"
+
+
+def spectrum(
+    source: str,
+    lags: Sequence[float],
+    seeds: Sequence[int],
+    *,
+    fusion: bool = True,
+    association: str = "ekf",
+    landmarks: str = "keep",
+    steps: int | None = None,
+    data_dir: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> SpectrumResult:
+    """Run the EKF, the fixed-lag smoother at each of ``lags`` and batch on each seed's
+    log of ``source`` (a scenario, ``.toml`` or a log ``.npz``), serially."""
+    from mapfuse.estimators.graph import FixedLagEstimator
+    from mapfuse.run import fusion_for, prepare_log, run
+    from mapfuse_graph.fixedlag import FixedLagOptions
+
+    if association not in ("ekf", "truth"):
+        raise ValueError(f"association must be 'ekf' or 'truth', got {association!r}")
+    if steps is not None and steps < 2:
+        raise ValueError(f"steps must be >= 2, got {steps}")
+    lags = sorted(set(float(v) for v in lags))
+    FixedLagOptions(lag_s=lags[0], landmarks=landmarks)  # validates before any run
+    t_start = time.perf_counter()
+    fixedlag = FixedLagEstimator()
+    per: dict[tuple[str, float], list[tuple[float, float, tuple[float, float], float]]] = {}
+    scenario = source
+    used_fusion = fusion
+    for seed in seeds:
+        log = prepare_log(source, seed=seed, data_dir=data_dir)
+        if log.true_poses is None:
+            raise ValueError(f"{source}: the spectrum needs true poses (a simulated log)")
+        if steps is not None:
+            log = log.head(min(steps, log.n_steps))
+        scenario, used_fusion = log.scenario, fusion_for(log, fusion)
+
+        def note(label: str, r: Any, lag: float, seed: int = seed) -> None:
+            m = r.metrics
+            nees = m["nees"]
+            iv = (nees.get("mean_interval") or {}).get("interval_95") or [math.nan, math.nan]
+            bounds = (float(iv[0]), float(iv[1]))
+            total = float(sum(r.result.step_time_s))
+            per.setdefault((label, lag), []).append(
+                (float(m["position_error_m"]["rmse"]), float(nees["mean"]), bounds, total)
+            )
+            if progress is not None:
+                progress(
+                    f"seed {seed} {label} {_lag(lag)}: rmse {m['position_error_m']['rmse']:.4f} m"
+                    f", nees {nees['mean']:.3f}"
+                )
+
+        ekf = run(log, "ekf", fusion=fusion)
+        note("ekf", ekf, 0.0)
+        graph_kw: dict[str, Any] = {"association": association, "upstream": ekf.result}
+        for lag in lags:
+            r = run(
+                log,
+                fixedlag,
+                fusion=fusion,
+                fixedlag=FixedLagOptions(lag_s=lag, landmarks=landmarks),
+                **graph_kw,
+            )
+            note("fixedlag", r, lag)
+        note("batch", run(log, "batch", fusion=fusion, **graph_kw), math.inf)
+    rows = []
+    for (label, lag), vals in per.items():
+        rows.append(
+            SpectrumRow(
+                estimator=label,
+                lag_s=lag,
+                rmse_m=tuple(v[0] for v in vals),
+                nees=tuple(v[1] for v in vals),
+                nees_bounds=tuple(v[2] for v in vals),
+                time_s=tuple(v[3] for v in vals),
+            )
+        )
+    order = {"ekf": 0, "fixedlag": 1, "batch": 2}
+    rows.sort(key=lambda r: (order[r.estimator], r.lag_s))
+    return SpectrumResult(
+        scenario=scenario,
+        seeds=tuple(seeds),
+        fusion=used_fusion,
+        association=association,
+        landmarks=landmarks,
+        rows=tuple(rows),
+        wall_time_s=time.perf_counter() - t_start,
+        steps=steps,
+    )
+
+
+def _x_positions(rows: Sequence[SpectrumRow]) -> tuple[list[float], list[float], list[str]]:
+    """x of each row on a symlog axis: lags as given, ∞ one decade past the largest."""
+    finite = [r.lag_s for r in rows if math.isfinite(r.lag_s)]
+    top = max([1.0, *finite])
+    x_inf = 10.0 ** (math.ceil(math.log10(top)) + 1)
+    xs = [r.lag_s if math.isfinite(r.lag_s) else x_inf for r in rows]
+    ticks = sorted(set(xs))
+    labels = [_lag(v) if v != x_inf else "∞" for v in ticks]
+    return xs, ticks, labels
+
+
+def plot_spectrum(ax: Axes, result: SpectrumResult, metric: str = "rmse") -> None:
+    """Draw ``metric`` (``"rmse"``: position RMSE, m; ``"anees"``) against lag on ``ax``:
+    the fixed-lag curve, the EKF at lag 0 and batch at ∞ as markers, per-seed values
+    as faint points; for ANEES the approximate 95 % bounds as a band."""
+    if metric not in ("rmse", "anees"):
+        raise ValueError(f"metric must be 'rmse' or 'anees', got {metric!r}")
+    rows = list(result.rows)
+    xs, ticks, labels = _x_positions(rows)
+
+    def value(r: SpectrumRow) -> float:
+        return r.mean_rmse_m if metric == "rmse" else r.anees
+
+    def seeds_of(r: SpectrumRow) -> tuple[float, ...]:
+        return r.rmse_m if metric == "rmse" else r.nees
+
+    fl = [(x, r) for x, r in zip(xs, rows, strict=True) if r.estimator == "fixedlag"]
+    if fl:
+        ax.plot(
+            [x for x, _ in fl], [value(r) for _, r in fl], "o-", color="tab:red", label="fixedlag"
+        )
+    style = {"ekf": ("s", "tab:blue"), "batch": ("D", "tab:orange")}
+    for x, r in zip(xs, rows, strict=True):
+        ax.plot([x] * len(seeds_of(r)), seeds_of(r), ".", color="0.6", zorder=1)
+        if r.estimator in style:
+            m, c = style[r.estimator]
+            ax.plot([x], [value(r)], m, color=c, markersize=8, label=r.estimator, zorder=3)
+    if metric == "anees":
+        lo = [r.anees_bounds[0] for _, r in fl]
+        hi = [r.anees_bounds[1] for _, r in fl]
+        if fl and all(math.isfinite(v) for v in lo + hi):
+            ax.fill_between(
+                [x for x, _ in fl],
+                lo,
+                hi,
+                color="0.85",
+                label="95 % bounds",
+                zorder=0,
+            )
+        ax.axhline(3.0, color="0.4", lw=0.8, ls="--")
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.set_xticks(ticks)
+    ax.set_xticklabels(labels)
+    ax.set_xlabel("lag")
+    ax.set_ylabel("position RMSE (m)" if metric == "rmse" else "ANEES (3 dof)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def spectrum_figure(result: SpectrumResult) -> Figure:
+    """RMSE and ANEES against lag, side by side."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 4), layout="constrained")
+    a, b = fig.subplots(1, 2)
+    plot_spectrum(a, result, "rmse")
+    plot_spectrum(b, result, "anees")
+    seeds = ",".join(map(str, result.seeds))
+    fig.suptitle(
+        f"{result.scenario}: filtering–smoothing spectrum (seeds {seeds}, "
+        f"{'fusion' if result.fusion else 'no fusion'}, association {result.association})"
+    )
+    return fig
+
+
+def spectrum_markdown(result: SpectrumResult, figure: str | None = None) -> str:
+    """``report.md``: the table of the spectrum."""
+    lines = [
+        f"# Filtering–smoothing spectrum: {result.scenario}",
+        "",
+        f"Seeds {', '.join(map(str, result.seeds))}; "
+        f"{'fusion' if result.fusion else 'no fusion'}; graph association "
+        f"`{result.association}`; fixed-lag landmarks `{result.landmarks}`"
+        + (f"; first {result.steps} steps" if result.steps else "")
+        + ". Fixed-lag rows are scored on each pose as it leaves the window.",
+        "",
+        "| estimator | lag | position RMSE (m) | ANEES | 95 % bounds | time (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in result.rows:
+        lo, hi = r.anees_bounds
+        t = sum(r.time_s) / len(r.time_s)
+        lines.append(
+            f"| {r.estimator} | {_lag(r.lag_s)} | {r.mean_rmse_m:.4f} | {r.anees:.3f} | "
+            f"{lo:.2f}–{hi:.2f} | {t:.1f} |"
+        )
+    if figure:
+        lines += ["", f"![spectrum]({figure})"]
+    return "\n".join(lines) + "\n"
+
+
+def _cmd_spectrum(args: argparse.Namespace) -> int:
+    import sys
+
+    lags = parse_lags(args.lags)
+    seeds = parse_seeds(args.seeds)
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    result = spectrum(
+        args.scenario,
+        lags,
+        seeds,
+        fusion=args.fusion,
+        association=args.association,
+        landmarks=args.landmarks,
+        steps=args.steps,
+        data_dir=args.data,
+        progress=say,
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    fig_path = out / "spectrum.png"
+    spectrum_figure(result).savefig(fig_path, dpi=120)
+    (out / "spectrum.json").write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+    (out / "report.md").write_text(spectrum_markdown(result, fig_path.name))
+    print(json.dumps(result.as_dict(), indent=2))
+    return 0
+
+
+def add_spectrum_parser(sub: Any) -> None:
+    """Register ``mapfuse spectrum`` on the CLI's subparsers."""
+    p = sub.add_parser(
+        "spectrum",
+        help="RMSE and ANEES against lag: EKF, fixed-lag smoother, batch",
+        description="Run the EKF (lag 0), the fixed-lag smoother at each --lags and batch "
+        "(lag inf) on each seed, serially; write OUT/spectrum.json, OUT/report.md and "
+        "OUT/spectrum.png, and print the table as JSON.",
+    )
+    p.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
+    p.add_argument("--lags", default="0,1,5,30,inf", help="lags in seconds (default 0,1,5,30,inf)")
+    p.add_argument("--seeds", default="0", help="seeds: A-B or a comma list (default 0)")
+    fz = p.add_mutually_exclusive_group()
+    fz.add_argument("--fusion", dest="fusion", action="store_true", default=True)
+    fz.add_argument("--no-fusion", dest="fusion", action="store_false")
+    p.add_argument(
+        "--association",
+        default="ekf",
+        choices=("ekf", "truth"),
+        help="graph association: the EKF's decisions (default) or the true ids",
+    )
+    p.add_argument(
+        "--landmarks",
+        default="keep",
+        choices=("keep", "window"),
+        help="fixed-lag landmarks: kept in the window (default) or marginalised after the lag",
+    )
+    p.add_argument("--steps", type=int, default=None, help="use only the first STEPS steps")
+    p.add_argument("--data", default=None, help="data directory for real datasets")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--quiet", action="store_true", help="no per-run lines on stderr")
+    p.set_defaults(func=_cmd_spectrum)

@@ -1,0 +1,306 @@
+"""The iSAM2 solver: one ``ISAM2.update`` per step.
+
+It holds a reference to ``isam.getLinearizationPoint()`` for the whole run (callbacks
+then get that object instead of a copy).  Each update orders the newest pose last, so
+that its *filtered* estimate and covariance (comparable with the EKF's) are the last
+rows of the root clique (:func:`_newest_pose_marginal`); at the end a few extra updates
+finish relinearisation and all smoothed marginals are read in one pass
+(:func:`~mapfuse_graph.marginals.tree_marginals`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from mapfuse_core.se2 import FloatArray
+from mapfuse_graph.builder import GraphBuilder
+from mapfuse_graph.factors import pose_of
+from mapfuse_graph.keys import anchor_key, pose_key
+from mapfuse_graph.marginals import _key_dims, body_to_abs_cov, tree_marginals
+from mapfuse_graph.results import (
+    _anchor,
+    _landmarks,
+    _pose_covs,
+    _poses_from,
+    _Solved,
+)
+
+__all__ = ["ISAM2Options", "isam2_params"]
+
+
+_DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
+
+
+_DEFAULT_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "x": (0.05, 0.05, 0.005),
+    "l": (0.05, 0.005),
+    "c": (0.05, 0.05, 0.05),
+    "k": (0.05, 0.005),
+    "q": (0.05, 0.05, 0.05),
+    "a": (0.05, 0.05, 0.005),
+}
+
+
+@dataclass(frozen=True)
+class ISAM2Options:
+    """iSAM2 settings."""
+
+    relinearize_threshold: float | dict[str, tuple[float, ...]] = field(
+        default_factory=lambda: dict(_DEFAULT_THRESHOLDS)
+    )
+    """Relinearise a variable when any entry of its linear delta exceeds this: one float
+    for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
+    ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
+    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate close to the batch
+    optimum while relinearising far fewer variables than 0.01 for all
+    (``docs/performance.md``): a line landmark seen from hundreds of poses costs
+    hundreds of Python callbacks each time it is relinearised.  With
+    ``GraphOptions.split_circles`` the ``c`` entries ``(x, y, r)`` go to the centre and
+    the radius variables."""
+    relinearize_skip: int = 1
+    """Check for relinearisation every this many updates."""
+    factorization: str = "CHOLESKY"
+    """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
+    final_updates: int = 5
+    """Extra empty updates at the end so the final estimate is fully relinearised."""
+    final_marginals: str = "isam2"
+    """Smoothed marginals of iSAM2's own linear system (``"isam2"``: the graph linearised
+    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; close
+    to, not equal to, the exact ones because a variable's linearisation point may lag
+    its estimate by up to the relinearisation threshold) or of a fresh linearisation at the
+    final estimate (``"relinearized"``: exact, one more pass of the Python callbacks).
+    Both are read by :func:`tree_marginals`."""
+
+    def __post_init__(self) -> None:
+        th = self.relinearize_threshold
+        if isinstance(th, dict):
+            for ch, v in th.items():
+                if ch not in _DIMS or len(v) != _DIMS[ch] or not all(t > 0 for t in v):
+                    raise ValueError(
+                        f"relinearize_threshold[{ch!r}] must be {_DIMS.get(ch, '?')} positive "
+                        f"values for a symbol among {', '.join(_DIMS)}, got {v!r}"
+                    )
+        elif not th > 0:
+            raise ValueError("relinearize_threshold must be > 0")
+        if self.relinearize_skip < 1:
+            raise ValueError("relinearize_skip must be >= 1")
+        if self.factorization not in ("CHOLESKY", "QR"):
+            raise ValueError(f"factorization must be CHOLESKY or QR, got {self.factorization!r}")
+        if self.final_updates < 0:
+            raise ValueError("final_updates must be >= 0")
+        if self.final_marginals not in ("isam2", "relinearized"):
+            raise ValueError(
+                f"final_marginals must be 'isam2' or 'relinearized', got {self.final_marginals!r}"
+            )
+
+
+class _ISAM2Estimate:
+    """The builder's view of iSAM2's current estimate."""
+
+    def __init__(self, isam: gtsam.ISAM2, filtered_covs: FloatArray) -> None:
+        self.isam = isam
+        self.filtered_covs = filtered_covs
+        self.last_pose: tuple[int, FloatArray] = (-1, np.zeros(3))
+
+    def pose(self, k: int) -> FloatArray:
+        if k == self.last_pose[0]:
+            return self.last_pose[1]
+        return pose_of(self.isam.calculateEstimatePose2(pose_key(k)))
+
+    def vector(self, key: int) -> FloatArray:
+        return np.asarray(self.isam.calculateEstimateVector(key), dtype=float)
+
+    def anchor(self) -> FloatArray:
+        return pose_of(self.isam.calculateEstimatePose2(anchor_key()))
+
+    def pose_cov(self, k: int) -> FloatArray | None:
+        return np.asarray(self.filtered_covs[k])
+
+    def cov(self, key: int) -> FloatArray | None:
+        return np.asarray(self.isam.marginalCovariance(key), dtype=float)
+
+
+def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
+    """iSAM2 ordering constraint of one update: the keys of its new factors last (GTSAM's
+    own default) and, among them, the newest pose the very last.
+
+    The newest pose then ends the root clique's conditional, where its marginal is read
+    off the last rows (:class:`_LastVariableMarginal`).  Without it the pose often sits in
+    a child of the root, and GTSAM's marginal through a large root clique (hundreds of
+    dimensions on Victoria Park) dominates the step's cost.  The groups
+    must stay below the number of variables re-eliminated (CCOLAMD's bound), which the
+    keys of the new factors are part of: two groups need three such keys.
+    """
+    if len(observed) < 2:
+        return None
+    groups = gtsam.KeyGroupMap()
+    low = 1 if len(observed) >= 3 else 0
+    for key in observed:
+        if key != newest:
+            groups.insert2(key, low)
+    groups.insert2(newest, low + 1)
+    return groups
+
+
+class _LastVariableMarginal:
+    """Elimination function for ``ISAM2.marginalFactor(key, ·)`` when ``key`` is the last
+    variable of the root clique.
+
+    GTSAM computes the marginal of a root variable by eliminating every other variable
+    of the root's conditional, O(D³) in its dimension D.  For the last variable of an
+    upper-triangular ``[R | d]`` that marginal is just its last rows ``[R_kk | d_k]``, so
+    when GTSAM hands over exactly that case (the root conditional alone, ``key`` last,
+    all other keys to eliminate, unit noise) this returns it directly; anything else goes
+    to ``gtsam.EliminateQR``.  The conditional it returns for the eliminated keys is the
+    root's own: GTSAM's ``marginalMultifrontalBayesNet`` discards that part.
+    """
+
+    def __init__(self, key: int, dim: int) -> None:
+        self.key, self.dim = key, dim
+        self.shortcut = False
+
+    def __call__(self, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Any:
+        if graph.size() == 1:
+            f = graph.at(0)
+            if isinstance(f, gtsam.GaussianConditional) and f.get_model() is None:
+                keys = f.keys()
+                d = self.dim
+                if keys[-1] == self.key and ordering.size() == len(keys) - 1:
+                    R, rhs = f.R(), f.d()  # views into the conditional
+                    if R.shape[0] == R.shape[1] == rhs.shape[0] and not R[-d:, :-d].any():
+                        self.shortcut = True
+                        marginal = gtsam.JacobianFactor(
+                            self.key,
+                            np.array(R[-d:, -d:]),
+                            np.array(rhs[-d:]),
+                            gtsam.noiseModel.Unit.Create(d),
+                        )
+                        return f, marginal
+        return gtsam.EliminateQR(graph, ordering)
+
+
+def _newest_pose_marginal(
+    isam: gtsam.ISAM2, linearization_point: gtsam.Values, key: int
+) -> tuple[FloatArray, FloatArray, bool]:
+    """Filtered estimate and body-tangent covariance of the pose just added, from one
+    marginal of iSAM2's Bayes tree; also whether the root shortcut applied.
+
+    The marginal Gaussian ``p(δ_k)`` gives both: its mean is the Gauss–Newton step of
+    ``X_k`` and its information the inverse covariance.  Asking instead for
+    ``calculateEstimatePose2`` runs the wildfire back-substitution over every clique
+    re-eliminated by the update, each step; left alone, the next relinearisation check
+    does that once per ``relinearize_skip`` updates.  The mean is the exact linear
+    solve, where the wildfire one stops propagating changes below 1e-3 (sub-millimetre
+    differences).
+    """
+    elim = _LastVariableMarginal(key, 3)
+    m = isam.marginalFactor(key, elim)
+    delta = m.solve(gtsam.VectorValues()).at(key)
+    x = pose_of(linearization_point.atPose2(key).retract(delta))
+    P: FloatArray = np.linalg.inv(np.asarray(m.information(), dtype=float))
+    return x, P, elim.shortcut
+
+
+def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
+    """GTSAM parameters of ``opts`` (also those of the fixed-lag smoother's iSAM2)."""
+    params = gtsam.ISAM2Params()
+    th = opts.relinearize_threshold
+    if isinstance(th, dict):
+        if split_circles and "c" in th:
+            # The circle's (x, y, r) thresholds go to its centre and radius variables.
+            th = {**th, "c": tuple(th["c"][:2]), "r": tuple(th["c"][2:])}
+        tmap = gtsam.ISAM2ThresholdMap()
+        for ch, v in th.items():
+            tmap.insert((ch, np.asarray(v, dtype=float)))
+        params.setRelinearizeThreshold(tmap)
+    else:
+        params.setRelinearizeThreshold(float(th))
+    params.relinearizeSkip = opts.relinearize_skip
+    params.setFactorization(opts.factorization)
+    return params
+
+
+def _run_isam2(
+    builder: GraphBuilder,
+    options: ISAM2Options | None,
+    marginals: bool,
+    progress: Callable[[int, int], None] | None,
+) -> _Solved:
+    opts = options or ISAM2Options()
+    n = builder.n_steps
+    isam = gtsam.ISAM2(isam2_params(opts, builder.split_circles))
+    # Held for the whole run: callbacks then receive this object, not a deep copy.
+    linearization_point = isam.getLinearizationPoint()
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    f_poses = np.zeros((n, 3))
+    f_covs = np.zeros((n, 3, 3))
+    est = _ISAM2Estimate(isam, f_covs)
+    times = np.zeros(n)
+    relin = 0
+    shortcuts = 0
+    for k in range(n):
+        t0 = time.perf_counter()
+        sg = builder.step(k, est)
+        xk = pose_key(k)
+        # Bound to a name first: iterating the temporary KeySet directly segfaults (the
+        # binding's iterator does not keep it alive).
+        new_keys = sg.factors.keys()
+        order = _newest_last([int(key) for key in new_keys], xk)
+        res = isam.update(sg.factors, sg.values, [], order)
+        relin += int(res.getVariablesRelinearized())
+        graph.push_back(sg.factors)
+        initial.insert(sg.values)
+        x, P, fast = _newest_pose_marginal(isam, linearization_point, xk)
+        shortcuts += fast
+        f_poses[k] = x
+        f_covs[k] = body_to_abs_cov(P, x[2])
+        est.last_pose = (k, x)
+        times[k] = time.perf_counter() - t0
+        if progress is not None:
+            progress(k + 1, n)
+    t0 = time.perf_counter()
+    for _ in range(opts.final_updates):
+        isam.update()
+    # Full back-substitution: calculateEstimate() stops propagating changes below the
+    # wildfire threshold (1e-3), a millimetre-level difference from the batch optimum.
+    values = isam.calculateBestEstimate()
+    solve = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cov_of: Callable[[int], FloatArray] | None = None
+    if marginals:
+        # iSAM2's linear system is the graph linearised at its linearisation point (each
+        # cached linear factor was made at the current values of its keys): its
+        # marginals are iSAM2's own, read in one pass instead of one query per variable.
+        at = linearization_point if opts.final_marginals == "isam2" else values
+        cov_of = tree_marginals(graph.linearize(at), dict(_key_dims(at))).__getitem__
+    poses = _poses_from(values, n)
+    covs = _pose_covs(poses, cov_of)
+    landmarks = _landmarks(builder, values, cov_of, poses)
+    anchor = _anchor(builder, values, cov_of)
+    marg = time.perf_counter() - t0
+    del linearization_point
+    extra = {"variables_relinearized": relin, "filtered_marginal_shortcuts": shortcuts}
+    return _Solved(
+        graph=graph,
+        values=values,
+        poses=poses,
+        covs=covs,
+        filtered_poses=f_poses,
+        filtered_covs=f_covs,
+        step_time_s=times,
+        build_time_s=0.0,
+        solve_time_s=solve,
+        marginals_time_s=marg,
+        anchor=anchor,
+        landmarks=landmarks,
+        lm=None,
+        extra=extra,
+        initial=initial,
+    )

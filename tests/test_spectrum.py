@@ -1,0 +1,145 @@
+"""``mapfuse spectrum``: lag and seed parsing, the runs and their table, figure and CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from mapfuse.spectrum import (
+    SpectrumResult,
+    SpectrumRow,
+    parse_lags,
+    parse_seeds,
+    plot_spectrum,
+    spectrum,
+    spectrum_markdown,
+)
+from mapfuse_core.measlog import save_log
+from tests.synthetic import synthetic_log
+
+
+def test_parse_lags_sorts_and_accepts_inf() -> None:
+    assert parse_lags("30, 0,5,inf,1,5") == (0.0, 1.0, 5.0, 30.0, math.inf)
+
+
+@pytest.mark.parametrize(
+    ("text", "msg"),
+    [
+        ("0,x", "'x' is not a number"),
+        ("-1", "must be >= 0"),
+        ("nan", "must be >= 0"),
+        (",", "at least one"),
+    ],
+)
+def test_parse_lags_rejects_bad_lags(text: str, msg: str) -> None:
+    with pytest.raises(ValueError, match=msg):
+        parse_lags(text)
+
+
+def test_parse_seeds_takes_ranges_and_lists() -> None:
+    assert parse_seeds("0-3") == (0, 1, 2, 3)
+    assert parse_seeds("4,1,1,7") == (4, 1, 7)
+    assert parse_seeds("2") == (2,)
+
+
+@pytest.mark.parametrize("text", ["3-1", "a", "-2", ""])
+def test_parse_seeds_rejects_bad_seeds(text: str) -> None:
+    with pytest.raises(ValueError, match="--seeds"):
+        parse_seeds(text)
+
+
+@pytest.fixture(scope="module")
+def log_path(tmp_path_factory: pytest.TempPathFactory) -> str:
+    path = tmp_path_factory.mktemp("spectrum") / "log.npz"
+    save_log(synthetic_log(steps=120, seed=7), path)
+    return str(path)
+
+
+def test_spectrum_runs_ekf_fixedlag_and_batch(log_path: str) -> None:
+    """One row per estimator and lag; lag ∞ scores as batch does (same graph, the
+    batch optimum to iSAM2's tolerance: 2 % of the RMSE, 5 % of the ANEES)."""
+    res = spectrum(log_path, [math.inf, 0.0, 1.0], [0], association="truth")
+    assert [(r.estimator, r.lag_s) for r in res.rows] == [
+        ("ekf", 0.0),
+        ("fixedlag", 0.0),
+        ("fixedlag", 1.0),
+        ("fixedlag", math.inf),
+        ("batch", math.inf),
+    ]
+    by = {(r.estimator, r.lag_s): r for r in res.rows}
+    inf_row, batch = by[("fixedlag", math.inf)], by[("batch", math.inf)]
+    assert inf_row.mean_rmse_m == pytest.approx(batch.mean_rmse_m, rel=0.02)
+    assert inf_row.anees == pytest.approx(batch.anees, rel=0.05)
+    # A smoother uses more of the log than the filter: lower RMSE than lag 0.
+    assert batch.mean_rmse_m < by[("fixedlag", 0.0)].mean_rmse_m
+    d = res.as_dict()
+    assert d["rows"][-1]["lag_s"] == "inf"
+    json.dumps(d)
+    table = spectrum_markdown(res)
+    assert "| fixedlag | 1 s |" in table
+    assert "| batch | ∞ |" in table
+
+
+def test_spectrum_rejects_unknown_association(log_path: str) -> None:
+    with pytest.raises(ValueError, match="association must be 'ekf' or 'truth'"):
+        spectrum(log_path, [0.0], [0], association="own")
+
+
+def test_plot_spectrum_draws_on_the_given_axes() -> None:
+    from matplotlib.figure import Figure
+
+    def row(est: str, lag: float, rmse: float, nees: float) -> SpectrumRow:
+        return SpectrumRow(est, lag, (rmse,), (nees,), ((2.0, 4.0),), (1.0,))
+
+    res = SpectrumResult(
+        "toy",
+        (0,),
+        True,
+        "ekf",
+        "keep",
+        (
+            row("ekf", 0.0, 0.3, 3.5),
+            row("fixedlag", 0.0, 0.25, 3.2),
+            row("fixedlag", 5.0, 0.2, 3.0),
+            row("fixedlag", math.inf, 0.1, 2.9),
+            row("batch", math.inf, 0.1, 2.9),
+        ),
+    )
+    ax = Figure().subplots()
+    plot_spectrum(ax, res, "rmse")
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["0 s", "5 s", "∞"]
+    assert ax.get_ylabel() == "position RMSE (m)"
+    ax2 = Figure().subplots()
+    plot_spectrum(ax2, res, "anees")
+    assert ax2.get_ylabel() == "ANEES (3 dof)"
+    with pytest.raises(ValueError, match="metric must be"):
+        plot_spectrum(ax, res, "nees")
+
+
+def test_cli_spectrum_writes_table_figure_and_json(
+    log_path: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mapfuse.cli import main
+
+    out = tmp_path / "spec"
+    code = main(
+        ["spectrum", log_path, "--lags", "0,inf", "--association", "truth", "--out", str(out)]
+    )
+    assert code == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert [r["estimator"] for r in printed["rows"]] == ["ekf", "fixedlag", "fixedlag", "batch"]
+    assert (out / "spectrum.png").stat().st_size > 0
+    assert "| ekf | 0 s |" in (out / "report.md").read_text()
+    assert json.loads((out / "spectrum.json").read_text()) == printed
+
+
+def test_cli_spectrum_reports_bad_lags(
+    log_path: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mapfuse.cli import main
+
+    assert main(["spectrum", log_path, "--lags", "0,soon", "--out", str(tmp_path)]) == 2
+    assert "'soon' is not a number" in capsys.readouterr().err
