@@ -415,24 +415,27 @@ def add_spectrum_parser(sub: Any) -> None:
         description="Run the EKF (lag 0), the fixed-lag smoother at each --lags and batch "
         "(lag inf) on each seed, serially; write OUT/spectrum.json, OUT/report.md and "
         "OUT/spectrum.png, and print the table as JSON.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
-    p.add_argument("--lags", default="0,1,5,30,inf", help="lags in seconds (default 0,1,5,30,inf)")
-    p.add_argument("--seeds", default="0", help="seeds: A-B or a comma list (default 0)")
+    p.add_argument("--lags", default="0,1,5,30,inf", help="lags in seconds")
+    p.add_argument("--seeds", default="0", help="seeds: A-B or a comma list")
     fz = p.add_mutually_exclusive_group()
-    fz.add_argument("--fusion", dest="fusion", action="store_true", default=True)
-    fz.add_argument("--no-fusion", dest="fusion", action="store_false")
+    fz.add_argument(
+        "--fusion", dest="fusion", action="store_true", default=True, help="fuse the known map"
+    )
+    fz.add_argument("--no-fusion", dest="fusion", action="store_false", help="SLAM without the map")
     p.add_argument(
         "--association",
         default="ekf",
         choices=("ekf", "truth"),
-        help="graph association: the EKF's decisions (default) or the true ids",
+        help="graph association: the EKF's decisions or the true ids",
     )
     p.add_argument(
         "--landmarks",
         default="keep",
         choices=("keep", "window"),
-        help="fixed-lag landmarks: kept in the window (default) or marginalised after the lag",
+        help="fixed-lag landmarks: kept in the window or marginalised after the lag",
     )
     p.add_argument("--steps", type=int, default=None, help="use only the first STEPS steps")
     p.add_argument("--data", default=None, help="data directory for real datasets")
