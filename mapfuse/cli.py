@@ -292,6 +292,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     chk.add_argument("--quiet", action="store_true")
     chk.set_defaults(func=_cmd_baseline_check)
+
+    from mapfuse.changes_cli import add_parser as add_changes
+
+    add_changes(sub)
     return p
 
 
