@@ -15,6 +15,7 @@ from mapfuse_core.scenario import Scenario
 from mapfuse_core.se2 import FloatArray, compose
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
 __all__ = ["CLASS_COLOURS", "changes_figure"]
@@ -28,12 +29,12 @@ CLASS_COLOURS = {
 }
 
 
-def _draw(ax: object, kind: int, p: FloatArray, extent: FloatArray | None, **kw: object) -> None:
+def _draw(ax: Axes, kind: int, p: FloatArray, extent: FloatArray | None, **kw: object) -> None:
     if kind == int(FeatureKind.CIRCLE):
-        draw_circle(ax, p, **kw)  # type: ignore[arg-type]
+        draw_circle(ax, p, **kw)
         return
     e = (-5.0, 5.0) if extent is None or not np.all(np.isfinite(extent)) else tuple(extent)
-    draw_line_feature(ax, p, (float(e[0]), float(e[1])), **kw)  # type: ignore[arg-type]
+    draw_line_feature(ax, p, (float(e[0]), float(e[1])), **kw)
 
 
 def changes_figure(
@@ -61,8 +62,15 @@ def changes_figure(
         label = c.status.value if c.status.value not in labelled else None
         labelled.add(c.status.value)
         p = known.params[r]
-        _draw(ax, int(known.kinds[r]), p, None if ext is None else ext[r], color=col, lw=2.0,
-              label=label)
+        _draw(
+            ax,
+            int(known.kinds[r]),
+            p,
+            None if ext is None else ext[r],
+            color=col,
+            lw=2.0,
+            label=label,
+        )
         if c.status == ChangeStatus.MOVED and np.all(np.isfinite(c.displacement[:2])):
             ax.annotate(
                 "",
@@ -71,8 +79,15 @@ def changes_figure(
                 arrowprops={"arrowstyle": "->", "color": col, "lw": 1.5},
             )
     for i, n in enumerate(report.new):
-        _draw(ax, int(n.kind), n.params, None, color="tab:blue", lw=1.5,
-              label="new" if i == 0 else None)
+        _draw(
+            ax,
+            int(n.kind),
+            n.params,
+            None,
+            color="tab:blue",
+            lw=1.5,
+            label="new" if i == 0 else None,
+        )
     P = np.array([compose(report.x_Wknown_Wglobal, x) for x in poses if np.all(np.isfinite(x))])
     if P.size:
         ax.plot(P[:, 0], P[:, 1], color="k", lw=0.8, label="estimated trajectory")
@@ -92,7 +107,7 @@ def changes_figure(
     return fig
 
 
-def _draw_truth(ax: object, scenario: Scenario, truth: ChangeTruth, log: MeasurementLog) -> None:
+def _draw_truth(ax: Axes, scenario: Scenario, truth: ChangeTruth, log: MeasurementLog) -> None:
     frame = scenario.known_map.frame
     first = {"moved": True, "removed": True, "added": True}
     lengths = {s.id: (-0.5 * s.length, 0.5 * s.length) for s in scenario.world.segments}
@@ -101,19 +116,41 @@ def _draw_truth(ax: object, scenario: Scenario, truth: ChangeTruth, log: Measure
             continue
         kind, p = scenario.world.feature(fid)
         q = express_in(kind, frame, p)[0]
-        _draw(ax, int(kind), q, np.array(lengths.get(fid, (-5.0, 5.0))), color="k", lw=1.0,
-              ls=":", label="true place of moved" if first["moved"] else None)
+        _draw(
+            ax,
+            int(kind),
+            q,
+            np.array(lengths.get(fid, (-5.0, 5.0))),
+            color="k",
+            lw=1.0,
+            ls=":",
+            label="true place of moved" if first["moved"] else None,
+        )
         first["moved"] = False
     ids = log.known_map.ids.tolist()
     for fid in truth.removed:
         r = ids.index(fid)
         p = log.known_map.params[r]
-        ax.plot(p[0], p[1], "x", color="tab:red", ms=10,  # type: ignore[attr-defined]
-                label="truly removed" if first["removed"] else None)
+        ax.plot(
+            p[0],
+            p[1],
+            "x",
+            color="tab:red",
+            ms=10,
+            label="truly removed" if first["removed"] else None,
+        )
         first["removed"] = False
     for fid in truth.added:
         kind, p = scenario.world.feature(fid)
         q = express_in(kind, frame, p)[0]
-        _draw(ax, int(kind), q, np.array(lengths.get(fid, (-5.0, 5.0))), color="tab:purple",
-              lw=1.0, ls="--", label="truly added" if first["added"] else None)
+        _draw(
+            ax,
+            int(kind),
+            q,
+            np.array(lengths.get(fid, (-5.0, 5.0))),
+            color="tab:purple",
+            lw=1.0,
+            ls="--",
+            label="truly added" if first["added"] else None,
+        )
         first["added"] = False

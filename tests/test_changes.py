@@ -99,7 +99,8 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
     rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
     c = rep.known[circ]
-    assert c.status == ChangeStatus.MOVED and not c.associated
+    assert c.status == ChangeStatus.MOVED
+    assert not c.associated
     assert c.displacement[0] == pytest.approx(-3.0, abs=0.3)
     assert kid not in {n.true_id for n in rep.new}
 
@@ -132,7 +133,10 @@ def test_shifted_map_is_confirmed_through_the_anchor():
     T = np.array([4.0, -2.0, 0.2])
     k = log.known_map
     p = np.array(
-        [transform_feature(FeatureKind(int(kd)), inverse(T), x)[0] for kd, x in zip(k.kinds, k.params)]
+        [
+            transform_feature(FeatureKind(int(kd)), inverse(T), x)[0]
+            for kd, x in zip(k.kinds, k.params, strict=False)
+        ]
     )
     rep = _classify(_replace_known(log, params=p), anchor_offset=inverse(T))
     assert rep.counts()["moved"] == 0
@@ -184,7 +188,7 @@ def test_map_that_is_all_changes_is_all_moved():
 def test_line_residual_jacobians_match_numerical_derivatives(x, y, th, ax, ay, dth):
     ref = np.array([x, y, th])
     f = np.array([x + ax, y + ay, th + dth])
-    r, Ja, Jb = feature_residual(FeatureKind.LINE, ref, f)
+    _r, Ja, Jb = feature_residual(FeatureKind.LINE, ref, f)
     eps = 1e-6
     for J, base, which in ((Ja, ref, 0), (Jb, f, 1)):
         num = np.zeros((2, 3))
@@ -217,7 +221,8 @@ def test_with_changes_draws_disjoint_changes_of_the_asked_size():
     assert len(spec.added) == len(sc.known_map.added) + round(0.1 * n)
     moved = {m.id for m in spec.moved}
     removed = {f.id for f in spec.removed}
-    assert not moved & removed and not moved & set(spec.added)
+    assert not moved & removed
+    assert not moved & set(spec.added)
     assert not removed & set(out.world.ids)
     for m in spec.moved:
         assert 0.3 - 1e-9 <= math.hypot(m.dx, m.dy) <= 5.0 + 1e-9
@@ -245,6 +250,10 @@ def test_classify_rejects_decisions_of_another_log():
     log = _log()
     with pytest.raises(ValueError, match="decisions hold"):
         classify_changes(
-            log, np.zeros(3, np.int64), np.zeros(3, np.int64), log.true_poses,
-            np.zeros((log.n_steps, 3, 3)), np.zeros(3),
+            log,
+            np.zeros(3, np.int64),
+            np.zeros(3, np.int64),
+            log.true_poses,
+            np.zeros((log.n_steps, 3, 3)),
+            np.zeros(3),
         )

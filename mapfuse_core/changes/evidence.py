@@ -90,9 +90,7 @@ def observation_sets(
     lm = np.asarray(obs_landmark, dtype=np.int64)
     kn = np.asarray(obs_known_id, dtype=np.int64)
     if lm.shape != (log.n_features,) or kn.shape != lm.shape:
-        raise ValueError(
-            f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}"
-        )
+        raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
     n = poses.shape[0]
     covs = np.nan_to_num(np.asarray(pose_covs, dtype=float), nan=0.0)
     out = []
@@ -145,7 +143,9 @@ def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence
         info = W if info is None else info + W
         vec = W @ r if vec is None else vec + W @ r
         pose_part = Dp if pose_part is None else pose_part + Dp
-    assert info is not None and vec is not None and pose_part is not None
+    assert info is not None
+    assert vec is not None
+    assert pose_part is not None
     P = np.linalg.pinv(info, hermitian=True)
     cov = P + pose_part / obs.n_obs
     return LandmarkEvidence(residual=P @ vec, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs)

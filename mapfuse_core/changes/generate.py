@@ -17,7 +17,7 @@ import numpy as np
 from mapfuse_core.features import FeatureKind
 from mapfuse_core.scenario import FeatureMove, Scenario
 from mapfuse_core.se2 import FloatArray, compose, inverse
-from mapfuse_core.world import World
+from mapfuse_core.world import CircleObstacle, WallSegment, World
 
 __all__ = ["with_changes"]
 
@@ -25,7 +25,7 @@ __all__ = ["with_changes"]
 def _count(fraction: float, n: int, name: str) -> int:
     if not 0.0 <= fraction <= 1.0:
         raise ValueError(f"{name} must be in [0, 1], got {fraction}")
-    return int(round(fraction * n))
+    return round(fraction * n)
 
 
 def with_changes(
@@ -72,8 +72,9 @@ def with_changes(
         segments=tuple(s for s in scenario.world.segments if s.id not in gone),
         circles=tuple(c for c in scenario.world.circles if c.id not in gone),
     )
-    removed_f = tuple(
-        f for f in (*scenario.world.segments, *scenario.world.circles) if f.id in gone
+    removed_f: tuple[WallSegment | CircleObstacle, ...] = (
+        *(s for s in scenario.world.segments if s.id in gone),
+        *(c for c in scenario.world.circles if c.id in gone),
     )
     frame = np.asarray(spec.frame, dtype=float)
     if shift is not None:

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -15,7 +15,7 @@ from mapfuse_core.se2 import FloatArray
 __all__ = ["ChangeReport", "ChangeStatus", "FeatureChange", "NewFeature"]
 
 
-class ChangeStatus(str, Enum):
+class ChangeStatus(StrEnum):
     """Class of a known feature after a run."""
 
     CONFIRMED = "confirmed"

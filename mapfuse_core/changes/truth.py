@@ -179,6 +179,3 @@ def score_changes(
         added_fn=len(truth.added_observed) - atp,
         added_fp=afp,
     )
-
-
-
