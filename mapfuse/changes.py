@@ -13,14 +13,16 @@ known feature on the trajectory it is tested with acts over the whole run
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from mapfuse.result import EstimatorResult
 from mapfuse_core.changes import ChangeParams, ChangeReport, classify_changes
-from mapfuse_core.changes.truth import ChangeTruth, score_changes
+from mapfuse_core.changes.truth import ChangeTruth, change_truth, score_changes
 from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.scenario import Scenario
 
-__all__ = ["change_section", "detect_changes"]
+__all__ = ["change_report_lines", "change_section", "detect_changes"]
 
 
 def detect_changes(
@@ -60,3 +62,44 @@ def change_section(
             "added_observed": list(truth.added_observed),
         }
     return out
+
+
+def _pr(d: dict[str, Any]) -> str:
+    p, r = d["precision"], d["recall"]
+    return " / ".join("–" if v is None else f"{v:.2f}" for v in (p, r))
+
+
+def change_report_lines(
+    results: Sequence[EstimatorResult], log: MeasurementLog, scenario: Scenario | None
+) -> list[str]:
+    """The change section of ``report.md``: per fused run with an anchor, the class
+    counts and, when the scenario (hence the truth) is known, precision / recall."""
+    params = ChangeParams()
+    truth = change_truth(scenario, log, params) if scenario is not None else None
+    rows = []
+    for res in results:
+        if not res.fusion or res.anchor is None or res.decisions is None:
+            continue
+        rep = detect_changes(res, log, params)
+        c = rep.counts()
+        cells = [res.estimator, *(str(c[k]) for k in ("confirmed", "moved", "missing"))]
+        cells += [str(c["unobserved"]), str(c["new"])]
+        if truth is not None:
+            s = score_changes(rep, truth).as_dict()
+            cells += [_pr(s["moved"]), _pr(s["removed"]), _pr(s["added"])]
+        rows.append("| " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    head = ["run", "confirmed", "moved", "missing", "unobserved", "new"]
+    if truth is not None:
+        head += ["moved ≥ 0.5 m P / R", "removed P / R", "added P / R"]
+    return [
+        "",
+        "## Known-map changes",
+        "",
+        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/changes.md`).",
+        "",
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] * len(head)) + " |",
+        *rows,
+    ]
