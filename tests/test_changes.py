@@ -257,3 +257,44 @@ def test_classify_rejects_decisions_of_another_log():
             np.zeros((log.n_steps, 3, 3)),
             np.zeros(3),
         )
+
+
+@pytest.mark.slow
+def test_changes_command_writes_json_and_png_with_a_score(tmp_path):
+    import json
+
+    from mapfuse.cli import main
+
+    out = tmp_path / "ch"
+    code = main(
+        [
+            "changes",
+            "loop600",
+            "--steps",
+            "240",
+            "--moved",
+            "0.1",
+            "--removed",
+            "0.05",
+            "--change-seed",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    d = json.loads((out / "changes.json").read_text())
+    assert (out / "changes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert {"known", "new", "counts", "score", "truth", "level"} <= set(d)
+    assert len(d["known"]) == sum(
+        d["counts"][k] for k in ("confirmed", "moved", "missing", "unobserved")
+    )
+    # Every true move and removal is named in the truth section.
+    assert len(d["truth"]["moved"]) == round(0.1 * 63) and len(d["truth"]["removed"]) == 3
+
+
+def test_changes_command_refuses_to_perturb_a_log(tmp_path):
+    from mapfuse.cli import main
+
+    assert main(["changes", "x.npz", "--moved", "0.1", "--out", str(tmp_path)]) == 2
