@@ -66,6 +66,17 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
+        row[f"{name}_missing_or_removed"] = [
+            {
+                "id": c.known_id,
+                "status": c.status.value,
+                "scans_in_view": c.scans_in_view,
+                "removed": c.known_id in truth.removed,
+                "removed_in_view": c.known_id in truth.removed_in_view,
+            }
+            for c in rep.known
+            if c.status.value == "missing" or c.known_id in truth.removed
+        ]
     return row
 
 

@@ -19,7 +19,7 @@ class ChangeParams:
     probability ``1 − level`` (lines 2 dof, circles 3 dof)."""
     min_obs: int = 3
     """Observations a landmark needs to count (as observed, as new, as a move target)."""
-    min_scans: int = 10
+    min_scans: int = 20
     """``K``: scans a known feature must be predicted in view before, never associated,
     it is called missing (counted at every :attr:`view_stride`-th step, times the stride)."""
     view_stride: int = 4
