@@ -291,7 +291,8 @@ def test_changes_command_writes_json_and_png_with_a_score(tmp_path):
         d["counts"][k] for k in ("confirmed", "moved", "missing", "unobserved")
     )
     # Every true move and removal is named in the truth section.
-    assert len(d["truth"]["moved"]) == round(0.1 * 63) and len(d["truth"]["removed"]) == 3
+    assert len(d["truth"]["moved"]) == round(0.1 * 63)
+    assert len(d["truth"]["removed"]) == 3
 
 
 def test_changes_command_refuses_to_perturb_a_log(tmp_path):
