@@ -299,3 +299,20 @@ def test_changes_command_refuses_to_perturb_a_log(tmp_path):
     from mapfuse.cli import main
 
     assert main(["changes", "x.npz", "--moved", "0.1", "--out", str(tmp_path)]) == 2
+
+
+def test_a_line_moved_along_itself_is_not_a_significant_move():
+    from mapfuse_core.changes.truth import ChangeTruth
+
+    truth = ChangeTruth(
+        moved={1: (2.0, 0.0, 0.0, 0.0), 2: (0.0, 0.6, 0.0, 0.0), 3: (0.0, 0.0, 0.12, 0.0)},
+        lateral={1: 0.0, 2: 0.6, 3: 0.0},
+        removed=(),
+        removed_in_view=(),
+        added=(),
+        added_observed=(),
+        observed=(1, 2, 3),
+    )
+    assert not truth.significant_move(1, 0.5, 0.1)
+    assert truth.significant_move(2, 0.5, 0.1)
+    assert truth.significant_move(3, 0.5, 0.1)

@@ -17,6 +17,7 @@ import numpy as np
 from mapfuse_core.changes.params import ChangeParams
 from mapfuse_core.changes.report import ChangeReport, ChangeStatus
 from mapfuse_core.changes.visibility import scans_in_view, world_as_map
+from mapfuse_core.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.scenario import Scenario
 from mapfuse_core.world import CircleObstacle, WallSegment, World
@@ -30,6 +31,9 @@ class ChangeTruth:
 
     moved: dict[int, tuple[float, float, float, float]]
     """Known id → its move ``(dx, dy, dθ, dr)`` (world frame, as the scenario gives it)."""
+    lateral: dict[int, float]
+    """Known id of a moved line → its displacement across the line at its reference
+    point (m); a move along a wall is no change of the wall."""
     removed: tuple[int, ...]
     """Known ids no longer in the world."""
     removed_in_view: tuple[int, ...]
@@ -42,12 +46,14 @@ class ChangeTruth:
     """Known ids of world features observed at least ``min_obs`` times."""
 
     def significant_move(self, kid: int, min_move_m: float, min_turn_rad: float) -> bool:
-        """Whether known feature ``kid`` moved by at least ``min_move_m`` (circle centre,
-        or line laterally) or turned by at least ``min_turn_rad`` (line)."""
+        """Whether known feature ``kid`` moved by at least ``min_move_m`` (circle centre
+        or radius, line across itself) or turned by at least ``min_turn_rad`` (line)."""
         if kid not in self.moved:
             return False
         dx, dy, dth, dr = self.moved[kid]
-        return math.hypot(dx, dy) >= min_move_m or abs(dth) >= min_turn_rad or abs(dr) >= min_move_m
+        if kid in self.lateral:
+            return abs(self.lateral[kid]) >= min_move_m or abs(dth) >= min_turn_rad
+        return math.hypot(dx, dy) >= min_move_m or abs(dr) >= min_move_m
 
 
 def change_truth(
@@ -63,6 +69,11 @@ def change_truth(
     ids, counts = np.unique(log.feat_true_id[log.feat_true_id >= 0], return_counts=True)
     seen = {int(i) for i, c in zip(ids.tolist(), counts.tolist(), strict=True) if c >= min_obs}
     moved = {m.id: (m.dx, m.dy, m.dtheta, m.dr) for m in spec.moved}
+    lateral = {}
+    for m in spec.moved:
+        kind, p = _original(scenario, m.id)
+        if kind == FeatureKind.LINE:
+            lateral[m.id] = -math.sin(p[2]) * m.dx + math.cos(p[2]) * m.dy
     removed = tuple(f.id for f in spec.removed)
     in_view = []
     if removed and log.true_poses is not None:
@@ -83,12 +94,23 @@ def change_truth(
     added = tuple(sorted(i for i in scenario.world.ids if i not in known_ids))
     return ChangeTruth(
         moved=moved,
+        lateral=lateral,
         removed=removed,
         removed_in_view=tuple(in_view),
         added=added,
         added_observed=tuple(i for i in added if i in seen),
         observed=tuple(sorted(i for i in spec.world_ids if i in seen)),
     )
+
+
+def _original(scenario: Scenario, fid: int) -> tuple[FeatureKind, np.ndarray]:
+    """Kind and world parameters of map feature ``fid`` before its move."""
+    for f in scenario.known_map.removed:
+        if f.id == fid:
+            if isinstance(f, WallSegment):
+                return FeatureKind.LINE, f.spmap()
+            return FeatureKind.CIRCLE, f.params()
+    return scenario.world.feature(fid)
 
 
 @dataclass(frozen=True)
