@@ -35,7 +35,8 @@ def main() -> None:
     ap.add_argument("--added", type=float, default=0.05)
     ap.add_argument("--min-scans", type=int, default=None, help="re-score missing with this K")
     a = ap.parse_args()
-    rows = [json.loads(line) for line in open(a.jsonl)]
+    with open(a.jsonl) as f:
+        rows = [json.loads(line) for line in f]
     base = dataclasses.replace(load_scenario("loop600"), steps=a.steps)
     size = []  # (significance measure, kind, detected)
     mtp = mfn = 0
