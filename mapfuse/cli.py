@@ -488,6 +488,10 @@ def _parser() -> argparse.ArgumentParser:
     from mapfuse.spectrum import add_spectrum_parser
 
     add_spectrum_parser(sub)
+
+    from mapfuse.changes_cli import add_parser as add_changes
+
+    add_changes(sub)
     return p
 
 

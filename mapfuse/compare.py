@@ -430,7 +430,11 @@ def report_markdown(
             "NEES cannot be computed.",
             "",
         ]
-        lines += _gps_table(comparison) + _figure_list(figures)
+        from mapfuse.changes import change_report_lines
+
+        lines += _gps_table(comparison)
+        lines += change_report_lines([r.result for r in comparison.runs], log, None)
+        lines += _figure_list(figures)
         return "\n".join(lines) + "\n"
     if not truth:
         lines += [
@@ -486,6 +490,9 @@ def report_markdown(
             f"- The paper's numbers are for its 600 m loop (our `loop600`); this log is "
             f"`{log.scenario}`, so they are only a scale reference here."
         )
+    from mapfuse.changes import change_report_lines
+
+    lines += change_report_lines([r.result for r in comparison.runs], log, scenario)
     lines += _figure_list(figures)
     return "\n".join(lines) + "\n"
 

@@ -128,11 +128,14 @@ def test_write_comparison(comparison: Comparison, tmp_path: Path) -> None:
         assert paths[name.removesuffix(".png")] == str(p)
     report = (out / "report.md").read_text()
     assert paths["report"] == str(out / "report.md")
+    main, changes = report.split("## Known-map changes")
     table = [
-        line
-        for line in report.splitlines()
-        if line.startswith("| ") and not line.startswith("| ---")
+        line for line in main.splitlines() if line.startswith("| ") and not line.startswith("| ---")
     ]
+    # Every fused run with an anchor gets a row of change counts (no truth: no P / R).
+    change_rows = [line for line in changes.splitlines() if line.startswith("| ")]
+    assert change_rows[0].startswith("| run | confirmed | moved | missing")
+    assert {r.split(" | ")[0][2:] for r in change_rows[2:]} == {"ekf", "batch", "isam2"}
     # Header, six runs, two iSAM2 filtered rows, two paper rows.
     assert len(table) == 1 + 6 + 2 + 2
     for col in (

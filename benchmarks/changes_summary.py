@@ -1,0 +1,121 @@
+"""Summarise ``benchmarks/changes_mc.py`` output (``docs/changes.md``).
+
+Move significance is re-derived from the regenerated changes (lines: across the
+line or turned), so it matches :meth:`ChangeTruth.significant_move`.
+
+    PYTHONPATH=. python benchmarks/changes_summary.py /tmp/changes.jsonl --steps 600
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+
+import numpy as np
+
+from mapfuse_core.changes.generate import with_changes
+from mapfuse_core.features import FeatureKind
+from mapfuse_core.scenario import load_scenario
+
+
+def _pr(tp: int, fp: int, fn: int) -> str:
+    p = f"{tp / (tp + fp):.3f}" if tp + fp else "–"
+    r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
+    return f"P {p} R {r} (tp {tp}, fp {fp}, fn {fn})"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("jsonl")
+    ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--moved", type=float, default=0.15)
+    ap.add_argument("--removed", type=float, default=0.05)
+    ap.add_argument("--added", type=float, default=0.05)
+    ap.add_argument("--min-scans", type=int, default=None, help="re-score missing with this K")
+    a = ap.parse_args()
+    with open(a.jsonl) as f:
+        rows = [json.loads(line) for line in f]
+    base = dataclasses.replace(load_scenario("loop600"), steps=a.steps)
+    size = []  # (significance measure, kind, detected)
+    mtp = mfn = 0
+    mfp = {"unchanged": 0, "changed": 0}
+    rem = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
+    add = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
+    for r in rows:
+        sc = with_changes(
+            base,
+            np.random.default_rng(1000 + r["seed"]),
+            moved=a.moved,
+            removed=a.removed,
+            added=a.added,
+        )
+        for pre in ("unchanged", "changed"):
+            if f"{pre}_score" not in r:
+                continue
+            s = r[f"{pre}_score"]
+            mfp[pre] += s["moved"]["fp"]
+            add[pre] = [add[pre][i] + s["added"][k] for i, k in enumerate(("tp", "fp", "fn"))]
+            if a.min_scans is not None and f"{pre}_missing_or_removed" in r:
+                for d in r[f"{pre}_missing_or_removed"]:
+                    called = d["status"] == "missing" and d["scans_in_view"] >= a.min_scans
+                    if called and d["removed"]:
+                        rem[pre][0] += 1
+                    elif called:
+                        rem[pre][1] += 1
+                    elif d["removed_in_view"]:
+                        rem[pre][2] += 1
+            else:
+                rem[pre] = [rem[pre][i] + s["removed"][k] for i, k in enumerate(("tp", "fp", "fn"))]
+        for m in r.get("changed_moves", []):
+            move = next(x for x in sc.known_map.moved if x.id == m["id"])
+            kind, p = sc.world.feature(m["id"])
+            if kind == FeatureKind.LINE:
+                lat = abs(-math.sin(p[2]) * move.dx + math.cos(p[2]) * move.dy)
+                sig = lat >= 0.5 or abs(move.dtheta) >= 0.1
+                measure = lat
+            else:
+                measure = math.hypot(move.dx, move.dy)
+                sig = measure >= 0.5
+            det = m["status"] == "moved"
+            if m["observed"]:
+                size.append((measure, kind.name.lower(), abs(move.dtheta), det))
+                if sig:
+                    mtp += det
+                    mfn += not det
+    print(
+        f"seeds: {len(rows)}; changed runs with an anchor: "
+        f"{sum(bool(r.get('changed_anchor')) for r in rows)}"
+    )
+    print(
+        "moved (significant):",
+        _pr(mtp, mfp["changed"], mfn),
+        "| false moves on unchanged maps:",
+        mfp["unchanged"],
+    )
+    for pre in ("changed", "unchanged"):
+        print(f"removed ({pre}):", _pr(*rem[pre]))
+        print(f"added ({pre}):", _pr(*add[pre]))
+    for lo, hi in ((0.0, 0.3), (0.3, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 99.0)):
+        s = [x for x in size if lo <= x[0] < hi]
+        print(
+            f"  observed moves {lo}-{hi} m (circle distance, line lateral): {len(s)}, "
+            f"detected {sum(x[3] for x in s)}; missed: "
+            f"{[(k, round(d, 2), round(t, 2)) for d, k, t, det in s if not det]}"
+        )
+    ok = [r for r in rows if r.get("changed_anchor") and r.get("unchanged_anchor")]
+    u = np.array([r["unchanged_rmse_m"] for r in ok])
+    c = np.array([r["changed_rmse_m"] for r in ok])
+    print(
+        f"RMSE over {len(ok)} seeds: unchanged mean {u.mean():.4f} m, changed {c.mean():.4f} m, "
+        f"ratio of means {c.mean() / u.mean():.3f}, worst seed ratio {np.max(c / u):.3f}"
+    )
+    print(
+        f"NEES mean: unchanged {np.mean([r['unchanged_nees_mean'] for r in ok]):.2f}, "
+        f"changed {np.mean([r['changed_nees_mean'] for r in ok]):.2f}"
+    )
+
+
+if __name__ == "__main__":
+    main()

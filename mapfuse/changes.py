@@ -1,0 +1,105 @@
+"""Known-map change detection on an :class:`~mapfuse.result.EstimatorResult`.
+
+The same classification (:func:`mapfuse_core.changes.classify_changes`) for every
+estimator: it reads the run's association decisions, its main trajectory (the
+smoothed one for a batch or iSAM2 graph, the filtered one for the EKF) and its
+anchor.  With the smoothed trajectory every observation is put in ``Wknown`` with
+the pose estimated from the whole log, so the evidence of a feature seen early is
+as good as that of one seen late, and the pose covariance entering the test is the
+smaller smoothed one: the graph's tests are sharper, and the pull of the tested
+known feature on the trajectory it is tested with acts over the whole run
+(``docs/changes.md``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from mapfuse.result import EstimatorResult
+from mapfuse_core.changes import ChangeParams, ChangeReport, classify_changes
+from mapfuse_core.changes.truth import ChangeTruth, change_truth, score_changes
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.scenario import Scenario
+
+__all__ = ["change_report_lines", "change_section", "detect_changes"]
+
+
+def detect_changes(
+    result: EstimatorResult, log: MeasurementLog, params: ChangeParams | None = None
+) -> ChangeReport:
+    """Classify ``log``'s known map after ``result``'s run (a fused run with an anchor
+    and association decisions)."""
+    if not result.fusion or result.anchor is None:
+        raise ValueError(
+            f"{result.estimator}: change detection needs a fused run whose map match was "
+            "accepted (no anchor: the known map was never put in the run's frame)"
+        )
+    if result.decisions is None:
+        raise ValueError(
+            f"{result.estimator}: change detection needs the run's association decisions, "
+            "and this run has none"
+        )
+    lm, kn = result.decisions.arrays
+    return classify_changes(
+        log, lm, kn, result.poses, result.covs, result.anchor.x_Wknown_Wglobal, params
+    )
+
+
+def change_section(
+    report: ChangeReport, truth: ChangeTruth | None, min_move_m: float = 0.5
+) -> dict[str, Any]:
+    """The ``changes`` object of ``changes.json``: the report, and its score when the
+    truth is known."""
+    out = report.as_dict()
+    if truth is not None:
+        out["score"] = score_changes(report, truth, min_move_m=min_move_m).as_dict()
+        out["truth"] = {
+            "moved": {str(k): list(v) for k, v in truth.moved.items()},
+            "removed": list(truth.removed),
+            "removed_in_view": list(truth.removed_in_view),
+            "added": list(truth.added),
+            "added_observed": list(truth.added_observed),
+        }
+    return out
+
+
+def _pr(d: dict[str, Any]) -> str:
+    p, r = d["precision"], d["recall"]
+    return " / ".join("–" if v is None else f"{v:.2f}" for v in (p, r))
+
+
+def change_report_lines(
+    results: Sequence[EstimatorResult], log: MeasurementLog, scenario: Scenario | None
+) -> list[str]:
+    """The change section of ``report.md``: per fused run with an anchor, the class
+    counts and, when the scenario (hence the truth) is known, precision / recall."""
+    params = ChangeParams()
+    truth = change_truth(scenario, log, params) if scenario is not None else None
+    rows = []
+    for res in results:
+        if not res.fusion or res.anchor is None or res.decisions is None:
+            continue
+        rep = detect_changes(res, log, params)
+        c = rep.counts()
+        cells = [res.estimator, *(str(c[k]) for k in ("confirmed", "moved", "missing"))]
+        cells += [str(c["unobserved"]), str(c["new"])]
+        if truth is not None:
+            s = score_changes(rep, truth).as_dict()
+            cells += [_pr(s["moved"]), _pr(s["removed"]), _pr(s["added"])]
+        rows.append("| " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    head = ["run", "confirmed", "moved", "missing", "unobserved", "new"]
+    if truth is not None:
+        head += ["moved ≥ 0.5 m P / R", "removed P / R", "added P / R"]
+    return [
+        "",
+        "## Known-map changes",
+        "",
+        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/changes.md`).",
+        "",
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] * len(head)) + " |",
+        *rows,
+    ]

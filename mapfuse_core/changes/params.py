@@ -1,0 +1,71 @@
+"""Settings of known-map change detection: :class:`ChangeParams`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from scipy.stats import chi2
+
+__all__ = ["ChangeParams"]
+
+
+@dataclass(frozen=True)
+class ChangeParams:
+    """Test level, view model and search limits of :func:`classify_changes`."""
+
+    level: float = 0.999
+    """Probability of the χ² test: a consistent feature is called moved with
+    probability ``1 − level`` (lines 2 dof, circles 3 dof)."""
+    min_obs: int = 3
+    """Observations a landmark needs to count (as observed, as new, as a move target)."""
+    min_scans: int = 20
+    """``K``: scans a known feature must be predicted in view before, never associated,
+    it is called missing (counted at every :attr:`view_stride`-th step, times the stride)."""
+    view_stride: int = 4
+    """Every this many steps the view is predicted (ray casting costs)."""
+    min_beams_line: int = 12
+    """Beams that must hit a wall, at an incidence below :attr:`max_incidence_rad`,
+    for the wall to count as in view in a scan (the extractor's least line support)."""
+    min_beams_circle: int = 12
+    """Beams that must hit a circle for it to count as in view in a scan."""
+    max_incidence_rad: float = 1.3
+    """Beams hitting a wall farther than this from its normal do not count (grazing
+    beams give no extractable line)."""
+    fov_rad: float = math.pi
+    """Field of view of the scanner the view is predicted with."""
+    n_beams: int = 361
+    """Beams over the field of view in the predicted view."""
+    max_range_m: float = 30.0
+    """Range within which a feature counts as in view (extraction range)."""
+    max_move_m: float = 6.0
+    """Farthest a known feature is looked for when no landmark is associated with it."""
+    max_turn_rad: float = 0.35
+    """Largest turn of a line considered a move of that line."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.level < 1.0:
+            raise ValueError(f"ChangeParams.level must be in (0, 1), got {self.level}")
+        for name in (
+            "min_obs",
+            "min_scans",
+            "view_stride",
+            "min_beams_line",
+            "min_beams_circle",
+            "n_beams",
+        ):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
+        if self.n_beams < 2:
+            raise ValueError(f"ChangeParams.n_beams must be >= 2, got {self.n_beams}")
+        for name in ("max_incidence_rad", "fov_rad", "max_range_m", "max_move_m", "max_turn_rad"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
+                raise ValueError(f"ChangeParams.{name} must be a finite number > 0, got {v!r}")
+        if self.fov_rad > 2.0 * math.pi:
+            raise ValueError(f"ChangeParams.fov_rad must be <= 2π, got {self.fov_rad}")
+
+    def threshold(self, dof: int) -> float:
+        """χ² threshold of the test with ``dof`` degrees of freedom."""
+        return float(chi2.ppf(self.level, dof))

@@ -1,0 +1,318 @@
+"""Known-map change classification on small synthetic logs with the true decisions
+and trajectory, so that each class is checked apart from any estimator."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfuse_core.changes import ChangeParams, ChangeStatus, classify_changes, feature_residual
+from mapfuse_core.changes.generate import with_changes
+from mapfuse_core.features import FeatureKind, transform_feature
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.scenario import load_scenario
+from mapfuse_core.se2 import compose, inverse, relative
+from tests.synthetic import synthetic_log
+
+PARAMS = ChangeParams(max_range_m=25.0)
+
+
+def _log() -> MeasurementLog:
+    return synthetic_log(steps=300, seed=3, known_fraction=0.7)
+
+
+def _classify(log: MeasurementLog, params: ChangeParams = PARAMS, anchor_offset=None):
+    """Classify with the true decisions and the true trajectory (tiny pose covariance)."""
+    known = set(log.known_map.ids.tolist())
+    lm = log.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start = log.true_poses[0]
+    poses = np.array([relative(start, p)[0] for p in log.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    anchor = start if anchor_offset is None else compose(anchor_offset, start)
+    return classify_changes(log, lm, kn, poses, covs, anchor, params)
+
+
+def _replace_known(log: MeasurementLog, **fields) -> MeasurementLog:
+    k = log.known_map
+    new = KnownMapArrays(
+        ids=fields.get("ids", k.ids),
+        kinds=fields.get("kinds", k.kinds),
+        params=fields.get("params", k.params),
+        covs=fields.get("covs", k.covs),
+        extents=fields.get("extents", k.extents),
+    )
+    return dataclasses.replace(log, known_map=new)
+
+
+def test_unchanged_map_is_confirmed_where_observed():
+    rep = _classify(_log())
+    counts = rep.counts()
+    # At level 0.999 a consistent feature fails with probability 1e-3; none of ~20 here.
+    assert counts["moved"] == 0
+    assert counts["missing"] == 0
+    assert counts["confirmed"] >= 15
+    # Every world feature the map lacks is seen, so it is new.
+    log = _log()
+    absent = set(log.world.ids.tolist()) - set(log.known_map.ids.tolist())
+    assert {n.true_id for n in rep.new} == absent
+
+
+def test_moved_circle_and_turned_line_are_moved_with_their_displacement():
+    log = _log()
+    p = log.known_map.params.copy()
+    circ = int(np.nonzero(log.known_map.kinds == FeatureKind.CIRCLE)[0][0])
+    line = int(np.nonzero(log.known_map.kinds == FeatureKind.LINE)[0][0])
+    p[circ, :2] += (0.6, -0.3)
+    p[line, 2] += 0.3
+    rep = _classify(_replace_known(log, params=p))
+    c = rep.known[circ]
+    assert c.status == ChangeStatus.MOVED
+    # The map holds the feature 0.6, -0.3 off: the evidence puts it back (map σ 0.1 m).
+    assert c.displacement[:2] == pytest.approx([-0.6, 0.3], abs=0.3)
+    assert c.statistic > c.threshold
+    ln = rep.known[line]
+    assert ln.status == ChangeStatus.MOVED
+    assert ln.displacement[2] == pytest.approx(-0.3, abs=0.1)
+    others = [k for i, k in enumerate(rep.known) if i not in (circ, line)]
+    assert all(k.status != ChangeStatus.MOVED for k in others)
+
+
+def test_move_beyond_the_gate_links_the_unassociated_landmark():
+    log = _log()
+    circ = int(np.nonzero(log.known_map.kinds == FeatureKind.CIRCLE)[0][0])
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
+    # The estimator did not associate it: its observations stay unlinked.
+    known = set(moved.known_map.ids.tolist()) - {kid}
+    lm = moved.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start = moved.true_poses[0]
+    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    c = rep.known[circ]
+    assert c.status == ChangeStatus.MOVED
+    assert not c.associated
+    assert c.displacement[0] == pytest.approx(-3.0, abs=0.3)
+    assert kid not in {n.true_id for n in rep.new}
+
+
+def test_removed_feature_in_view_is_missing_and_one_out_of_view_unobserved():
+    log = _log()
+    k = log.known_map
+    # A tree 8 m inside the driven circle (seen for many scans) and one 200 m away.
+    start = log.true_poses[0]
+    near = compose(start, np.array([8.0, 0.0, 0.0]))
+    trees = np.array([[near[0], near[1], 0.8], [start[0] + 200.0, start[1], 0.8]])
+    moved = _replace_known(
+        log,
+        ids=np.concatenate([k.ids, [9001, 9002]]),
+        kinds=np.concatenate([k.kinds, [1, 1]]).astype(np.int8),
+        params=np.vstack([k.params, trees]),
+        covs=np.vstack([k.covs, np.tile(np.diag([0.01, 0.01, 0.01]), (2, 1, 1))]),
+        extents=np.vstack([k.extents, np.full((2, 2), np.nan)]),
+    )
+    rep = _classify(moved)
+    assert rep.status_of(9001) == ChangeStatus.MISSING
+    assert rep.known[-2].scans_in_view >= PARAMS.min_scans
+    assert rep.status_of(9002) == ChangeStatus.UNOBSERVED
+
+
+def test_shifted_map_is_confirmed_through_the_anchor():
+    """A map shifted as a whole is a change of its frame: without GPS the anchor takes
+    it, so nothing is moved."""
+    log = _log()
+    T = np.array([4.0, -2.0, 0.2])
+    k = log.known_map
+    p = np.array(
+        [
+            transform_feature(FeatureKind(int(kd)), inverse(T), x)[0]
+            for kd, x in zip(k.kinds, k.params, strict=False)
+        ]
+    )
+    rep = _classify(_replace_known(log, params=p), anchor_offset=inverse(T))
+    assert rep.counts()["moved"] == 0
+    assert rep.counts()["confirmed"] >= 15
+
+
+def test_empty_intersection_is_all_unobserved():
+    log = _log()
+    k = log.known_map
+    far = k.params.copy()
+    far[:, :2] += 1000.0
+    rep = _classify(_replace_known(log, params=far, ids=k.ids + 10_000))
+    assert rep.counts()["unobserved"] == len(k)
+    assert rep.counts()["moved"] == rep.counts()["confirmed"] == rep.counts()["missing"] == 0
+    assert len(rep.new) == len({i for i in log.feat_true_id.tolist()})
+
+
+def test_map_that_is_all_changes_is_all_moved():
+    log = _log()
+    k = log.known_map
+    p = k.params.copy()
+    rng = np.random.default_rng(5)
+    a = rng.uniform(-math.pi, math.pi, len(k))
+    p[:, 0] += 1.0 * np.cos(a)
+    p[:, 1] += 1.0 * np.sin(a)
+    rep = _classify(_replace_known(log, params=p))
+    observed = [c for c in rep.known if c.n_obs > 0]
+    assert len(observed) >= 15
+    # A line moved along itself is not a change of it; only those moved across it count.
+    for c, ang in zip(rep.known, a, strict=True):
+        if c.n_obs == 0:
+            continue
+        if c.kind == FeatureKind.LINE:
+            th = k.params[[x.known_id for x in rep.known].index(c.known_id), 2]
+            if abs(math.sin(ang - th)) < 0.5:
+                continue
+        assert c.status == ChangeStatus.MOVED, c.known_id
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.floats(-20, 20),
+    st.floats(-20, 20),
+    st.sampled_from([math.pi - 1e-3, -math.pi + 1e-3, 0.3, -2.0]),
+    st.floats(-3, 3),
+    st.floats(-3, 3),
+    st.floats(-0.5, 0.5),
+)
+def test_line_residual_jacobians_match_numerical_derivatives(x, y, th, ax, ay, dth):
+    ref = np.array([x, y, th])
+    f = np.array([x + ax, y + ay, th + dth])
+    _r, Ja, Jb = feature_residual(FeatureKind.LINE, ref, f)
+    eps = 1e-6
+    for J, base, which in ((Ja, ref, 0), (Jb, f, 1)):
+        num = np.zeros((2, 3))
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = eps
+            args_p = (base + d, f) if which == 0 else (ref, base + d)
+            args_m = (base - d, f) if which == 0 else (ref, base - d)
+            rp = feature_residual(FeatureKind.LINE, *args_p)[0]
+            rm = feature_residual(FeatureKind.LINE, *args_m)[0]
+            num[:, i] = (rp - rm) / (2 * eps)
+        assert np.allclose(J, num, atol=1e-5)
+
+
+def test_line_residual_ignores_sliding_along_the_line():
+    ref = np.array([1.0, 2.0, 0.4])
+    f = np.array([1.0, 2.5, 0.45])
+    r0 = feature_residual(FeatureKind.LINE, ref, f)[0]
+    slid = compose(f, np.array([3.0, 0.0, 0.0]))
+    assert feature_residual(FeatureKind.LINE, ref, slid)[0] == pytest.approx(r0, abs=1e-12)
+
+
+def test_with_changes_draws_disjoint_changes_of_the_asked_size():
+    sc = load_scenario("loop600")
+    out = with_changes(sc, np.random.default_rng(1), moved=0.2, removed=0.1, added=0.1)
+    spec = out.known_map
+    n = len(sc.known_map.world_ids)
+    assert len(spec.moved) == round(0.2 * n)
+    assert len(spec.removed) == round(0.1 * n)
+    assert len(spec.added) == len(sc.known_map.added) + round(0.1 * n)
+    moved = {m.id for m in spec.moved}
+    removed = {f.id for f in spec.removed}
+    assert not moved & removed
+    assert not moved & set(spec.added)
+    assert not removed & set(out.world.ids)
+    for m in spec.moved:
+        assert 0.3 - 1e-9 <= math.hypot(m.dx, m.dy) <= 5.0 + 1e-9
+        kind, _ = sc.world.feature(m.id)
+        if kind == FeatureKind.LINE:
+            assert 0.05 - 1e-9 <= abs(m.dtheta) <= 0.3 + 1e-9
+
+
+def test_with_changes_rejects_bad_fractions():
+    sc = load_scenario("loop600")
+    with pytest.raises(ValueError, match="moved must be in"):
+        with_changes(sc, np.random.default_rng(0), moved=1.5)
+    with pytest.raises(ValueError, match="changes asked"):
+        with_changes(sc, np.random.default_rng(0), moved=0.6, removed=0.6)
+
+
+def test_change_params_reject_bad_values():
+    with pytest.raises(ValueError, match="level"):
+        ChangeParams(level=1.0)
+    with pytest.raises(ValueError, match="min_scans"):
+        ChangeParams(min_scans=0)
+
+
+def test_classify_rejects_decisions_of_another_log():
+    log = _log()
+    with pytest.raises(ValueError, match="decisions hold"):
+        classify_changes(
+            log,
+            np.zeros(3, np.int64),
+            np.zeros(3, np.int64),
+            log.true_poses,
+            np.zeros((log.n_steps, 3, 3)),
+            np.zeros(3),
+        )
+
+
+@pytest.mark.slow
+def test_changes_command_writes_json_and_png_with_a_score(tmp_path):
+    import json
+
+    from mapfuse.cli import main
+
+    out = tmp_path / "ch"
+    code = main(
+        [
+            "changes",
+            "loop600",
+            "--steps",
+            "240",
+            "--moved",
+            "0.1",
+            "--removed",
+            "0.05",
+            "--change-seed",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    d = json.loads((out / "changes.json").read_text())
+    assert (out / "changes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert {"known", "new", "counts", "score", "truth", "level"} <= set(d)
+    assert len(d["known"]) == sum(
+        d["counts"][k] for k in ("confirmed", "moved", "missing", "unobserved")
+    )
+    # Every true move and removal is named in the truth section.
+    assert len(d["truth"]["moved"]) == round(0.1 * 63)
+    assert len(d["truth"]["removed"]) == 3
+
+
+def test_changes_command_refuses_to_perturb_a_log(tmp_path):
+    from mapfuse.cli import main
+
+    assert main(["changes", "x.npz", "--moved", "0.1", "--out", str(tmp_path)]) == 2
+
+
+def test_a_line_moved_along_itself_is_not_a_significant_move():
+    from mapfuse_core.changes.truth import ChangeTruth
+
+    truth = ChangeTruth(
+        moved={1: (2.0, 0.0, 0.0, 0.0), 2: (0.0, 0.6, 0.0, 0.0), 3: (0.0, 0.0, 0.12, 0.0)},
+        lateral={1: 0.0, 2: 0.6, 3: 0.0},
+        removed=(),
+        removed_in_view=(),
+        added=(),
+        added_observed=(),
+        observed=(1, 2, 3),
+    )
+    assert not truth.significant_move(1, 0.5, 0.1)
+    assert truth.significant_move(2, 0.5, 0.1)
+    assert truth.significant_move(3, 0.5, 0.1)
