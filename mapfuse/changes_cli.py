@@ -26,6 +26,7 @@ def add_parser(sub: Any) -> None:
         help="classify the known map's features (confirmed, moved, missing, unobserved, new)",
         description="Run BACKEND with fusion on SCENARIO (built-in name, TOML, log .npz, "
         "carpark) and write OUT/changes.json and OUT/changes.png.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("scenario", help="built-in scenario, .toml path, log .npz or carpark")
     p.add_argument("--backend", default="ekf", help="registered estimator (ekf, batch, isam2)")
