@@ -343,7 +343,7 @@ def test_anchor_truth_uses_the_known_maps_frame(frame: list[float]) -> None:
     np.testing.assert_allclose(anchor_truth(np.array([x0]), None), x0)
 
 
-def test_the_log_stores_the_known_maps_frame_and_old_logs_load(tmp_path: Path) -> None:
+def test_the_log_stores_the_known_maps_frame_and_logs_without_it_load(tmp_path: Path) -> None:
     log = small_log()
     assert log.known_frame is None
     old = load_log(save_log(log, tmp_path / "old.npz"))  # written without the field
