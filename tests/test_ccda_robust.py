@@ -19,7 +19,7 @@ from mapfuse_core.ccda import REASONS, CCDAParams, ccda_match
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLogError, load_log, save_log
 from mapfuse_core.se2 import compose, inverse, transform_point
-from tests.test_ccda import (
+from tests.ccda_helpers import (
     CIRCLE,
     LINE,
     circle_cov,
