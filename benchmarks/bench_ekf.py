@@ -1,6 +1,6 @@
 """Wall time and accuracy of the EKF reference on loop600 (prints JSON).
 
-Target (issue 3): EKF with fusion on loop600 ≤ 10 s on the 2-core project machine.
+Target: EKF with fusion on loop600 ≤ 10 s on the 2-core project machine.
 ``--sweep`` also times other local-map sizes (how the default was chosen).
 Each configuration runs ``--repeat`` times (the results are identical); the figure
 is the fastest run, as timeit reports, since on a shared virtual machine the

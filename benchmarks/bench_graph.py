@@ -1,6 +1,6 @@
 """Wall time and accuracy of the GTSAM mirror (batch LM and iSAM2) on a log (prints JSON).
 
-Targets (issue 4) on loop600 (2,400 poses), 2-core project machine:
+Targets on loop600 (2,400 poses), 2-core project machine:
 iSAM2 with fusion ≤ 15 s total and ≤ 125 ms per step (p99); batch ≤ 20 s; our
 custom line/circle factors ≤ 3× the time of a same-size graph of GTSAM built-in
 factors under the same solvers.

@@ -1,6 +1,6 @@
 """Wall time and GPS error of the backends on the real datasets (prints JSON).
 
-Targets (issue 6): on Victoria Park, the EKF and iSAM2 each finish the whole 26-minute
+Targets: on Victoria Park, the EKF and iSAM2 each finish the whole 26-minute
 run in ≤ 180 s on the 2-core project machine (for iSAM2, ``graph_wall_s``: the graph
 alone, without the EKF run whose decisions it consumes).  Wall times depend on what
 else runs on the machine; ``*_cpu_s`` are this process's CPU time.  The car park is timed too (every

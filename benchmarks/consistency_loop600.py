@@ -1,4 +1,4 @@
-"""How often a consistent estimator would pass issue 3's per-seed criteria (prints JSON).
+"""How often a consistent estimator would pass the paper's per-seed criteria (prints JSON).
 
 The batch smoother's joint covariance of every ``--stride``-th pose says how its
 errors would scatter if it were consistent.  Drawing errors from it gives, per seed,

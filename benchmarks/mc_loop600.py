@@ -1,7 +1,7 @@
-"""Monte Carlo over loop600 seeds: how often each of issue 3's per-seed criteria holds.
+"""Monte Carlo over loop600 seeds: how often each of the paper's per-seed criteria holds.
 
-Issue 3 asks for the paper's figures on seeds 0–4, one run each.  This script runs
-many seeds and reports, per estimator, on how many seeds each criterion holds, so a
+The acceptance tests check the paper's figures on seeds 0–4, one run each.  This script
+runs many seeds and reports, per estimator, on how many seeds each criterion holds, so a
 miss can be weighed against how often estimators without the EKF's approximations
 miss it too (``--estimators``, comma-separated):
 
@@ -9,13 +9,12 @@ miss it too (``--estimators``, comma-separated):
 * ``ekf_carry`` — the same with ``EKFConfig(carry_seen_steps=1)``: every local map
   starts with the global features seen at the last step, shared as the known map is;
 * ``filter`` — iSAM2's filtered estimate (``GraphResult.filtered_poses``) on the same
-  log and the default EKF's association decisions (about 25 s a seed);
+  log and the default EKF's association decisions;
 * ``batch`` — the batch smoother on the same inputs (its anchor uses every step);
 * ``draw`` — the known-map draw alone: where an ideal estimator would put the anchor
   (:func:`mapfuse_core.evaluation.known_map_draw_offset`).
 
-A seed takes about 10 s to simulate and 8 s per fused EKF run.  Each seed's row is
-appended to ``--out`` (JSON lines) when done, so a run can be stopped and resumed
+Each seed's row is appended to ``--out`` (JSON lines) when done, so a run can be stopped and resumed
 (seeds already in the file are skipped); the summary is printed as one JSON object.
 ``--summarise FILE`` prints the summary of a file only.
 

@@ -14,7 +14,7 @@ from mapfuse.interop.networkx import correspondence_nx
 from mapfuse_core.ccda import ccda_match
 from mapfuse_core.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
 from mapfuse_core.se2 import wrap_angle_half
-from tests.test_ccda import random_overlap
+from tests.ccda_helpers import random_overlap
 
 G1 = float(chi2.ppf(0.999, 1))  # the default gate_prob's 1-dof gate
 

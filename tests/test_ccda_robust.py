@@ -19,7 +19,7 @@ from mapfuse_core.ccda import REASONS, CCDAParams, ccda_match
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLogError, load_log, save_log
 from mapfuse_core.se2 import compose, inverse, transform_point
-from tests.test_ccda import (
+from tests.ccda_helpers import (
     CIRCLE,
     LINE,
     circle_cov,
@@ -343,7 +343,7 @@ def test_anchor_truth_uses_the_known_maps_frame(frame: list[float]) -> None:
     np.testing.assert_allclose(anchor_truth(np.array([x0]), None), x0)
 
 
-def test_the_log_stores_the_known_maps_frame_and_old_logs_load(tmp_path: Path) -> None:
+def test_the_log_stores_the_known_maps_frame_and_logs_without_it_load(tmp_path: Path) -> None:
     log = small_log()
     assert log.known_frame is None
     old = load_log(save_log(log, tmp_path / "old.npz"))  # written without the field

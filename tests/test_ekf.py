@@ -229,8 +229,8 @@ def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) ->
     res = run_ekf(log, EKFConfig(fusion=fusion, carry_seen_steps=int(carry)))
     err = pose_errors(res.poses, truth_in_global(log.true_poses))
     nees = nees_series(err.dx, res.covs)[1:]
-    # A consistent 3-dof filter: ≥ 90 % of steps under χ²(3, 0.95) = 7.815 (the issue's
-    # criterion); a filter that ignored half its odometry noise would fail it.
+    # A consistent 3-dof filter: ≥ 90 % of steps under χ²(3, 0.95) = 7.815 (the paper's
+    # consistency criterion); a filter that ignored half its odometry noise would fail it.
     assert np.mean(nees <= 7.815) >= 0.9
     assert err.position.max() < 0.35
     if fusion:

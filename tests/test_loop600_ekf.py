@@ -1,54 +1,15 @@
-"""Issue 3 acceptance on loop600, seeds 0–4: accuracy, anchor, consistency (slow).
+"""The paper's per-seed criteria on loop600, seeds 0–4: accuracy, anchor, consistency (slow).
 
-Where the EKF does not yet meet the issue's figure on a seed, the case is marked
-``xfail`` with the measured value, so the gap stays visible in every test run (and
-an improvement shows up as XPASS).  Issue 3 stays open until none is left.
+Where the EKF does not meet the paper's figure on a seed, the case is marked ``xfail``
+with the measured value, so the gap stays visible in every test run (and an
+improvement shows up as XPASS).
 
 The extracted features are unbiased (``tests/test_extraction_consistency.py``) and the
-odometry is white with its stated covariance: with every input redrawn exactly from
-its logged Gaussian the EKF still has a mean NEES of 2.6–4.8 over draws on one
-trajectory, and falls below 90 % within on some draws.
-
-``tests/test_loop600_graph.py`` compares the EKF with iSAM2's filtered estimates on
-the same inputs.  That filter is given the EKF's *final* association decisions from
-each feature's first sighting.  The two remaining kinds of gap then part ways:
-
-* the NEES gap of seed 4 is the filter's too (84 % within against 85 %), so it is not
-  specific to the EKF's linearisation or its local maps;
-* the max-error gaps of seeds 2 and 4 are not (the filter stays at 0.138 and
-  0.141 m).
-
-Most of the max-error gaps comes from the paper's local maps.  A new local map starts
-without the global map's features, so a wall seen again is a new local feature until
-the next join pairs it; only the known map is reachable at every step, through the
-anchor.  On seed 4 the local map joined at step 479 holds wall 26, not in the known map
-and seen at every step from 478 on; the EKF–filter difference is at most 0.7 cm up to
-step 479 and 3.6–3.9 cm over steps 485–518 (measured before known walls were paired
-at the observed segment, which moved seed 4's maximum by 3 mm).  With
-``carry_seen_steps=1`` (beyond the paper: a new local map holds the global features
-seen at the last step, shared as the known map is) the fused EKF meets 0.15 m on all
-five seeds (seed 2: 0.131 m, seed 4: 0.146 m;
-test_carrying_seen_features_across_joins_meets_the_papers_max_error), while iterating
-every update (tried before, not kept) left seed 4 at 0.178 m.  Seed 2's NEES is then
-90.2 % within, not 93.2 %.  It is not the whole story: joining after every step (tried
-before) left seed 4 at 0.163 m, and over 40 seeds carrying still misses 0.15 m on
-seeds where the filter does not.
-
-Over 40 seeds (``benchmarks/mc_loop600.py``) iSAM2's filter misses the per-seed
-criteria too: the fused NEES criterion fails on the same 7 seeds for the EKF and for
-the filter (4, 7, 12, 18, 19, 26, 37); the max error fails on 8 seeds for the EKF, 3
-with carried features, 3 for the filter and 2 for the batch smoother.  The anchor
-criterion fails on 5 seeds for the EKF (1, 10, 12, 26, 32) and on 3 for the batch
-smoother (1, 12, 26); the EKF's anchor NEES averages 3.25, the batch's 3.06.
-
-The errors of all poses share the anchor's and the known map's, which last the whole
-run.  Errors drawn from the batch smoother's own joint covariance (a smoother
-consistent by construction) have fewer than 90 % of the steps within the χ² bound on
-10.8–11.1 % of each of seeds 0–4 (``benchmarks/consistency_loop600.py``): all five
-pass with probability 0.56.  The batch itself has 89.1 % within on seed 4.  Its
-maximum error, by contrast, exceeds 0.15 m on only 1–2 % of such draws.  An anchor
-drawn from the EKF's own anchor covariance misses 4 cm / 2 mrad on 12–13 % of each
-seed (all five pass with probability 0.52; over 40 seeds the EKF misses on 5).
+odometry is white with its stated covariance.  ``tests/test_loop600_graph.py`` compares
+the EKF with iSAM2's filtered estimates on the same inputs and the EKF's final
+association decisions.  Where the remaining gaps come from (the paper's local maps, the
+known-map draw, the autocorrelation of one run's NEES), with the per-seed and 40-seed
+figures, is in ``docs/known-gaps.md``.
 """
 
 from __future__ import annotations
@@ -99,7 +60,7 @@ def test_ccda_accepts_only_correct_pairings(seed: int) -> None:
 )
 def test_anchor_accuracy(seed: int) -> None:
     a = ekf_metrics(loop600_ekf(seed, True), loop600_log(seed))["anchor"]
-    # Paper: 3.8 cm; the issue's bounds.
+    # Paper: 3.8 cm; the per-seed bounds 4 cm and 2 mrad.
     assert a["position_error_m"] <= 0.04, a
     assert a["heading_error_rad"] <= 0.002, a
 
@@ -117,8 +78,8 @@ def test_anchor_is_near_what_the_known_map_allows(seed: int) -> None:
     ideal = compose(draw.offset, truth)
     est = loop600_ekf(seed, True).anchor
     assert est is not None
-    # Measured against it: 1.7, 2.4, 1.0, 2.9, 1.8 cm; the issue's 4 cm and
-    # 2 mrad, held against what the map allows instead of the truth.
+    # The per-seed bounds 4 cm and 2 mrad, held against what the map allows instead
+    # of the truth.
     assert math.hypot(*(est.x_Wknown_Wglobal[:2] - ideal[:2])) <= 0.04
     assert abs(wrap_angle(est.x_Wknown_Wglobal[2] - ideal[2])) <= 0.002
     if seed == 1:

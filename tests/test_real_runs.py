@@ -144,17 +144,18 @@ def test_saturated_steering_widens_the_heading_variance() -> None:
 
 @pytest.fixture(scope="module")
 def victoria_head(data_dir: Path) -> MeasurementLog:
-    # The first 2,100 scans (450 s): past t ≈ 300 s, where the uncalibrated run diverged.
+    # The first 2,100 scans (450 s): past t ≈ 300 s, where a run with the laser's raw
+    # bearings and no sideways slip in the odometry diverges
+    # (docs/victoria-park-calibration.md).
     return load_victoria_park(data_dir).head(2100)
 
 
-def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: MeasurementLog) -> None:
+def test_victoria_ekf_follows_gps_past_t_300s(victoria_head: MeasurementLog) -> None:
     result = run(victoria_head, "ekf", fusion=False)
     m = result.metrics["position_error_m"]
     assert m["alignment"] == "best_fit"
-    # Median 0.80 m over the 2,100 scans (0.50 m over t = 300–450 s) against GPS that
-    # itself jumps by metres; with the laser's raw bearings and no sideways slip in the
-    # odometry the run was 8–13 m off from t = 300 s on.
+    # GPS itself jumps by metres; without the calibration the run is metres off from
+    # t = 300 s on (docs/victoria-park-calibration.md).
     assert m["median"] < 1.2
     t, e = gps_errors(result)
     late = (t >= 300.0) & (t <= 450.0)
@@ -164,17 +165,15 @@ def test_victoria_ekf_follows_gps_past_the_old_divergence(victoria_head: Measure
 
 @pytest.mark.slow
 def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir: Path) -> None:
-    """The whole run (about 50 s): with the odometry's sideways slip chosen by the loop
-    closures (VICTORIA_PARK_ODOMETRY_NOISE) they turn both ways; with 1 cm/√m sixteen of
-    seventeen turn the same way (mean +1.77°), and without slip only a laser yaw of
-    −0.017 rad made them turn both ways.  The park's north-west arm, 6.4 m (median) off
-    GPS without slip, now follows GPS."""
+    """With the odometry's sideways slip chosen by the loop closures
+    (VICTORIA_PARK_ODOMETRY_NOISE) the closures turn both ways and the park's north-west
+    arm follows GPS (figures without the slip: docs/victoria-park-calibration.md)."""
     result = run(load_victoria_park(data_dir), "ekf", fusion=False)
     closures = result.result.extras["ekf"].loop_closures
     rot = np.degrees([lc.correction[2] for lc in closures])
-    # Measured: 6 closures, −0.88° … +0.65°, mean −0.07°.  0.3° is a sixth of the
-    # systematic turn 1 cm/√m leaves, and about 1.3 standard errors of a mean of 6
-    # closures.  A regression guard: the slip was chosen on this same run.
+    # 0.3° is a sixth of the systematic turn 1 cm/√m of slip leaves, and about 1.3
+    # standard errors of a mean of 6 closures.  A regression guard: the slip is chosen
+    # on this same run.
     assert rot.size >= 5
     assert abs(rot.mean()) < 0.3
     assert 0 < int((rot > 0).sum()) < rot.size
@@ -185,13 +184,11 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir:
         assert lc.correction.shape == (3,)
         assert not lc.correction.flags.writeable
     m = result.metrics["position_error_m"]
-    # Measured: median 0.82 m (1.17 m without slip and with the −0.017 rad yaw that stood
-    # in for it); GPS itself jumps by metres.  Not an independent check of the slip: GPS
-    # is what shows the arm, but the value was chosen without it.
+    # GPS itself jumps by metres.  Not an independent check of the slip: GPS is what
+    # shows the arm, but the value is chosen without it.
     assert m["median"] < 1.0
     assert m["alignment"] == "best_fit"
     t, e = gps_errors(result)
     arm = (t > 1285.0) & (t < 1335.0)  # the arm's tip
-    # Measured: median 0.94 m over 182 fixes (6.4 m without slip).
     assert arm.sum() > 100
     assert np.median(e[arm]) < 2.0

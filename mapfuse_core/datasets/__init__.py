@@ -3,7 +3,8 @@
 The files are read from a directory the caller gives (the project never ships them);
 ``docs/datasets.md`` describes both datasets, their provenance and their conventions.
 
-Frames of a log built here (checked against the data in ``tests/test_datasets.py``):
+Frames of a log built here (checked against the data in
+``tests/test_datasets_carpark.py`` and ``tests/test_datasets_victoria.py``):
 
 * The log's frame ``R`` of every step is the **laser** frame: odometry increments are
   those of the laser point and features are given in it.  With bearing β

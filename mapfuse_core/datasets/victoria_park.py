@@ -38,7 +38,7 @@ per scan, and the EKF can then meet a lateral disagreement with the trees only b
 turning.  The value is the one at which the EKF's loop closures stop turning one way
 (no GPS used); ``docs/victoria-park-calibration.md`` gives the sweep.  The car park
 needs none: its odometry against the surveyed-beacon pose fits is consistent across the
-direction of travel without it (``tests/test_datasets.py``)."""
+direction of travel without it (``tests/test_datasets_victoria.py``)."""
 
 
 @dataclass(frozen=True)
