@@ -16,8 +16,8 @@ import time
 from ekf_reference import EKFConfig, run_ekf
 from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.simulate import simulate
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 
 def main() -> None:

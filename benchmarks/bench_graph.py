@@ -56,8 +56,8 @@ import numpy as np
 
 from mapfuse.estimators.graph import to_result
 from mapfuse.metrics import run_metrics
-from mapfuse_core.measlog import MeasurementLog, load_log
-from mapfuse_core.se2 import wrap_angle
+from mapfuse_core.data.measlog import MeasurementLog, load_log
+from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.graph import GraphBuilder, GraphOptions, pose_key
 from mapfuse_graph.solvers import (
@@ -76,8 +76,8 @@ Steps = list[tuple[gtsam.NonlinearFactorGraph, gtsam.Values]]
 def _load(args: argparse.Namespace) -> MeasurementLog:
     if args.log:
         return load_log(args.log)
-    from mapfuse_core.scenario import load_scenario
-    from mapfuse_core.simulate import simulate
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import simulate
 
     return simulate(load_scenario(args.scenario), seed=args.seed).log
 

@@ -17,8 +17,8 @@ import time
 from typing import Any
 
 from mapfuse.run import run
-from mapfuse_core.datasets import load_carpark, load_victoria_park
-from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.data.datasets import load_carpark, load_victoria_park
+from mapfuse_core.data.measlog import MeasurementLog
 
 TARGET_S = 180.0
 

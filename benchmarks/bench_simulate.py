@@ -19,10 +19,10 @@ import time
 
 import numpy as np
 
-from mapfuse_core.extraction import extract_features
-from mapfuse_core.laser import simulate_scan
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.simulate import extraction_workers, simulate
+from mapfuse_core.perception.extraction import extract_features
+from mapfuse_core.sim.laser import simulate_scan
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import extraction_workers, simulate
 
 
 def _cpu_s() -> float:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from mapfuse.run import run
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     VICTORIA_PARK_ODOMETRY_NOISE,
     VictoriaParkOptions,
     load_victoria_park,

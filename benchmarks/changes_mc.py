@@ -19,11 +19,11 @@ import numpy as np
 
 from mapfuse.changes import detect_changes
 from mapfuse.run import run
-from mapfuse_core.changes import ChangeParams
-from mapfuse_core.changes.generate import with_changes
-from mapfuse_core.changes.truth import change_truth, score_changes
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.simulate import simulate
+from mapfuse_core.evaluation.changes import ChangeParams
+from mapfuse_core.evaluation.changes.generate import with_changes
+from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 
 def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from mapfuse_core.changes.generate import with_changes
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.scenario import load_scenario
+from mapfuse_core.evaluation.changes.generate import with_changes
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.sim.scenario import load_scenario
 
 
 def _pr(tp: int, fp: int, fn: int) -> str:

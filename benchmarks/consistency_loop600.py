@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from mapfuse.run import run
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -35,10 +36,9 @@ from mapfuse_core.evaluation import (
     pose_errors,
     truth_in_global,
 )
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.se2 import wrap_angle
-from mapfuse_core.simulate import simulate
+from mapfuse_core.geometry.se2 import wrap_angle
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 
 def seed_row(seed: int, stride: int, draws: int) -> dict[str, Any]:

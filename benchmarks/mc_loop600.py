@@ -40,6 +40,7 @@ from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
 from mapfuse.result import Anchor
 from mapfuse.run import run
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -48,10 +49,9 @@ from mapfuse_core.evaluation import (
     pose_errors,
     truth_in_global,
 )
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.scenario import build_known_map, load_scenario
-from mapfuse_core.se2 import compose, wrap_angle
-from mapfuse_core.simulate import simulate
+from mapfuse_core.geometry.se2 import compose, wrap_angle
+from mapfuse_core.sim.scenario import build_known_map, load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 ESTIMATORS = ("ekf", "ekf_carry", "filter", "batch", "draw")
 

@@ -5,7 +5,7 @@ covariance) or a feature element of the map itself (for the hard pairing
 constraints of map joining and of the known-map fusion).  A *target* is a feature
 element expressed in the vehicle frame, or a known-map feature seen through the
 anchor ``x^R_Wknown ⊕ x^Wknown_E``.  Both are paired with the measurement models
-of :mod:`mapfuse_core.models` (through :mod:`mapfuse_core.features`).
+of :mod:`mapfuse_core.models` (through :mod:`mapfuse_core.geometry.features`).
 
 This module linearises the pairings on a :class:`~ekf_reference.state.GaussianMap`;
 the gates, the searches and their settings are the backend-independent ones of
@@ -21,11 +21,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.features import FeatureKind, pairing_cov, pairing_residual, transform_feature
+from mapfuse_core.geometry.features import (
+    FeatureKind,
+    pairing_cov,
+    pairing_residual,
+    transform_feature,
+)
+from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
-from mapfuse_core.se2 import FloatArray, wrap_angle
 
 __all__ = [
     "Candidate",
@@ -133,11 +138,11 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     """Residual, Jacobian and Mahalanobis distance of pairing query ``q`` with target ``t``.
 
     The residual is the feature model's ``pairing(target, q)``
-    (:func:`mapfuse_core.features.pairing_residual`): for a line, the offset of the
+    (:func:`mapfuse_core.geometry.features.pairing_residual`): for a line, the offset of the
     query's reference point (a measured segment's midpoint) from the target line and
     the angle between them, for an estimated line and a known wall alike, so the
     target's reference point along its line never enters.  A measurement's noise is
-    the model's (:func:`mapfuse_core.features.pairing_cov`: its covariance with the
+    the model's (:func:`mapfuse_core.geometry.features.pairing_cov`: its covariance with the
     along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
     covariance is in the map, so its pairing has none.  docs/models.md says why the
     segment form.

@@ -1,4 +1,4 @@
-"""Configuration of the EKF reference pipeline (every *(choice)* of method.md)."""
+"""Configuration of the EKF reference pipeline (every *(choice)* of docs/method.md)."""
 
 from __future__ import annotations
 

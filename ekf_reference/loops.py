@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mapfuse_core.evaluation import rigid_alignment
-from mapfuse_core.se2 import FloatArray, transform_point
+from mapfuse_core.geometry.se2 import FloatArray, transform_point
 
 __all__ = ["LoopClosureParams", "Registration", "accepted", "register_circles"]
 

@@ -1,6 +1,6 @@
 """Robotcentric local maps, their joining into the global map, and known-map fusion.
 
-Frames (method.md §1): ``R`` the vehicle, ``Wlocal`` the base of the current local
+Frames (docs/method.md §1): ``R`` the vehicle, ``Wlocal`` the base of the current local
 map, ``Wglobal`` the vehicle at step 0, ``Wknown`` the known map.
 
 * Local map (paper eq. 1, 17): ``[x^R_Wlocal, (x^R_Wknown, x^Wknown_E…), x^R_F…]``.
@@ -37,8 +37,14 @@ from ekf_reference.association import (
 )
 from ekf_reference.config import EKFConfig
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
-from mapfuse_core.features import express_in, transform_feature
-from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian, relative, wrap_angle
+from mapfuse_core.geometry.features import express_in, transform_feature
+from mapfuse_core.geometry.se2 import (
+    FloatArray,
+    compose_jacobians,
+    inverse_jacobian,
+    relative,
+    wrap_angle,
+)
 
 __all__ = [
     "CIContext",

@@ -36,11 +36,11 @@ from ekf_reference.maps import (
 )
 from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.ccda import ccda_match
-from mapfuse_core.features import transform_feature
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.geometry.features import transform_feature
+from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.se2 import FloatArray, compose_jacobians, inverse_jacobian
+from mapfuse_core.matching.ccda import ccda_match
 
 __all__ = ["run_ekf"]
 

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ekf_reference.config import EKFConfig
-from mapfuse_core.decisions import AnchorDecision, AssociationDecisions
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions
 
 __all__ = [
     "AnchorResult",

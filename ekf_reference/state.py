@@ -1,7 +1,7 @@
 """A Gaussian over a list of 3-parameter elements: the storage of every EKF map.
 
 Each element is a pose (a frame such as ``Wlocal`` or ``Wknown``), an SPmap line or a
-circle, always 3 parameters ordered as in :mod:`mapfuse_core.features`.  An element
+circle, always 3 parameters ordered as in :mod:`mapfuse_core.geometry.features`.  An element
 is *moving* when it is expressed in the vehicle frame ``R`` (robotcentric maps: it
 changes with every odometry step) and *static* otherwise (known-map features, which
 live in ``Wknown``).
@@ -21,9 +21,9 @@ from enum import IntEnum
 
 import numpy as np
 
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
 from mapfuse_core.models.line import bind_line_cov
-from mapfuse_core.se2 import FloatArray, wrap_angle
 
 __all__ = ["Element", "ElementKind", "GaussianMap", "Role", "bind_line_cov"]
 

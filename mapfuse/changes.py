@@ -1,6 +1,6 @@
 """Known-map change detection on an :class:`~mapfuse.result.EstimatorResult`.
 
-The same classification (:func:`mapfuse_core.changes.classify_changes`) for every
+The same classification (:func:`mapfuse_core.evaluation.changes.classify_changes`) for every
 estimator: it reads the run's association decisions, its main trajectory (the
 smoothed one for a batch or iSAM2 graph, the filtered one for the EKF) and its
 anchor.  With the smoothed trajectory every observation is put in ``Wknown`` with
@@ -17,10 +17,10 @@ from collections.abc import Sequence
 from typing import Any
 
 from mapfuse.result import EstimatorResult
-from mapfuse_core.changes import ChangeParams, ChangeReport, classify_changes
-from mapfuse_core.changes.truth import ChangeTruth, change_truth, score_changes
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.scenario import Scenario
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport, classify_changes
+from mapfuse_core.evaluation.changes.truth import ChangeTruth, change_truth, score_changes
+from mapfuse_core.sim.scenario import Scenario
 
 __all__ = ["change_report_lines", "change_section", "detect_changes"]
 

@@ -4,7 +4,7 @@ Writes ``OUT/changes.json`` (every known feature's class and evidence, the new
 features, the run's rejection counters, and in simulation the truth and the
 precision/recall) and ``OUT/changes.png`` (:func:`mapfuse.changes_figure.changes_figure`).
 ``--moved/--removed/--added/--shift`` perturb a simulated scenario's known map first
-(:func:`mapfuse_core.changes.generate.with_changes`).
+(:func:`mapfuse_core.evaluation.changes.generate.with_changes`).
 """
 
 from __future__ import annotations
@@ -53,11 +53,11 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     from mapfuse.changes_figure import changes_figure
     from mapfuse.run import DATASETS, prepare_log
     from mapfuse.run import run as run_estimator
-    from mapfuse_core.changes import ChangeParams
-    from mapfuse_core.changes.generate import with_changes
-    from mapfuse_core.changes.truth import change_truth
-    from mapfuse_core.scenario import load_scenario
-    from mapfuse_core.simulate import simulate
+    from mapfuse_core.evaluation.changes import ChangeParams
+    from mapfuse_core.evaluation.changes.generate import with_changes
+    from mapfuse_core.evaluation.changes.truth import change_truth
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import simulate
 
     simulated = not (args.scenario.endswith(".npz") or args.scenario in DATASETS)
     perturbed = args.moved or args.removed or args.added or args.shift

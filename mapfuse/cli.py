@@ -17,9 +17,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mapfuse_core.measlog import MeasurementLog, save_log
-from mapfuse_core.scenario import ScenarioError, list_builtin_scenarios, load_scenario
-from mapfuse_core.simulate import simulate
+from mapfuse_core.data.measlog import MeasurementLog, save_log
+from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 __all__ = ["main"]
 

@@ -36,14 +36,14 @@ from mapfuse.figures import (
 from mapfuse.outputs import write_outputs
 from mapfuse.result import EstimatorResult
 from mapfuse.run import Run, consumer_options, fusion_for, labelled, resolve, run
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import CHI2_3_95, path_length
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import wrap_scalar
+from mapfuse_core.geometry.se2 import wrap_scalar
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mapfuse_core.scenario import Scenario
+    from mapfuse_core.sim.scenario import Scenario
 
 __all__ = [
     "DEFAULT_BACKENDS",

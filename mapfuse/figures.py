@@ -27,6 +27,7 @@ from mapfuse.plotting import (
     plot_world,
 )
 from mapfuse.run import Run, fusion_for
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     gps_error_series,
@@ -34,16 +35,15 @@ from mapfuse_core.evaluation import (
     pose_errors,
     truth_in_global,
 )
-from mapfuse_core.features import FeatureKind, transform_feature
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.se2 import FloatArray, compose, inverse
-from mapfuse_core.world import World
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import FloatArray, compose, inverse
+from mapfuse_core.sim.world import World
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from mapfuse_core.ccda import CCDAResult
+    from mapfuse_core.matching.ccda import CCDAResult
 
 __all__ = [
     "PAPER_ANCHOR_ESTIMATE",

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from mapfuse.result import Anchor, EstimatorResult
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     anchor_metrics,
     anchor_truth,
@@ -24,8 +25,7 @@ from mapfuse_core.evaluation import (
     runtime_metrics,
     truth_in_global,
 )
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = ["anchor_block", "build_metrics", "run_metrics"]
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from mapfuse.estimator import Estimator
-from mapfuse_core.datasets import VICTORIA_PARK_NAME
-from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
+from mapfuse_core.data.measlog import MeasurementLog
 
 __all__ = ["PROFILES", "Profile", "default_options", "profile_of"]
 

@@ -18,10 +18,10 @@ from mapfuse.estimator import Estimator, Progress
 from mapfuse.metrics import run_metrics
 from mapfuse.profiles import default_options
 from mapfuse.result import EstimatorResult
-from mapfuse_core.measlog import MeasurementLog, load_log
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.se2 import FloatArray
-from mapfuse_core.simulate import simulate
+from mapfuse_core.data.measlog import MeasurementLog, load_log
+from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 __all__ = [
     "DATASETS",
@@ -95,7 +95,7 @@ def prepare_log(
     if source in DATASETS:
         if data_dir is None:
             raise ValueError(f"dataset {source!r} needs a data directory (--data DIR)")
-        from mapfuse_core.datasets import load_carpark, load_victoria_park
+        from mapfuse_core.data.datasets import load_carpark, load_victoria_park
 
         loader = load_carpark if source == "carpark" else load_victoria_park
         return loader(data_dir)

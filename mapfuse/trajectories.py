@@ -30,7 +30,7 @@ import numpy as np
 
 from mapfuse.run import Run
 from mapfuse_core.evaluation import truth_in_global, write_tum
-from mapfuse_core.se2 import FloatArray, compose
+from mapfuse_core.geometry.se2 import FloatArray, compose
 
 __all__ = ["TRAJECTORY_FILES", "Trajectory", "run_trajectories", "write_trajectories"]
 

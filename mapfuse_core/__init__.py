@@ -1,17 +1,21 @@
-"""mapfuse_core: geometry, features, scenarios, sensing, matching and evaluation.
+"""mapfuse_core: the estimator-independent core, numpy and scipy only.
 
-numpy, scipy and networkx only (plots live in the harness, :mod:`mapfuse.plotting`).
-Poses are ``(x, y, θ)`` everywhere.
+Subpackages mirror the method (``docs/method.md``): :mod:`~mapfuse_core.geometry`
+(SE(2) and features), :mod:`~mapfuse_core.sim` (worlds, sensors, scenarios,
+simulation), :mod:`~mapfuse_core.perception` (feature extraction),
+:mod:`~mapfuse_core.matching` (CCDA), :mod:`~mapfuse_core.data` (measurement logs and
+real datasets) and :mod:`~mapfuse_core.evaluation` (metrics and NEES statistics).
+Poses are ``(x, y, θ)`` everywhere (``docs/conventions.md``).
 """
 
-from mapfuse_core.ccda import CCDAParams, CCDAResult, ccda_match, estimate_transform
-from mapfuse_core.extraction import (
-    ExtractedFeature,
-    ExtractionParams,
-    ExtractionResult,
-    extract_features,
+from mapfuse_core.data.measlog import (
+    KnownMapArrays,
+    MeasurementLog,
+    MeasurementLogError,
+    load_log,
+    save_log,
 )
-from mapfuse_core.features import (
+from mapfuse_core.geometry.features import (
     FeatureKind,
     canonical_line,
     circle_pairing,
@@ -24,25 +28,31 @@ from mapfuse_core.features import (
     pairing_residual,
     transform_feature,
 )
-from mapfuse_core.laser import LaserParams, Scan, cast_rays, simulate_scan
-from mapfuse_core.measlog import (
-    KnownMapArrays,
-    MeasurementLog,
-    MeasurementLogError,
-    load_log,
-    save_log,
+from mapfuse_core.geometry.se2 import (
+    compose,
+    compose_jacobians,
+    inverse,
+    inverse_jacobian,
+    relative,
 )
-from mapfuse_core.scenario import (
+from mapfuse_core.matching.ccda import CCDAParams, CCDAResult, ccda_match, estimate_transform
+from mapfuse_core.perception.extraction import (
+    ExtractedFeature,
+    ExtractionParams,
+    ExtractionResult,
+    extract_features,
+)
+from mapfuse_core.sim.laser import LaserParams, Scan, cast_rays, simulate_scan
+from mapfuse_core.sim.scenario import (
     Scenario,
     ScenarioError,
     build_known_map,
     list_builtin_scenarios,
     load_scenario,
 )
-from mapfuse_core.se2 import compose, compose_jacobians, inverse, inverse_jacobian, relative
-from mapfuse_core.simulate import SimulationResult, simulate
-from mapfuse_core.vehicle import MotionResult, VehicleParams, car_increment, simulate_motion
-from mapfuse_core.world import CircleObstacle, WallSegment, World
+from mapfuse_core.sim.simulate import SimulationResult, simulate
+from mapfuse_core.sim.vehicle import MotionResult, VehicleParams, car_increment, simulate_motion
+from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 __all__ = [
     "CCDAParams",

@@ -3,7 +3,7 @@
 Modules, imported on demand (each loads gtsam):
 
 * :mod:`mapfuse_graph.factors` — line and circle observation factors and the
-  known-map anchor, on the measurement models of :mod:`mapfuse_core.features`;
+  known-map anchor, on the measurement models of :mod:`mapfuse_core.geometry.features`;
 * :mod:`mapfuse_graph.graph` — builds the factor graph from a measurement log
   (:mod:`~mapfuse_graph.builder`, :mod:`~mapfuse_graph.keys`, :mod:`~mapfuse_graph.options`,
   :mod:`~mapfuse_graph.validation`, :mod:`~mapfuse_graph.estimate`,
@@ -13,6 +13,6 @@ Modules, imported on demand (each loads gtsam):
   with :mod:`~mapfuse_graph.marginals` and :mod:`~mapfuse_graph.results`.
 
 Depends on :mod:`mapfuse_core` only (association decisions arrive as
-:class:`~mapfuse_core.decisions.AssociationDecisions`); the harness that runs it beside
+:class:`~mapfuse_core.matching.decisions.AssociationDecisions`); the harness that runs it beside
 the EKF is :mod:`mapfuse`.
 """

@@ -10,8 +10,8 @@ from typing import Protocol
 import gtsam
 import numpy as np
 
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_graph.keys import pose_key
 
 __all__ = ["Estimate", "StepGraph"]

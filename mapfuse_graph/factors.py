@@ -1,4 +1,4 @@
-"""GTSAM factors of the mapfuse measurement models (method.md §7, docs/models.md).
+"""GTSAM factors of the mapfuse measurement models (docs/method.md §7, docs/models.md).
 
 Every residual is a model of :mod:`mapfuse_core.models` (the EKF's own); this module
 only chooses the landmark variables, chains the Jacobians and converts them to GTSAM's
@@ -21,7 +21,7 @@ Variables
   huge-σ ``BetweenFactorPose2`` trick.  Retraction is plain addition; ``α`` is never
   wrapped in the variable (residual angles are wrapped modulo π by the model).
   SPmap ``(x, y, θ)`` ↔ ``(ρ, α)``: ``α = θ − π/2``, ``ρ = x sin θ − y cos θ``
-  (:func:`line_to_rho_alpha`); back with :func:`mapfuse_core.features.line_from_normal`.
+  (:func:`line_to_rho_alpha`); back with :func:`mapfuse_core.geometry.features.line_from_normal`.
 * **Circle landmark** a 3-vector ``(x, y, r)``, retraction by addition.
 * **Known feature** the same representations, in ``Wknown``.
 * **Anchor** ``gtsam.Pose2`` ``A = x^Wglobal_Wknown``.
@@ -78,8 +78,8 @@ from collections.abc import Callable, Sequence
 import gtsam
 import numpy as np
 
-from mapfuse_core.features import FeatureKind, pairing_cov
-from mapfuse_core.se2 import FloatArray, wrap_scalar_half
+from mapfuse_core.geometry.features import FeatureKind, pairing_cov
+from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar_half
 from mapfuse_graph.residuals import (
     circle_observation_error,
     circle_tie_error,

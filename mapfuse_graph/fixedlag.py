@@ -52,8 +52,8 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.isam2 import _DIMS, ISAM2Options, _newest_pose_marginal, isam2_params

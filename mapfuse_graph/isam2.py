@@ -18,7 +18,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.keys import anchor_key, pose_key

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import gtsam
 
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind
 
 __all__ = [
     "KEY_KINDS",

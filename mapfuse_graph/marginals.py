@@ -9,7 +9,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = ["body_to_abs_cov", "tree_marginals"]
 

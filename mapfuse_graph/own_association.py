@@ -14,15 +14,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mapfuse_core.ccda import ccda_match
-from mapfuse_core.features import FeatureKind, transform_feature
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
 from mapfuse_core.matching import (
     ScoredPair,
     nearest_neighbour,
     pregate,
 )
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.se2 import FloatArray, compose_jacobians
+from mapfuse_core.matching.ccda import ccda_match
 from mapfuse_graph.estimate import Estimate, StepGraph, _Landmark, _WithStep
 from mapfuse_graph.factors import (
     circle_observation_error,

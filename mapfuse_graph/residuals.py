@@ -14,7 +14,7 @@ import math
 import gtsam
 import numpy as np
 
-from mapfuse_core.features import (
+from mapfuse_core.geometry.features import (
     FeatureKind,
     line_from_normal,
     pairing_residual,
@@ -22,9 +22,9 @@ from mapfuse_core.features import (
     transform_feature,
     transform_line,
 )
+from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar
 from mapfuse_core.models.circle import circle_observation
 from mapfuse_core.models.line import line_observation, line_residual, line_residual_cov
-from mapfuse_core.se2 import FloatArray, wrap_scalar
 
 __all__ = [
     "circle_observation_error",
@@ -66,7 +66,7 @@ def line_to_rho_alpha(line: FloatArray) -> tuple[FloatArray, FloatArray]:
 
     ``α = θ − π/2`` (wrapped) and ``ρ = x sin θ − y cos θ``, the exact inverse of
     ``line_from_normal(ρ, α, t)`` for the ``t`` of the SPmap origin
-    (:func:`rho_alpha_along`).  Unlike :func:`mapfuse_core.features.line_to_normal`
+    (:func:`rho_alpha_along`).  Unlike :func:`mapfuse_core.geometry.features.line_to_normal`
     the sign of ``ρ`` is kept, so the map is smooth everywhere.
     """
     x, y, th = float(line[0]), float(line[1]), float(line[2])

@@ -7,11 +7,11 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     dead_reckoning,
 )
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import wrap_scalar
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.geometry.se2 import wrap_scalar
 
 
 def rigid_fit(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

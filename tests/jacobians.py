@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 from hypothesis import strategies as st
 
-from mapfuse_core.se2 import wrap_angle
+from mapfuse_core.geometry.se2 import wrap_angle
 
 # Central differences with h = 1e-6 have truncation error O(h²·f''') ≈ 1e-12 and
 # round-off O(ε·|f|/h) ≈ 1e-10·|f| for |f| ≲ 100 m, so 1e-6 absolute plus 1e-6

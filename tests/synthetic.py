@@ -11,9 +11,9 @@ import math
 
 import numpy as np
 
-from mapfuse_core.features import FeatureKind, canonical_line, express_in
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.se2 import compose, relative, wrap_angle
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind, canonical_line, express_in
+from mapfuse_core.geometry.se2 import compose, relative, wrap_angle
 
 
 def ring_world(

@@ -33,8 +33,8 @@ from mapfuse.campaign.stats import (
 )
 from mapfuse.campaign.summary import summarise
 from mapfuse.campaign.task import make_log
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.simulate import simulate
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "tests" / "data" / "tiny_loop.toml")

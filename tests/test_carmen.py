@@ -10,25 +10,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse_core.datasets.carmen import (
+from mapfuse_core.data.datasets.carmen import (
     CarmenOptions,
     IncrementNoise,
     carmen_scans,
     detect_odometry_kind,
     load_carmen,
 )
-from mapfuse_core.datasets.carmen_format import guess_beam_geometry, read_carmen
-from mapfuse_core.datasets.common import DatasetError
-from mapfuse_core.datasets.floorplan import (
+from mapfuse_core.data.datasets.carmen_format import guess_beam_geometry, read_carmen
+from mapfuse_core.data.datasets.common import DatasetError
+from mapfuse_core.data.datasets.floorplan import (
     build_floor_plan,
     label_with_plan,
     line_nees,
     same_wall,
 )
-from mapfuse_core.extraction import EXTRACTION_PROFILES, ExtractionParams, extract_features
-from mapfuse_core.laser import LaserParams, simulate_scan
-from mapfuse_core.measlog import load_log, save_log
-from mapfuse_core.world import WallSegment, World
+from mapfuse_core.data.measlog import load_log, save_log
+from mapfuse_core.perception.extraction import (
+    EXTRACTION_PROFILES,
+    ExtractionParams,
+    extract_features,
+)
+from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sim.world import WallSegment, World
 
 DATA = Path(__file__).parent / "data" / "carmen"
 SNIPPET = DATA / "snippet.log"
@@ -270,10 +274,10 @@ out lower (``docs/carmen.md``)."""
 @pytest.mark.parametrize("name", ["intel", "csail"])
 def test_real_log_lines_plan_nees_ccda_and_fusion(data_dir: Path, name: str) -> None:
     from ekf_reference import EKFConfig, run_ekf
-    from mapfuse_core.datasets.carmen import carmen_association
-    from mapfuse_core.datasets.floorplan import FloorPlanParams
+    from mapfuse_core.data.datasets.carmen import carmen_association
+    from mapfuse_core.data.datasets.floorplan import FloorPlanParams
     from mapfuse_core.evaluation import anchor_truth, pose_metrics, truth_in_global
-    from mapfuse_core.se2 import relative
+    from mapfuse_core.geometry.se2 import relative
 
     log = load_carmen(_carmen_file(data_dir, name))
     assert log.metadata["odometry"] == "simulated from reference"

@@ -11,9 +11,9 @@ import pytest
 from scipy.stats import chi2
 
 from mapfuse.interop.networkx import correspondence_nx
-from mapfuse_core.ccda import ccda_match
-from mapfuse_core.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
-from mapfuse_core.se2 import wrap_angle_half
+from mapfuse_core.geometry.se2 import wrap_angle_half
+from mapfuse_core.matching.ccda import ccda_match
+from mapfuse_core.matching.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
 from tests.ccda_helpers import random_overlap
 
 G1 = float(chi2.ppf(0.999, 1))  # the default gate_prob's 1-dof gate
@@ -72,7 +72,7 @@ def test_arrays_and_errors() -> None:
     cg = correspondence_graph(case.map_a, case.map_b)
     assert cg.edge_u.shape == cg.edge_v.shape == cg.chi2.shape == cg.edge_kind.shape
     assert set(np.unique(cg.edge_kind).tolist()) <= {0, 1, 2}
-    from mapfuse_core.ccda import CCDAParams
+    from mapfuse_core.matching.ccda import CCDAParams
 
     with pytest.raises(ValueError, match="max_edges"):
         correspondence_graph(case.map_a, case.map_b, CCDAParams(max_edges=1))

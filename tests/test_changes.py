@@ -11,12 +11,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapfuse_core.changes import ChangeParams, ChangeStatus, classify_changes, feature_residual
-from mapfuse_core.changes.generate import with_changes
-from mapfuse_core.features import FeatureKind, transform_feature
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.se2 import compose, inverse, relative
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.evaluation.changes import (
+    ChangeParams,
+    ChangeStatus,
+    classify_changes,
+    feature_residual,
+)
+from mapfuse_core.evaluation.changes.generate import with_changes
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import compose, inverse, relative
+from mapfuse_core.sim.scenario import load_scenario
 from tests.synthetic import synthetic_log
 
 PARAMS = ChangeParams(max_range_m=25.0)
@@ -302,7 +307,7 @@ def test_changes_command_refuses_to_perturb_a_log(tmp_path):
 
 
 def test_a_line_moved_along_itself_is_not_a_significant_move():
-    from mapfuse_core.changes.truth import ChangeTruth
+    from mapfuse_core.evaluation.changes.truth import ChangeTruth
 
     truth = ChangeTruth(
         moved={1: (2.0, 0.0, 0.0, 0.0), 2: (0.0, 0.6, 0.0, 0.0), 3: (0.0, 0.0, 0.12, 0.0)},

@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 import scipy.io
 
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     CARPARK_NAME,
     DatasetError,
     dead_reckoning,
     load_carpark,
 )
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import compose_jacobians, relative, wrap_scalar
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import compose_jacobians, relative, wrap_scalar
 from tests.datasets_helpers import (
     apply_rigid,
     features_in_world,

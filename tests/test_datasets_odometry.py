@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     CarGeometry,
     CarparkOptions,
     OdometryNoise,
@@ -18,8 +18,8 @@ from mapfuse_core.datasets import (
     integrate_odometry,
     rear_axle_speed,
 )
-from mapfuse_core.se2 import compose, inverse
-from mapfuse_core.vehicle import car_increment
+from mapfuse_core.geometry.se2 import compose, inverse
+from mapfuse_core.sim.vehicle import car_increment
 from tests.jacobians import numerical_jacobian
 
 # --------------------------------------------------------------------------- odometry model

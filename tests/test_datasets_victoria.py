@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     VICTORIA_PARK_NAME,
     VICTORIA_PARK_ODOMETRY_NOISE,
     DatasetError,
@@ -26,8 +26,8 @@ from mapfuse_core.datasets import (
     dead_reckoning,
     load_victoria_park,
 )
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind
 from tests.datasets_helpers import features_in_world, gps_at, rigid_fit
 
 # --------------------------------------------------------------------------- Victoria Park (real)

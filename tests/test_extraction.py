@@ -10,17 +10,17 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
-from mapfuse_core import extraction as ex
-from mapfuse_core.extraction import ExtractedFeature, ExtractionParams, extract_features
-from mapfuse_core.features import (
+from mapfuse_core.geometry.features import (
     FeatureKind,
     canonical_line,
     express_in,
     line_pairing,
     line_to_normal,
 )
-from mapfuse_core.laser import LaserParams, Scan, simulate_scan
-from mapfuse_core.world import CircleObstacle, WallSegment, World
+from mapfuse_core.perception import extraction as ex
+from mapfuse_core.perception.extraction import ExtractedFeature, ExtractionParams, extract_features
+from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
+from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 EXACT = LaserParams(sigma_range_m=0.0, sigma_bearing_rad=0.0)
 ORIGIN = np.zeros(3)

@@ -6,7 +6,7 @@ feature expressed in the sensor frame is normalised by the reported covariance:
 * lines, 2 dof: the SPmap pairing ``line_pairing(extracted, true_in_S)`` (lateral
   offset and angle modulo π) with covariance ``Ja Σ Jaᵀ``, ``Ja`` the residual's
   Jacobian w.r.t. the extracted line.  The extracted line is the *first* argument, as
-  in :func:`mapfuse_core.features.observe`, so the along-line pseudo-variance does not
+  in :func:`mapfuse_core.geometry.features.observe`, so the along-line pseudo-variance does not
   enter (as the second argument it would leak ``(L²/12) sin²Δθ`` into the lateral
   variance and push the NEES down);
 * circles, 3 dof: ``(x, y, r)`` difference with the 3×3 covariance.
@@ -24,10 +24,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.extraction import ExtractionParams, extract_features
-from mapfuse_core.features import FeatureKind, express_in, line_pairing
-from mapfuse_core.laser import LaserParams, simulate_scan
-from mapfuse_core.world import CircleObstacle, WallSegment, World
+from mapfuse_core.geometry.features import FeatureKind, express_in, line_pairing
+from mapfuse_core.perception.extraction import ExtractionParams, extract_features
+from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 LO = np.array([-100.0, -80.0])
 HI = np.array([80.0, 100.0])
@@ -247,8 +247,8 @@ def test_nees_random_poses_in_a_paper_like_world() -> None:
 
 @pytest.mark.slow
 def test_nees_along_the_loop600_trajectory() -> None:
-    scenario_mod = pytest.importorskip("mapfuse_core.scenario")
-    vehicle_mod = pytest.importorskip("mapfuse_core.vehicle")
+    scenario_mod = pytest.importorskip("mapfuse_core.sim.scenario")
+    vehicle_mod = pytest.importorskip("mapfuse_core.sim.vehicle")
     sc = scenario_mod.load_scenario("loop600")
     motion = vehicle_mod.simulate_motion(
         sc.start, sc.waypoints, sc.steps, sc.vehicle, np.random.default_rng(0)

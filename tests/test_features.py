@@ -9,9 +9,9 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from mapfuse_core import features as ft
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.se2 import compose, inverse, wrap_angle
+from mapfuse_core.geometry import features as ft
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
 from tests.jacobians import ATOL, RTOL, circles, numerical_jacobian, poses
 
 KINDS = [FeatureKind.LINE, FeatureKind.CIRCLE]

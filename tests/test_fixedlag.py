@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import wrap_angle
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph import factors as fx
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.solvers import FixedLagOptions, GraphResult, run_graph

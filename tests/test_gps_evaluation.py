@@ -18,7 +18,7 @@ from mapfuse_core.evaluation import (
     nees_mean_interval,
     rigid_alignment,
 )
-from mapfuse_core.se2 import compose, wrap_scalar
+from mapfuse_core.geometry.se2 import compose, wrap_scalar
 
 
 def _track(n: int = 200) -> tuple[np.ndarray, np.ndarray]:

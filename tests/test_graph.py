@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse_core.ccda import CCDAParams
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
 from mapfuse_core.matching import AssociationConfig, chi2_gate
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.se2 import compose, inverse, wrap_angle
+from mapfuse_core.matching.ccda import CCDAParams
 from mapfuse_graph import factors as fx
 from mapfuse_graph.graph import (
     GraphBuilder,
@@ -362,7 +362,7 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
     the one AssociationConfig they are given, and the graph gates with its χ² probability."""
     import ekf_reference.pipeline
     import mapfuse_graph.own_association
-    from mapfuse_core import ccda
+    from mapfuse_core.matching import ccda
 
     cfg = AssociationConfig(gate_prob=0.995, ccda=CCDAParams(min_pairings=5))
     seen: dict[str, list[CCDAParams]] = {"ekf": [], "graph": []}
@@ -416,8 +416,8 @@ def test_own_association_gives_a_wall_every_segment_of_a_scan() -> None:
     observation per line, never two to one landmark."""
     import dataclasses as dc
 
-    from mapfuse_core.scenario import load_scenario
-    from mapfuse_core.simulate import simulate
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import simulate
 
     log = simulate(dc.replace(load_scenario("loop600"), steps=120), seed=0).log
     res = run_graph(log, "isam2", fusion=False, association="own", marginals=False)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mapfuse.run import run
-from mapfuse_core.se2 import wrap_angle
+from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph.export import export_graph
 from mapfuse_graph.keys import describe_key, symbol_name
 from mapfuse_graph.solvers import GraphResult

@@ -19,10 +19,10 @@ from mapfuse.profiles import PROFILES, default_options
 from mapfuse.registry import get
 from mapfuse.result import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse.run import fusion_for, make_options, run
-from mapfuse_core.datasets import VICTORIA_PARK_NAME
-from mapfuse_core.decisions import AnchorDecision, AssociationDecisions, load_associations
-from mapfuse_core.features import FeatureKind
-from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions, load_associations
 from tests.synthetic import synthetic_log
 
 

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from mapfuse_core.laser import LaserParams, Scan, cast_rays, simulate_scan
-from mapfuse_core.world import CircleObstacle, WallSegment, World
+from mapfuse_core.sim.laser import LaserParams, Scan, cast_rays, simulate_scan
+from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 ORIGIN = np.zeros(3)
 

@@ -22,8 +22,8 @@ import pytest
 
 from mapfuse.testing import assert_no_worse_than_baseline
 from mapfuse_core.evaluation import anchor_truth, known_map_draw_offset
-from mapfuse_core.scenario import build_known_map, load_scenario
-from mapfuse_core.se2 import compose, wrap_angle
+from mapfuse_core.geometry.se2 import compose, wrap_angle
+from mapfuse_core.sim.scenario import build_known_map, load_scenario
 from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_ekf_carry, loop600_log
 
 pytestmark = pytest.mark.slow

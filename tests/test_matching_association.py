@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from mapfuse_core.ccda import CCDAParams
-from mapfuse_core.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import wrap_angle_half
 from mapfuse_core.matching import (
     AssociationConfig,
     ScoredPair,
@@ -24,7 +24,7 @@ from mapfuse_core.matching import (
     nearest_neighbour,
     pregate,
 )
-from mapfuse_core.se2 import wrap_angle_half
+from mapfuse_core.matching.ccda import CCDAParams
 from tests.jacobians import poses
 
 # --------------------------------------------------------------------------- settings

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from ekf_reference.association import predict_all_targets
 from ekf_reference.maps import predict
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core import features as ft
+from mapfuse_core.geometry import features as ft
+from mapfuse_core.geometry.se2 import compose, compose_jacobians, relative, wrap_angle_half
 from mapfuse_core.models import (
     bind_line_cov,
     circle_observation,
@@ -23,7 +24,6 @@ from mapfuse_core.models import (
     line_residual,
     line_residual_cov,
 )
-from mapfuse_core.se2 import compose, compose_jacobians, relative, wrap_angle_half
 from tests.jacobians import ATOL, RTOL, angle, circles, coord, numerical_jacobian, poses
 
 slides = st.floats(min_value=-50.0, max_value=50.0, allow_nan=False)

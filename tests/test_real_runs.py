@@ -18,14 +18,14 @@ from mapfuse.cli import main
 from mapfuse.compare import Comparison, compare, write_comparison
 from mapfuse.figures import gps_errors
 from mapfuse.run import run
-from mapfuse_core.datasets import (
+from mapfuse_core.data.datasets import (
     CarGeometry,
     OdometryNoise,
     integrate_odometry,
     load_carpark,
     load_victoria_park,
 )
-from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.data.measlog import MeasurementLog
 
 pytestmark = pytest.mark.slow
 

@@ -11,9 +11,10 @@ import pytest
 from scipy.stats import chi2
 
 from mapfuse_core.evaluation import known_map_draw_offset
-from mapfuse_core.features import FeatureKind, transform_feature
-from mapfuse_core.laser import cast_rays
-from mapfuse_core.scenario import (
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
+from mapfuse_core.sim.laser import cast_rays
+from mapfuse_core.sim.scenario import (
     ControlSegment,
     Scenario,
     ScenarioError,
@@ -25,9 +26,8 @@ from mapfuse_core.scenario import (
     load_scenario,
     simulate_drive,
 )
-from mapfuse_core.se2 import compose, inverse, wrap_angle
-from mapfuse_core.simulate import simulate
-from mapfuse_core.vehicle import MotionResult, VehicleParams
+from mapfuse_core.sim.simulate import simulate
+from mapfuse_core.sim.vehicle import MotionResult, VehicleParams
 
 BAD_DIR = Path(__file__).parent / "data" / "bad_scenarios"
 CIRCLE_CONTROLS = Path(__file__).parent / "data" / "circle_controls.toml"

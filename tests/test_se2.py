@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mapfuse_core import se2
+from mapfuse_core.geometry import se2
 from tests.jacobians import ATOL, RTOL, numerical_jacobian, poses
 
 

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from mapfuse.cli import main
+from mapfuse_core.data.measlog import load_log, save_log
 from mapfuse_core.evaluation import path_length
-from mapfuse_core.laser import LaserParams, simulate_scan
-from mapfuse_core.measlog import load_log, save_log
-from mapfuse_core.scenario import Scenario, load_scenario
-from mapfuse_core.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
-from mapfuse_core.world import World
+from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sim.scenario import Scenario, load_scenario
+from mapfuse_core.sim.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
+from mapfuse_core.sim.world import World
 from tests.loop600 import loop600_log
 
 
@@ -99,7 +99,7 @@ def test_a_broken_pool_falls_back_to_the_same_log(
         return None
 
     # The package re-exports the function simulate under the module's name.
-    module = importlib.import_module("mapfuse_core.simulate")
+    module = importlib.import_module("mapfuse_core.sim.simulate")
     monkeypatch.setattr(module, "_parallel_extraction", broken)
     with pytest.warns(RuntimeWarning, match="worker pool broke"):
         result = simulate(short_loop, seed=1, workers=2)

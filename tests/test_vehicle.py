@@ -10,8 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from mapfuse_core import se2
-from mapfuse_core.vehicle import (
+from mapfuse_core.geometry import se2
+from mapfuse_core.sim.vehicle import (
     MotionResult,
     VehicleParams,
     car_increment,

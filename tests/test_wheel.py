@@ -41,7 +41,7 @@ def test_wheel_installs_and_simulates_outside_the_repository(tmp_path: Path) -> 
     assert build.returncode == 0, build.stderr
     (wheel,) = dist.glob("mapfuse-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    assert "mapfuse_core/scenarios/loop600.toml" in names
+    assert "mapfuse_core/sim/scenarios/loop600.toml" in names
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names)
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
     readme_title = (ROOT / "README.md").read_text().splitlines()[0]

@@ -1,4 +1,4 @@
-"""The world generator (mapfuse_core.worldgen) and ``mapfuse world generate``."""
+"""The world generator (mapfuse_core.sim.worldgen) and ``mapfuse world generate``."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from mapfuse.cli import main
-from mapfuse_core import worldgen
-from mapfuse_core.scenario import load_scenario
-from mapfuse_core.worldgen import SHAPES, WorldParams, generate_scenario, world_toml
+from mapfuse_core.sim import worldgen
+from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.worldgen import SHAPES, WorldParams, generate_scenario, world_toml
 
 SMALL = {"walls": 4, "trees": 12, "laser_range_m": 30.0}
 

@@ -7,7 +7,7 @@ import argparse
 import json
 from typing import Any
 
-from mapfuse_core.scenario import list_builtin_scenarios
+from mapfuse_core.sim.scenario import list_builtin_scenarios
 
 __all__ = ["add_montecarlo", "add_world", "parse_world_args"]
 
@@ -18,7 +18,7 @@ _KIND_NAMES = {int: "an integer", float: "a number", str: "text"}
 def parse_world_args(text: str) -> dict[str, Any]:
     """``--world-per-run`` arguments, ``"walls=6,trees=40,shape=figure8"``, as the
     generator's keywords (numbers converted; the seed comes from each run)."""
-    from mapfuse_core.worldgen import WorldParams
+    from mapfuse_core.sim.worldgen import WorldParams
 
     out: dict[str, Any] = {}
     if not text.strip():
@@ -54,7 +54,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from mapfuse.campaign.spec import CampaignSpec, parse_fusion, parse_seeds
     from mapfuse.campaign.task import plugins_registered
     from mapfuse.run import resolve
-    from mapfuse_core.scenario import load_scenario
+    from mapfuse_core.sim.scenario import load_scenario
 
     if args.runs is not None:
         if args.runs < 1:
@@ -158,8 +158,8 @@ def add_montecarlo(sub: Any) -> None:
 def _cmd_world_generate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from mapfuse_core.scenario import load_scenario
-    from mapfuse_core.worldgen import WorldParams, world_toml
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.worldgen import WorldParams, world_toml
 
     params = WorldParams(
         seed=args.seed,
@@ -188,7 +188,7 @@ def _cmd_world_generate(args: argparse.Namespace) -> int:
 
 def add_world(sub: Any) -> None:
     """Add the ``world`` sub-command (``world generate``) to a sub-parser set."""
-    from mapfuse_core.worldgen import SHAPES, WorldParams
+    from mapfuse_core.sim.worldgen import SHAPES, WorldParams
 
     d = WorldParams(seed=0)
     world = sub.add_parser(

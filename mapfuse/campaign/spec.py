@@ -58,7 +58,7 @@ class CampaignSpec:
     steps: int | None = None
     """Only the first ``steps`` steps of every log (``None``: all)."""
     world: Mapping[str, Any] | None = None
-    """Generator arguments (:func:`mapfuse_core.worldgen.generate_scenario` keywords
+    """Generator arguments (:func:`mapfuse_core.sim.worldgen.generate_scenario` keywords
     other than ``seed``) to draw a new world for every run from its seed, or ``None``
     to simulate :attr:`scenario` as it is."""
     plugins: tuple[str, ...] = ()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import beta, chi2, t
 
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = [
     "AneesSeries",

@@ -28,7 +28,7 @@ from mapfuse.campaign.stats import (
 )
 from mapfuse.campaign.store import CampaignStore
 from mapfuse.campaign.task import array_key
-from mapfuse_core.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = ["MAX_ERROR_LIMIT_M", "NEES_WITHIN_LIMIT", "GroupSummary", "summarise"]
 

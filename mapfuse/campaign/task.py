@@ -28,10 +28,10 @@ from mapfuse import registry
 from mapfuse.campaign.spec import CampaignSpec
 from mapfuse.result import EstimatorResult
 from mapfuse.run import consumer_options, fusion_for, make_options, resolve, run
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors, truth_in_global
-from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.scenario import Scenario, load_scenario
-from mapfuse_core.simulate import simulate
+from mapfuse_core.sim.scenario import Scenario, load_scenario
+from mapfuse_core.sim.simulate import simulate
 
 __all__ = [
     "ARRAY_FIELDS",
@@ -99,7 +99,7 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
     """The scenario of run ``seed``: the spec's, or a world generated from the seed."""
     if spec.world is None:
         return load_scenario(spec.scenario)
-    from mapfuse_core.worldgen import WorldParams, generate_scenario
+    from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
     base = load_scenario(spec.scenario)
     return generate_scenario(WorldParams(seed=seed, **dict(spec.world)), base=base)

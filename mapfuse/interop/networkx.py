@@ -3,7 +3,7 @@
 Nodes are the candidate pairings ``(i, j)`` (feature ``i`` of map A, the SLAM map,
 with feature ``j`` of map B, the known map); an edge joins two pairings whose
 rigid-motion invariants agree within the χ² gate
-(:mod:`mapfuse_core.ccda.inspect`).  Attributes:
+(:mod:`mapfuse_core.matching.ccda.inspect`).  Attributes:
 
 * node: ``a``, ``b`` (indices into the maps), ``a_id``, ``b_id`` (their ids),
   ``kind`` (``"line"`` or ``"circle"``), ``chi2`` (circles: the radius test; NaN for
@@ -23,9 +23,9 @@ import math
 import networkx as nx
 import numpy as np
 
-from mapfuse_core.ccda import CCDAParams, CCDAResult
-from mapfuse_core.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
-from mapfuse_core.measlog import KnownMapArrays
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.matching.ccda import CCDAParams, CCDAResult
+from mapfuse_core.matching.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
 
 __all__ = ["correspondence_nx"]
 
@@ -39,7 +39,7 @@ def correspondence_nx(
     """The correspondence graph of ``map_a`` and ``map_b`` under ``params`` as a
     ``networkx.Graph`` whose nodes are the pairings ``(i, j)``.
 
-    ``result`` (the :func:`~mapfuse_core.ccda.ccda_match` of the same maps and
+    ``result`` (the :func:`~mapfuse_core.matching.ccda.ccda_match` of the same maps and
     params) marks its final pairings (node attribute ``paired``) and is stored with
     its transform in ``G.graph`` (``accepted``, ``reason``, ``x_A_B``).
     """

@@ -15,8 +15,8 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Literal
 
-from mapfuse_core.ccda import CCDAParams
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.matching.ccda import CCDAParams
 
 __all__ = ["METHODS", "AssociationConfig"]
 

@@ -1,6 +1,6 @@
 """Which pairings are worth a full test: the χ² gate, the pre-gate and the line gap.
 
-Features are in the SPmap form of :mod:`mapfuse_core.features` (a line is its
+Features are in the SPmap form of :mod:`mapfuse_core.geometry.features` (a line is its
 reference point and direction ``(x, y, θ)``, a circle its centre and radius), all in
 one frame.  A line's *extent* is the interval ``(t0, t1)`` it was seen on, along its
 own direction from its reference point (NaN when unknown).
@@ -15,9 +15,9 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray, wrap_angle_half
 from mapfuse_core.matching.config import AssociationConfig
-from mapfuse_core.se2 import FloatArray, wrap_angle_half
 
 __all__ = ["chi2_gate", "line_gap", "near", "pregate"]
 

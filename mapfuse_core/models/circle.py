@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapfuse_core.se2 import FloatArray, relative
+from mapfuse_core.geometry.se2 import FloatArray, relative
 
 __all__ = [
     "circle_observation",

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from mapfuse_core.se2 import FloatArray, relative, wrap_scalar_half
+from mapfuse_core.geometry.se2 import FloatArray, relative, wrap_scalar_half
 
 __all__ = [
     "B_LINE",

@@ -1,0 +1,3 @@
+"""Measurement logs and the real datasets (``docs/log-format.md``,
+``docs/datasets.md``).
+"""

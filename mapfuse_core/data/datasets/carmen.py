@@ -1,0 +1,332 @@
+"""A CARMEN laser log as a measurement log of wall lines (``docs/carmen.md``).
+
+One step per laser scan (``FLASER`` or ``ROBOTLASER1``).  The log's frame ``R`` of a
+step is the **laser** frame (as for the other datasets): odometry increments are those
+of the laser pose, features are extracted in it.  Two kinds of log:
+
+* **raw**: the odometry fields are the robot's own odometry; increments come from
+  them, with the covariance of :class:`IncrementNoise`; no reference trajectory.
+* **corrected** (the SLAM benchmark's logs): every pose is the corrected pose.  Those
+  poses become the log's ``true_poses`` (the reference trajectory) and the odometry is
+  simulated from the reference increments with :class:`IncrementNoise` and a seed;
+  ``metadata["odometry"]`` says ``simulated from reference``.
+
+The laser's beam geometry and maximum range come from the log (``ROBOTLASER1``
+fields, ``PARAM robot_front_laser_max``, CARMEN's beam-count convention for
+``FLASER``); its noise (σρ, σβ) from :class:`CarmenOptions`, stated defaults for a
+SICK LMS, never from the file name.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from mapfuse_core.data.datasets.carmen_format import CarmenRecords, LaserMessage, read_carmen
+from mapfuse_core.data.datasets.common import DatasetError, check_finite, empty_map
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray, compose, relative, wrap_scalar
+from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.matching.ccda import CCDAParams
+from mapfuse_core.perception.extraction import ExtractionParams, extract_features
+from mapfuse_core.sim.laser import LaserParams, Scan
+
+__all__ = [
+    "CarmenOptions",
+    "IncrementNoise",
+    "carmen_association",
+    "carmen_scans",
+    "detect_odometry_kind",
+    "load_carmen",
+]
+
+OdometryKind = Literal["raw", "simulated", "auto"]
+
+_DEFAULT_MAX_RANGE_M = 80.0
+"""Maximum range when the log states none (m): the SICK LMS 2xx's 80 m.  Its
+no-return codes are written just above it (81.83 m, 81.91 m)."""
+
+
+@dataclass(frozen=True)
+class IncrementNoise:
+    """Covariance of an odometry increment ``(dx, dy, dθ)`` of a wheeled indoor robot.
+
+    Independent errors with ``σx = σy = trans_frac · d + trans_floor_m`` and
+    ``σθ = rot_frac · |dθ| + rot_per_m · d + rot_floor_rad`` (``d`` the distance
+    travelled).  The defaults (5 % of the distance, 5 % of the turn, 0.6°/m of drift)
+    are those of a differential-drive base on office floors (``docs/carmen.md``).
+    """
+
+    trans_frac: float = 0.05
+    """σ of each position component per metre travelled."""
+    trans_floor_m: float = 0.005
+    """σ (m) of each position component of any increment (wheel quantisation, slip)."""
+    rot_frac: float = 0.05
+    """σ of the heading change per radian turned."""
+    rot_per_m: float = math.radians(0.6)
+    """σ (rad) of the heading change per metre travelled (wheel-base uncertainty)."""
+    rot_floor_rad: float = math.radians(0.2)
+    """σ (rad) of the heading change of any increment."""
+
+    def __post_init__(self) -> None:
+        for name in ("trans_frac", "rot_frac", "rot_per_m"):
+            check_finite("IncrementNoise", name, getattr(self, name), positive=False)
+        for name in ("trans_floor_m", "rot_floor_rad"):
+            check_finite("IncrementNoise", name, getattr(self, name), positive=True)
+
+    def cov(self, inc: FloatArray) -> FloatArray:
+        """(3, 3) covariance of the increment ``inc``."""
+        d = math.hypot(float(inc[0]), float(inc[1]))
+        s_xy = self.trans_frac * d + self.trans_floor_m
+        s_th = self.rot_frac * abs(float(inc[2])) + self.rot_per_m * d + self.rot_floor_rad
+        return np.diag([s_xy * s_xy, s_xy * s_xy, s_th * s_th])
+
+
+@dataclass(frozen=True)
+class CarmenOptions:
+    """How :func:`load_carmen` turns a CARMEN log into a measurement log."""
+
+    odometry: OdometryKind = "auto"
+    """``"raw"``: increments from the log's odometry fields.  ``"simulated"``: the log's
+    poses are the reference trajectory, odometry is simulated from it.  ``"auto"``:
+    :func:`detect_odometry_kind`."""
+    seed: int = 0
+    """Seed of the simulated odometry noise (unused for raw odometry)."""
+    odometry_noise: IncrementNoise = field(default_factory=IncrementNoise)
+    """Odometry error model: the covariance of every increment, and with simulated
+    odometry also the distribution the noise is drawn from."""
+    sigma_range_m: float = 0.01
+    """σρ of one range (m): a SICK LMS 2xx's statistical error (5 mm at indoor ranges)
+    plus the 1 cm resolution of the logged ranges, rounded up."""
+    sigma_bearing_rad: float = math.radians(0.05)
+    """σβ of a beam's pointing (rad); small against the 0.5°–1° beam spacing."""
+    max_range_m: float | None = None
+    """Maximum range (m); ``None``: ``PARAM robot_front_laser_max``, else the message's
+    own (``ROBOTLASER1``), else 80 m.  Readings at or above it, or ≤ 0, are no return."""
+    extraction: ExtractionParams = field(default_factory=ExtractionParams.indoor_sick)
+    """Extraction thresholds (:meth:`ExtractionParams.indoor_sick`)."""
+    extraction_max_range_m: float = 20.0
+    """Returns farther than this (m) are not used for features: beyond it a 1° beam
+    footprint is over 35 cm and indoor walls are seen through doors and glass."""
+
+    def __post_init__(self) -> None:
+        if self.odometry not in ("raw", "simulated", "auto"):
+            raise ValueError(
+                f"CarmenOptions.odometry must be 'raw', 'simulated' or 'auto', "
+                f"got {self.odometry!r}"
+            )
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError(f"CarmenOptions.seed must be an int, got {self.seed!r}")
+        for name in ("sigma_range_m", "sigma_bearing_rad", "extraction_max_range_m"):
+            check_finite("CarmenOptions", name, getattr(self, name), positive=True)
+        if self.max_range_m is not None:
+            check_finite("CarmenOptions", "max_range_m", self.max_range_m, positive=True)
+        if not isinstance(self.odometry_noise, IncrementNoise):
+            raise ValueError("CarmenOptions.odometry_noise must be an IncrementNoise")
+        if not isinstance(self.extraction, ExtractionParams):
+            raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
+
+
+def _laser_offset(rec: CarmenRecords) -> FloatArray:
+    """Front-laser pose on the robot from the ``PARAM`` messages (zeros when absent)."""
+    out = np.zeros(3)
+    for i, name in enumerate(
+        (
+            "robot_frontlaser_offset",
+            "robot_frontlaser_side_offset",
+            "robot_frontlaser_angular_offset",
+        )
+    ):
+        if name in rec.params:
+            try:
+                out[i] = float(rec.params[name])
+            except ValueError:
+                raise DatasetError(
+                    f"{rec.path}: PARAM {name} is not a number: {rec.params[name]!r}"
+                ) from None
+            if not math.isfinite(out[i]):
+                raise DatasetError(f"{rec.path}: PARAM {name} is not finite")
+    return out
+
+
+def _odometry_laser_pose(msg: LaserMessage, offset: FloatArray) -> FloatArray:
+    """Laser pose from the message's robot odometry: ``robot ⊕ offset`` (FLASER) or the
+    message's own laser-on-robot pose (ROBOTLASER1 gives both poses)."""
+    if msg.kind == "ROBOTLASER1":
+        return msg.laser_pose
+    return compose(msg.robot_pose, offset)
+
+
+def detect_odometry_kind(rec: CarmenRecords) -> Literal["raw", "simulated"]:
+    """``"simulated"`` when the log's poses are all corrected ones, else ``"raw"``.
+
+    A corrected log repeats one pose in every field: in every laser message the
+    odometry pose (with the laser offset) equals the laser pose to the printed
+    precision (1 mm, 0.01°), and no ``ODOM`` message reports a velocity (rewritten
+    odometry keeps none).  A raw log whose laser sits on the odometry point and whose
+    ``ODOM`` velocities were not logged looks the same: pass ``odometry="raw"`` then.
+    """
+    offset = _laser_offset(rec)
+    for msg in rec.lasers:
+        d = msg.laser_pose - _odometry_laser_pose(msg, offset)
+        if math.hypot(d[0], d[1]) > 1e-3 or abs(wrap_scalar(float(d[2]))) > math.radians(0.01):
+            return "raw"
+    if any(o.tv != 0.0 or o.rv != 0.0 for o in rec.odometry):
+        return "raw"
+    return "simulated"
+
+
+def _max_range(rec: CarmenRecords, msg: LaserMessage, opts: CarmenOptions) -> float:
+    if opts.max_range_m is not None:
+        return opts.max_range_m
+    if "robot_front_laser_max" in rec.params and msg.kind == "FLASER":
+        try:
+            v = float(rec.params["robot_front_laser_max"])
+        except ValueError:
+            v = math.nan
+        if not (math.isfinite(v) and v > 0.0):
+            raise DatasetError(
+                f"{rec.path}: PARAM robot_front_laser_max is not a range > 0: "
+                f"{rec.params['robot_front_laser_max']!r}"
+            )
+        return v
+    if math.isfinite(msg.max_range):
+        return msg.max_range
+    return _DEFAULT_MAX_RANGE_M
+
+
+def carmen_scans(rec: CarmenRecords, opts: CarmenOptions) -> list[tuple[Scan, LaserParams]]:
+    """Every laser message as a :class:`Scan` (no return: ``inf``) and its laser model."""
+    out: list[tuple[Scan, LaserParams]] = []
+    for msg in rec.lasers:
+        n = msg.ranges.shape[0]
+        max_r = _max_range(rec, msg, opts)
+        r = msg.ranges
+        ranges = np.where((r <= 0.0) | (r >= max_r) | (r > opts.extraction_max_range_m), np.inf, r)
+        bearings: FloatArray = msg.start_angle + msg.angular_resolution * np.arange(
+            n, dtype=np.float64
+        )
+        laser = LaserParams(
+            fov_rad=min(msg.angular_resolution * (n - 1), 2.0 * math.pi),
+            max_range_m=max_r,
+            n_beams=n,
+            sigma_range_m=opts.sigma_range_m,
+            sigma_bearing_rad=opts.sigma_bearing_rad,
+        )
+        out.append((Scan(bearings, ranges, np.full(n, -1, dtype=np.int64)), laser))
+    return out
+
+
+def _increments(poses: FloatArray) -> FloatArray:
+    inc = np.zeros_like(poses)
+    for k in range(1, poses.shape[0]):
+        inc[k] = relative(poses[k - 1], poses[k])[0]
+    return inc
+
+
+def load_carmen(
+    path: str | Path,
+    *,
+    options: CarmenOptions | None = None,
+    known_map: KnownMapArrays | None = None,
+) -> MeasurementLog:
+    """The CARMEN log at ``path`` (plain or gzipped) as a measurement log of lines.
+
+    ``known_map`` (e.g. :func:`~mapfuse_core.data.datasets.floorplan.build_floor_plan`'s,
+    in the reference frame) becomes the log's known map; none by default.
+    """
+    opts = CarmenOptions() if options is None else options
+    rec = read_carmen(path)
+    kind = detect_odometry_kind(rec) if opts.odometry == "auto" else opts.odometry
+    offset = _laser_offset(rec)
+    n = len(rec.lasers)
+
+    raw_t = np.array([m.timestamp for m in rec.lasers])
+    t = np.maximum.accumulate(raw_t - raw_t[0])
+    metadata = {
+        "source": str(Path(path).name),
+        "format": "CARMEN",
+        "laser_messages": ", ".join(
+            f"{k}: {sum(m.kind == k for m in rec.lasers)}" for k in ("FLASER", "ROBOTLASER1")
+        ),
+        "skipped_messages": ", ".join(f"{k}: {v}" for k, v in rec.skipped.items()) or "none",
+        "timestamps_held": str(int(np.count_nonzero(np.diff(raw_t) < 0))),
+    }
+    true_poses: FloatArray | None
+    if kind == "simulated":
+        true_poses = np.array([m.laser_pose for m in rec.lasers])
+        ref_inc = _increments(true_poses)
+        rng = np.random.default_rng(opts.seed)
+        odometry = np.zeros((n, 3))
+        odometry_cov = np.zeros((n, 3, 3))
+        for k in range(1, n):
+            odometry_cov[k] = opts.odometry_noise.cov(ref_inc[k])
+            noise = rng.standard_normal(3) * np.sqrt(np.diag(odometry_cov[k]))
+            odometry[k] = ref_inc[k] + noise
+            odometry[k, 2] = wrap_scalar(float(odometry[k, 2]))
+        metadata["odometry"] = "simulated from reference"
+        metadata["odometry_seed"] = str(opts.seed)
+    else:
+        true_poses = None
+        odometry = _increments(np.array([_odometry_laser_pose(m, offset) for m in rec.lasers]))
+        odometry_cov = np.zeros((n, 3, 3))
+        for k in range(1, n):
+            odometry_cov[k] = opts.odometry_noise.cov(odometry[k])
+        metadata["odometry"] = "raw"
+
+    steps: list[int] = []
+    params: list[FloatArray] = []
+    covs: list[FloatArray] = []
+    npts: list[int] = []
+    extents: list[tuple[float, float]] = []
+    rejected: dict[str, int] = {}
+    for k, (scan, laser) in enumerate(carmen_scans(rec, opts)):
+        res = extract_features(scan, laser, opts.extraction)
+        for key, c in res.rejected.items():
+            rejected[key] = rejected.get(key, 0) + c
+        for f in res.features:
+            steps.append(k)
+            params.append(f.params)
+            covs.append(f.cov)
+            npts.append(f.n_points)
+            extents.append(f.extent)
+    m = len(steps)
+    kinds = np.full(m, int(FeatureKind.LINE), dtype=np.int8)
+    return MeasurementLog(
+        scenario=f"carmen:{Path(path).name}",
+        seed=opts.seed if kind == "simulated" else -1,
+        timestamps=t,
+        odometry=odometry,
+        odometry_cov=odometry_cov,
+        feat_step=np.asarray(steps, dtype=np.int64).reshape(m),
+        feat_kind=kinds,
+        feat_params=np.asarray(params, dtype=np.float64).reshape(m, 3),
+        feat_cov=np.asarray(covs, dtype=np.float64).reshape(m, 3, 3),
+        feat_true_id=np.full(m, -1, dtype=np.int64),
+        feat_n_points=np.asarray(npts, dtype=np.int64).reshape(m),
+        feat_extent=np.asarray(extents, dtype=np.float64).reshape(m, 2),
+        known_map=empty_map() if known_map is None else known_map,
+        true_poses=true_poses,
+        rejected=dict(sorted(rejected.items())),
+        metadata=metadata,
+    )
+
+
+def carmen_association() -> AssociationConfig:
+    """Association settings for runs of a CARMEN log against its floor plan.
+
+    The defaults but for CCDA's ``min_pairings``: 12 instead of 8.  Office walls come
+    in parallel families a door width or a corridor apart, and a match of 8 walls
+    seen in the first local maps can slide by one family (``docs/carmen.md``).
+    """
+    return AssociationConfig(ccda=CCDAParams(min_pairings=12))
+
+
+def with_known_map(log: MeasurementLog, known_map: KnownMapArrays) -> MeasurementLog:
+    """``log`` with ``known_map`` as its known map."""
+    return replace(log, known_map=known_map)

@@ -1,0 +1,427 @@
+"""The measurement log: the single input both backends consume.
+
+A log holds, per step ``k = 0 … N−1``: the true pose (simulation), the odometry
+increment from step ``k−1`` to ``k`` with its covariance (row 0 is zero: the first
+step has no motion), and the features extracted from the scan taken at step ``k``
+(kind, parameters and covariance in the sensor frame, true world id or −1).  It also
+carries the known map exactly as the run uses it (with its noise realisation) and
+the true world, so that every backend and every metric sees identical inputs.
+
+On disk it is a versioned ``.npz`` of plain arrays (no pickled objects), written
+with fixed zip timestamps so that the same seed gives a bit-identical file.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "KnownMapArrays",
+    "MeasurementLog",
+    "MeasurementLogError",
+    "load_log",
+    "save_log",
+]
+
+FORMAT_NAME = "mapfuse.measurement_log"
+FORMAT_VERSION = 1
+
+IntArray = np.ndarray
+
+
+class MeasurementLogError(ValueError):
+    """A measurement log is malformed, damaged or of another format version."""
+
+
+@dataclass(frozen=True)
+class KnownMapArrays:
+    """A set of map features as parallel arrays (the known map, or the true world)."""
+
+    ids: IntArray
+    """(M,) int64 feature ids."""
+    kinds: IntArray
+    """(M,) int8 :class:`FeatureKind` codes."""
+    params: FloatArray
+    """(M, 3) SPmap line ``(x, y, θ)`` or circle ``(x, y, r)`` in the map frame."""
+    covs: FloatArray
+    """(M, 3, 3) covariances of :attr:`params` (zeros for the true world)."""
+    extents: FloatArray | None = None
+    """(M, 2) along-line interval of each line's wall relative to its reference point
+    (NaN for circles); ``None`` when unknown.  Lets association tell collinear walls apart."""
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+@dataclass(frozen=True)
+class MeasurementLog:
+    """Everything a run consumes, step by step.  Arrays are read-only views."""
+
+    scenario: str
+    """Scenario name (``loop600``, a TOML path, a dataset name)."""
+    seed: int
+    """Seed the log was simulated with (−1 for real data)."""
+    timestamps: FloatArray
+    """(N,) time of each step in seconds."""
+    odometry: FloatArray
+    """(N, 3) odometry increment ``x^{R_{k−1}}_{R_k}`` ordered ``(x, y, θ)``; row 0 zero."""
+    odometry_cov: FloatArray
+    """(N, 3, 3) covariance of each increment; row 0 zero."""
+    feat_step: IntArray
+    """(M,) int64 step at which each feature was extracted, non-decreasing."""
+    feat_kind: IntArray
+    """(M,) int8 :class:`FeatureKind` of each feature."""
+    feat_params: FloatArray
+    """(M, 3) feature parameters in the sensor frame at its step."""
+    feat_cov: FloatArray
+    """(M, 3, 3) covariance of :attr:`feat_params` (lines: along-line is a pseudo-variance)."""
+    feat_true_id: IntArray
+    """(M,) int64 world id the feature came from, −1 if unknown (real data) or mixed."""
+    feat_n_points: IntArray
+    """(M,) int64 number of laser points the feature was fitted to."""
+    feat_extent: FloatArray
+    """(M, 2) along-line coordinates of the segment ends (lines), NaN for circles."""
+    known_map: KnownMapArrays
+    """The a-priori known map, in ``Wknown``, exactly as this run uses it."""
+    world: KnownMapArrays | None = None
+    """The true world features in ``W`` (simulation), for evaluation only."""
+    true_poses: FloatArray | None = None
+    """(N, 3) true vehicle pose at each step in ``W`` (simulation), or ``None``."""
+    rejected: dict[str, int] = field(default_factory=dict)
+    """Extraction rejections over the whole run: reason → count."""
+    gps_times: FloatArray | None = None
+    """(G,) times of GPS fixes (real data), on the clock of :attr:`timestamps`."""
+    gps_xy: FloatArray | None = None
+    """(G, 2) GPS positions (East, North) in metres, the frame of the surveyed known map."""
+    metadata: dict[str, str] = field(default_factory=dict)
+    """Facts about how the log was made, name → text (e.g. ``odometry: simulated from
+    reference``, counts of skipped messages); empty when there is nothing to say."""
+    known_frame: FloatArray | None = None
+    """(3,) ``x^W_Wknown``, the pose of the known map's frame in the world (simulation),
+    for evaluation only; ``None`` (real data, logs written without it) means the
+    identity."""
+    _offsets: IntArray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        _validate(self)
+        object.__setattr__(
+            self,
+            "_offsets",
+            np.searchsorted(self.feat_step, np.arange(self.n_steps + 1), side="left"),
+        )
+
+    @property
+    def n_steps(self) -> int:
+        """Number of steps ``N``."""
+        return int(self.timestamps.shape[0])
+
+    @property
+    def n_features(self) -> int:
+        """Total number of extracted features ``M``."""
+        return int(self.feat_step.shape[0])
+
+    @property
+    def gps(self) -> tuple[FloatArray, FloatArray] | None:
+        """``(gps_times, gps_xy)`` when the log carries GPS fixes, else ``None``."""
+        if self.gps_times is None or self.gps_xy is None:
+            return None
+        return self.gps_times, self.gps_xy
+
+    def head(self, n_steps: int) -> MeasurementLog:
+        """The first ``n_steps`` steps of this log (all of it if it is shorter).
+
+        For quick experiments on a long run; GPS fixes are kept whole (the metrics use
+        only those inside the run).
+        """
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+            raise ValueError(f"n_steps must be an int >= 1, got {n_steps!r}")
+        n = min(n_steps, self.n_steps)
+        m = int(self._offsets[n])
+        return replace(
+            self,
+            timestamps=self.timestamps[:n],
+            odometry=self.odometry[:n],
+            odometry_cov=self.odometry_cov[:n],
+            feat_step=self.feat_step[:m],
+            feat_kind=self.feat_kind[:m],
+            feat_params=self.feat_params[:m],
+            feat_cov=self.feat_cov[:m],
+            feat_true_id=self.feat_true_id[:m],
+            feat_n_points=self.feat_n_points[:m],
+            feat_extent=self.feat_extent[:m],
+            true_poses=None if self.true_poses is None else self.true_poses[:n],
+        )
+
+    def feature_slice(self, k: int) -> slice:
+        """Index range of the features extracted at step ``k``."""
+        if not 0 <= k < self.n_steps:
+            raise IndexError(f"step {k} outside the log's 0..{self.n_steps - 1}")
+        return slice(int(self._offsets[k]), int(self._offsets[k + 1]))
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _check_array(name: str, a: Any, shape: tuple[int | None, ...], finite: bool = True) -> None:
+    if not isinstance(a, np.ndarray):
+        raise MeasurementLogError(f"'{name}' must be a numpy array, got {type(a).__name__}")
+    mismatch = a.ndim != len(shape) or any(
+        s is not None and s != d for s, d in zip(shape, a.shape, strict=True)
+    )
+    if mismatch:
+        want = "×".join("N" if s is None else str(s) for s in shape)
+        raise MeasurementLogError(f"'{name}' has shape {a.shape}, expected {want}")
+    if finite and a.dtype.kind == "f" and a.size and not np.all(np.isfinite(a)):
+        idx = np.argwhere(~np.isfinite(a))[0]
+        raise MeasurementLogError(
+            f"'{name}' has a non-finite value ({a[tuple(idx)]}) "
+            f"at index {tuple(int(i) for i in idx)}"
+        )
+
+
+def _check_covs(name: str, covs: FloatArray) -> None:
+    if covs.size == 0:
+        return
+    asym = np.abs(covs - np.swapaxes(covs, 1, 2)).max(axis=(1, 2))
+    scale = np.maximum(np.abs(covs).max(axis=(1, 2)), 1e-300)
+    bad = np.nonzero(asym > 1e-9 * scale)[0]
+    if bad.size:
+        raise MeasurementLogError(f"'{name}'[{int(bad[0])}] is not symmetric")
+    diag = np.diagonal(covs, axis1=1, axis2=2)
+    neg = np.argwhere(diag < 0.0)
+    if neg.size:
+        raise MeasurementLogError(f"'{name}'[{int(neg[0][0])}] has a negative variance")
+
+
+def _check_map(prefix: str, m: KnownMapArrays) -> None:
+    n = len(m)
+    _check_array(f"{prefix}_ids", m.ids, (n,))
+    _check_array(f"{prefix}_kinds", m.kinds, (n,))
+    _check_array(f"{prefix}_params", m.params, (n, 3))
+    _check_array(f"{prefix}_covs", m.covs, (n, 3, 3))
+    _check_kinds(f"{prefix}_kinds", m.kinds)
+    _check_covs(f"{prefix}_covs", m.covs)
+    if m.extents is not None:
+        _check_array(f"{prefix}_extents", m.extents, (n, 2), finite=False)
+    if len(np.unique(m.ids)) != n:
+        raise MeasurementLogError(f"'{prefix}_ids' has duplicate ids")
+
+
+def _check_kinds(name: str, kinds: IntArray) -> None:
+    valid = {int(k) for k in FeatureKind}
+    bad = np.nonzero(~np.isin(kinds, list(valid)))[0]
+    if bad.size:
+        raise MeasurementLogError(
+            f"'{name}'[{int(bad[0])}] = {int(kinds[bad[0]])} is not a feature kind "
+            f"(0 = line, 1 = circle)"
+        )
+
+
+def _validate(log: MeasurementLog) -> None:
+    n = log.timestamps.shape[0] if isinstance(log.timestamps, np.ndarray) else -1
+    _check_array("timestamps", log.timestamps, (None,))
+    if n < 1:
+        raise MeasurementLogError("the log has no steps")
+    _check_array("odometry", log.odometry, (n, 3))
+    _check_array("odometry_cov", log.odometry_cov, (n, 3, 3))
+    _check_covs("odometry_cov", log.odometry_cov)
+    if np.any(np.diff(log.timestamps) < 0):
+        raise MeasurementLogError("'timestamps' decrease")
+    m = log.feat_step.shape[0] if isinstance(log.feat_step, np.ndarray) else -1
+    _check_array("feat_step", log.feat_step, (None,))
+    _check_array("feat_kind", log.feat_kind, (m,))
+    _check_array("feat_params", log.feat_params, (m, 3))
+    _check_array("feat_cov", log.feat_cov, (m, 3, 3))
+    _check_array("feat_true_id", log.feat_true_id, (m,))
+    _check_array("feat_n_points", log.feat_n_points, (m,))
+    _check_array("feat_extent", log.feat_extent, (m, 2), finite=False)
+    _check_kinds("feat_kind", log.feat_kind)
+    _check_covs("feat_cov", log.feat_cov)
+    if m and (log.feat_step.min() < 0 or log.feat_step.max() >= n):
+        raise MeasurementLogError(f"'feat_step' refers to a step outside 0..{n - 1}")
+    if m and np.any(np.diff(log.feat_step) < 0):
+        raise MeasurementLogError("'feat_step' must be non-decreasing")
+    circles = log.feat_kind == FeatureKind.CIRCLE
+    if np.any(log.feat_params[circles, 2] <= 0.0):
+        i = int(np.nonzero(circles & (log.feat_params[:, 2] <= 0.0))[0][0])
+        raise MeasurementLogError(f"'feat_params'[{i}] is a circle with radius <= 0")
+    _check_map("known", log.known_map)
+    if log.world is not None:
+        _check_map("world", log.world)
+    if log.true_poses is not None:
+        _check_array("true_poses", log.true_poses, (n, 3))
+    if log.known_frame is not None:
+        _check_array("known_frame", log.known_frame, (3,))
+    if (log.gps_times is None) != (log.gps_xy is None):
+        raise MeasurementLogError("'gps_times' and 'gps_xy' must be given together")
+    if log.gps_times is not None and log.gps_xy is not None:
+        _check_array("gps_times", log.gps_times, (None,))
+        _check_array("gps_xy", log.gps_xy, (log.gps_times.shape[0], 2))
+    for k, v in log.rejected.items():
+        if not isinstance(k, str) or not isinstance(v, int) or v < 0:
+            raise MeasurementLogError(f"'rejected' entry {k!r}: {v!r} is not a count")
+    for key, text in log.metadata.items():
+        if not isinstance(key, str) or not isinstance(text, str):
+            raise MeasurementLogError(f"'metadata' entry {key!r}: {text!r} is not text")
+
+
+# --------------------------------------------------------------------------- disk format
+
+_MAP_FIELDS = ("ids", "kinds", "params", "covs")
+_LOG_ARRAYS = tuple(
+    f.name
+    for f in fields(MeasurementLog)
+    if f.name
+    not in {
+        "scenario",
+        "seed",
+        "known_map",
+        "world",
+        "true_poses",
+        "rejected",
+        "gps_times",
+        "gps_xy",
+        "metadata",
+        "known_frame",
+    }
+    and not f.name.startswith("_")
+)
+_DTYPES = {
+    "feat_step": np.int64,
+    "feat_kind": np.int8,
+    "feat_true_id": np.int64,
+    "feat_n_points": np.int64,
+    "ids": np.int64,
+    "kinds": np.int8,
+}
+
+
+def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {
+        "format_name": np.array(FORMAT_NAME),
+        "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+        "scenario": np.array(log.scenario),
+        "seed": np.array(log.seed, dtype=np.int64),
+        "rejected_reasons": np.array(sorted(log.rejected), dtype=np.str_).reshape(-1),
+        "rejected_counts": np.array(
+            [log.rejected[k] for k in sorted(log.rejected)], dtype=np.int64
+        ).reshape(-1),
+    }
+    if log.metadata:
+        out["metadata_keys"] = np.array(sorted(log.metadata), dtype=np.str_).reshape(-1)
+        out["metadata_values"] = np.array(
+            [log.metadata[k] for k in sorted(log.metadata)], dtype=np.str_
+        ).reshape(-1)
+    for name in _LOG_ARRAYS:
+        out[name] = np.asarray(getattr(log, name))
+    for prefix, m in (("known", log.known_map), ("world", log.world)):
+        if m is not None:
+            for f in _MAP_FIELDS:
+                out[f"{prefix}_{f}"] = np.asarray(getattr(m, f))
+            if m.extents is not None:
+                out[f"{prefix}_extents"] = np.asarray(m.extents)
+    for name in ("true_poses", "gps_times", "gps_xy", "known_frame"):
+        value = getattr(log, name)
+        if value is not None:
+            out[name] = np.asarray(value)
+    return out
+
+
+def save_log(log: MeasurementLog, path: str | Path) -> Path:
+    """Write ``log`` to ``path`` (``.npz``); the bytes depend only on the log's content."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, arr in sorted(_arrays_of(log).items()):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asarray(arr, order="C"), allow_pickle=False)
+            # A fixed timestamp keeps the file bit-identical across runs of one seed.
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())
+    return path
+
+
+def _get(arrays: dict[str, np.ndarray], path: Path, name: str) -> np.ndarray:
+    if name not in arrays:
+        raise MeasurementLogError(f"{path}: missing array '{name}'")
+    arr = arrays[name]
+    want = _DTYPES.get(name.split("_", 1)[1] if name.startswith(("known_", "world_")) else name)
+    if want is not None:
+        if arr.dtype.kind not in "iu":
+            raise MeasurementLogError(f"{path}: '{name}' must be integer, got {arr.dtype}")
+        arr = arr.astype(want)
+    elif arr.dtype.kind not in "fiu" and arr.dtype.kind != "U":
+        raise MeasurementLogError(f"{path}: '{name}' has unexpected dtype {arr.dtype}")
+    return arr
+
+
+def load_log(path: str | Path) -> MeasurementLog:
+    """Read and validate a log written by :func:`save_log`.
+
+    Raises :class:`MeasurementLogError` naming the file and the problem for a missing,
+    damaged or foreign file, another format version, or inconsistent arrays.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeasurementLogError(f"{path}: no such measurement log")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise MeasurementLogError(f"{path}: not a readable .npz measurement log ({exc})") from exc
+    name = str(arrays.get("format_name", ""))
+    if name != FORMAT_NAME:
+        raise MeasurementLogError(f"{path}: not a mapfuse measurement log (format_name={name!r})")
+    version = int(arrays.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        raise MeasurementLogError(
+            f"{path}: measurement log format version {version}, this mapfuse reads version "
+            f"{FORMAT_VERSION}; re-create the log with this version"
+        )
+
+    def map_of(prefix: str) -> KnownMapArrays:
+        ext = f"{prefix}_extents"
+        ids, kinds, params, covs = (_get(arrays, path, f"{prefix}_{f}") for f in _MAP_FIELDS)
+        extents = _get(arrays, path, ext) if ext in arrays else None
+        return KnownMapArrays(ids, kinds, params, covs, extents)
+
+    reasons = _get(arrays, path, "rejected_reasons")
+    counts = _get(arrays, path, "rejected_counts")
+    if reasons.shape != counts.shape:
+        raise MeasurementLogError(f"{path}: 'rejected_reasons' and 'rejected_counts' differ")
+    metadata: dict[str, str] = {}
+    if "metadata_keys" in arrays or "metadata_values" in arrays:
+        keys = _get(arrays, path, "metadata_keys")
+        values = _get(arrays, path, "metadata_values")
+        if keys.shape != values.shape or keys.dtype.kind != "U" or values.dtype.kind != "U":
+            raise MeasurementLogError(f"{path}: 'metadata_keys' and 'metadata_values' differ")
+        metadata = {str(k): str(v) for k, v in zip(keys, values, strict=True)}
+    try:
+        return MeasurementLog(
+            scenario=str(_get(arrays, path, "scenario")),
+            seed=int(_get(arrays, path, "seed")),
+            known_map=map_of("known"),
+            world=map_of("world") if "world_ids" in arrays else None,
+            true_poses=_get(arrays, path, "true_poses") if "true_poses" in arrays else None,
+            gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
+            gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
+            known_frame=_get(arrays, path, "known_frame") if "known_frame" in arrays else None,
+            rejected={str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
+            metadata=metadata,
+            **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},
+        )
+    except MeasurementLogError as exc:
+        raise MeasurementLogError(f"{path}: {exc}") from None

@@ -1,0 +1,298 @@
+"""Classify every known feature after a fused run: :func:`classify_changes`.
+
+1. The logged observations are grouped by the estimator's landmark decisions and put
+   in ``Wknown`` through the estimated trajectory and anchor
+   (:mod:`mapfuse_core.evaluation.changes.evidence`).
+2. A known feature with an associated landmark is tested against that landmark's
+   observation-only estimate: ``r = residual(known, evidence)``,
+   ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
+3. A known feature without one is compared with the unassociated landmarks of its
+   kind within ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the
+   feature after a move beyond the association gate, and is tested the same way (a
+   consistent one is a landmark the estimator did not merge: the feature is confirmed).
+4. Otherwise: missing when the known map predicts it in view for at least ``K``
+   scans (:mod:`mapfuse_core.evaluation.changes.visibility`), else unobserved.
+5. The other unassociated landmarks with at least ``min_obs`` observations are new,
+   except duplicates: those consistent with an observed known feature, or within the
+   move limits of one classified moved (another piece of it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against, observation_sets
+from mapfuse_core.evaluation.changes.params import ChangeParams
+from mapfuse_core.evaluation.changes.report import (
+    ChangeReport,
+    ChangeStatus,
+    FeatureChange,
+    NewFeature,
+)
+from mapfuse_core.evaluation.changes.residual import feature_residual, residual_dof
+from mapfuse_core.evaluation.changes.visibility import scans_in_view
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray, compose
+
+__all__ = ["classify_changes"]
+
+
+def _test(
+    obs: ObservationSet, known: FloatArray, known_cov: FloatArray, params: ChangeParams
+) -> tuple[FloatArray, FloatArray, float, FloatArray]:
+    """Residual, its covariance, the χ² statistic and the displacement (dx, dy, d3)."""
+    ev = fuse_against(obs, known)
+    _, Jk, _ = feature_residual(obs.kind, known, known)
+    S = ev.cov + Jk @ known_cov @ Jk.T
+    r = ev.residual
+    stat = float(r @ np.linalg.solve(S, r))
+    if obs.kind == FeatureKind.LINE:
+        normal = np.array([-math.sin(known[2]), math.cos(known[2])])
+        disp = np.array([*(r[0] * normal), r[1]])
+    else:
+        disp = r.copy()
+    return r, S, stat, disp
+
+
+def _near(
+    obs: ObservationSet, known: FloatArray, extent: FloatArray | None, params: ChangeParams
+) -> float:
+    """Size of the move that takes ``known`` onto ``obs`` (m), ``inf`` beyond the limits.
+
+    A line must also overlap the known wall along its length (its surveyed extent
+    widened by ``max_move_m``; without one, within ``max_move_m`` of its reference point).
+    """
+    mean = obs.features.mean(axis=0)
+    if obs.kind == FeatureKind.CIRCLE:
+        d = float(np.hypot(*(mean[:2] - known[:2])))
+        return d if d <= params.max_move_m else math.inf
+    r = np.array([feature_residual(obs.kind, known, f)[0] for f in obs.features]).mean(axis=0)
+    if abs(r[1]) > params.max_turn_rad or abs(r[0]) > params.max_move_m:
+        return math.inf
+    u_k = np.array([math.cos(known[2]), math.sin(known[2])])
+    along = []
+    for f, e in zip(obs.features, obs.extents, strict=True):
+        u = np.array([math.cos(f[2]), math.sin(f[2])])
+        ends = [0.0] if not np.all(np.isfinite(e)) else [float(e[0]), float(e[1])]
+        along += [float((f[:2] + t * u - known[:2]) @ u_k) for t in ends]
+    lo, hi = (0.0, 0.0) if extent is None or not np.all(np.isfinite(extent)) else extent
+    m = params.max_move_m
+    if max(along) < lo - m or min(along) > hi + m:
+        return math.inf
+    return float(abs(r[0]))
+
+
+def _extent(known: KnownMapArrays, r: int) -> FloatArray | None:
+    return None if known.extents is None else np.asarray(known.extents[r], dtype=float)
+
+
+def classify_changes(
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    x_Wknown_Wglobal: FloatArray,
+    params: ChangeParams | None = None,
+) -> ChangeReport:
+    """Classify the known map of ``log`` given a run's decisions, trajectory and anchor.
+
+    ``poses``/``pose_covs``: the run's ``x^Wglobal_R`` per step and their covariances;
+    ``x_Wknown_Wglobal``: its anchor.  See the module docstring for the rules.
+    """
+    params = params or ChangeParams()
+    anchor = np.asarray(x_Wknown_Wglobal, dtype=float)
+    if anchor.shape != (3,) or not np.all(np.isfinite(anchor)):
+        raise ValueError(f"the anchor must be a finite (3,) pose, got {anchor!r}")
+    known = log.known_map
+    sets = observation_sets(log, obs_landmark, obs_known_id, poses, pose_covs, anchor)
+    by_known: dict[int, ObservationSet] = {}
+    free: list[ObservationSet] = []
+    for s in sets:
+        if s.known_id >= 0:
+            best = by_known.get(s.known_id)
+            if best is None or s.n_obs > best.n_obs:
+                by_known[s.known_id] = s
+        elif s.n_obs >= params.min_obs:
+            free.append(s)
+    poses_K = np.array([compose(anchor, p) for p in np.asarray(poses, dtype=float)])
+    in_view = scans_in_view(known, poses_K.reshape(-1, 3), params, _occluders(free, known))
+
+    rows: dict[int, FeatureChange] = {}
+    unassociated: list[int] = []
+    for r in range(len(known)):
+        kid = int(known.ids[r])
+        if kid in by_known and by_known[kid].n_obs >= 1:
+            rows[r] = _row(known, r, by_known[kid], True, in_view[kid], params)
+        else:
+            unassociated.append(r)
+    # Moves beyond the association gate: nearest unassociated landmark, one to one.
+    pairs = []
+    for r in unassociated:
+        kind = FeatureKind(int(known.kinds[r]))
+        for i, s in enumerate(free):
+            if s.kind == kind:
+                d = _near(s, known.params[r], _extent(known, r), params)
+                if math.isfinite(d):
+                    pairs.append((d, r, i))
+    used: set[int] = set()
+    for _, r, i in sorted(pairs):
+        if r in rows or i in used:
+            continue
+        used.add(i)
+        rows[r] = _row(known, r, free[i], False, in_view[int(known.ids[r])], params)
+    for r in unassociated:
+        if r in rows:
+            continue
+        kid = int(known.ids[r])
+        status = (
+            ChangeStatus.MISSING if in_view[kid] >= params.min_scans else ChangeStatus.UNOBSERVED
+        )
+        kind = FeatureKind(int(known.kinds[r]))
+        rows[r] = FeatureChange(
+            known_id=kid,
+            kind=kind,
+            status=status,
+            displacement=np.full(3, np.nan),
+            residual=np.zeros(0),
+            residual_cov=np.zeros((0, 0)),
+            statistic=math.nan,
+            dof=residual_dof(kind),
+            threshold=params.threshold(residual_dof(kind)),
+            n_obs=0,
+            scans_in_view=in_view[kid],
+            associated=False,
+            landmark=-1,
+        )
+    # New features: unassociated landmarks no known feature accounts for.
+    new: list[NewFeature] = []
+    duplicates = 0
+    for i, s in enumerate(free):
+        if i in used:
+            continue
+        if _duplicate(s, known, rows, params):
+            duplicates += 1
+            continue
+        ref = s.features[0]
+        ev = fuse_against(s, ref)
+        est = _apply(s.kind, ref, ev.residual)
+        # Lines: lateral and angle only; the along-line position is undetermined.
+        cov3 = ev.cov if s.kind == FeatureKind.CIRCLE else _line_cov3(ref, ev.cov)
+        new.append(
+            NewFeature(
+                landmark=s.landmark,
+                kind=s.kind,
+                params=est,
+                cov=cov3,
+                n_obs=s.n_obs,
+                true_id=s.true_id,
+            )
+        )
+    return ChangeReport(
+        known=tuple(rows[r] for r in range(len(known))),
+        new=tuple(new),
+        duplicates=duplicates,
+        level=params.level,
+        x_Wknown_Wglobal=anchor,
+    )
+
+
+def _row(
+    known: KnownMapArrays,
+    r: int,
+    obs: ObservationSet,
+    associated: bool,
+    in_view: int,
+    params: ChangeParams,
+) -> FeatureChange:
+    kp = known.params[r]
+    kc = known.covs[r]
+    res, S, stat, disp = _test(obs, kp, kc, params)
+    dof = residual_dof(obs.kind)
+    thr = params.threshold(dof)
+    return FeatureChange(
+        known_id=int(known.ids[r]),
+        kind=obs.kind,
+        status=ChangeStatus.MOVED if stat > thr else ChangeStatus.CONFIRMED,
+        displacement=disp,
+        residual=res,
+        residual_cov=S,
+        statistic=stat,
+        dof=dof,
+        threshold=thr,
+        n_obs=obs.n_obs,
+        scans_in_view=in_view,
+        associated=associated,
+        landmark=obs.landmark,
+    )
+
+
+def _duplicate(
+    s: ObservationSet, known: KnownMapArrays, rows: dict[int, FeatureChange], params: ChangeParams
+) -> bool:
+    """Whether ``s`` is consistent with a known feature (of its kind) already observed."""
+    for r, row in rows.items():
+        if row.kind != s.kind or row.n_obs == 0:
+            continue
+        kp = known.params[r]
+        if not math.isfinite(_near(s, kp, _extent(known, r), params)):
+            continue
+        if row.status == ChangeStatus.MOVED:
+            # A second landmark of a moved feature (a wall seen in pieces).
+            return True
+        _, _, stat, _ = _test(s, kp, known.covs[r], params)
+        if stat <= row.threshold:
+            return True
+    return False
+
+
+def _apply(kind: FeatureKind, ref: FloatArray, r: FloatArray) -> FloatArray:
+    """The feature whose residual from ``ref`` is ``r`` (inverse of the residual map)."""
+    if kind == FeatureKind.CIRCLE:
+        return np.asarray(ref + r, dtype=float)
+    n = np.array([-math.sin(ref[2]), math.cos(ref[2])])
+    return np.array([*(ref[:2] + r[0] * n), ref[2] + r[1]])
+
+
+def _line_cov3(ref: FloatArray, cov2: FloatArray) -> FloatArray:
+    """(x, y, θ) covariance of a line from its (lateral, angle) covariance at ``ref``."""
+    n = np.array([-math.sin(ref[2]), math.cos(ref[2])])
+    J = np.zeros((3, 2))
+    J[:2, 0] = n
+    J[2, 1] = 1.0
+    return J @ cov2 @ J.T
+
+
+def _occluders(free: list[ObservationSet], known: KnownMapArrays) -> KnownMapArrays:
+    """The unassociated landmarks as map features (ids above the known ones): a line
+    spans the union of its observed segments, a circle is its mean observation."""
+    base = int(known.ids.max(initial=0)) + 1
+    params, kinds, extents = [], [], []
+    for s in free:
+        ref = s.features[0].copy()
+        if s.kind == FeatureKind.CIRCLE:
+            params.append(s.features.mean(axis=0))
+            extents.append([np.nan, np.nan])
+        else:
+            u = np.array([math.cos(ref[2]), math.sin(ref[2])])
+            along = []
+            for f, e in zip(s.features, s.extents, strict=True):
+                if np.all(np.isfinite(e)):
+                    uf = np.array([math.cos(f[2]), math.sin(f[2])])
+                    along += [float((f[:2] + t * uf - ref[:2]) @ u) for t in e]
+            if not along:
+                continue
+            params.append(ref)
+            extents.append([min(along), max(along)])
+        kinds.append(int(s.kind))
+    n = len(params)
+    return KnownMapArrays(
+        ids=np.arange(base, base + n, dtype=np.int64),
+        kinds=np.array(kinds, dtype=np.int8),
+        params=np.array(params, dtype=float).reshape(n, 3),
+        covs=np.zeros((n, 3, 3)),
+        extents=np.array(extents, dtype=float).reshape(n, 2),
+    )

@@ -1,0 +1,151 @@
+"""What the observations alone say about each landmark: :func:`landmark_evidence`.
+
+A fused estimator merges a landmark paired with a known feature into that feature,
+so its map holds the fused value, which cannot be tested against the known one.
+The evidence is therefore re-estimated from the landmark's observations alone,
+given the estimated trajectory: every observation ``z_j`` (sensor frame, step
+``s_j``) is put in ``Wknown`` through the estimated pose and the anchor,
+``f_j = x^Wknown_Wglobal ⊕ x^Wglobal_R(s_j) ⊕ z_j``, and the ``f_j`` are fused in the
+residual coordinates of a reference feature (:mod:`mapfuse_core.evaluation.changes.residual`).
+
+Covariance: the measurement part is fused as independent (information sum); the
+pose part is averaged, not divided by the count, because the pose errors of nearby
+steps are almost fully correlated.  The pose covariance is the track's (in
+``Wglobal``), an upper bound of the vehicle's uncertainty relative to the known map
+when the map is fused; the anchor's own covariance is left out because the track's
+already carries it.  The trajectory has itself been corrected with the known
+feature under test, which pulls the evidence towards it: the test is conservative
+(``docs/changes.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.evaluation.changes.residual import feature_residual
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
+
+__all__ = ["LandmarkEvidence", "ObservationSet", "fuse_against", "observation_sets"]
+
+
+@dataclass(frozen=True, eq=False)
+class ObservationSet:
+    """One landmark's observations, each in ``Wknown`` with its covariance parts."""
+
+    landmark: int
+    """Landmark (track) id of the decisions."""
+    known_id: int
+    """Known-map id the landmark is merged with, −1 if none."""
+    kind: FeatureKind
+    """Feature kind."""
+    features: FloatArray
+    """(n, 3) every observation in ``Wknown``."""
+    meas_covs: FloatArray
+    """(n, 3, 3) their covariance from the measurement noise."""
+    pose_covs: FloatArray
+    """(n, 3, 3) their covariance from the pose uncertainty."""
+    extents: FloatArray
+    """(n, 2) along-line extents of the observed segments (NaN for circles)."""
+    steps: np.ndarray
+    """(n,) steps of the observations."""
+    true_id: int
+    """Most frequent world id among the observations (−1 if none is known)."""
+
+    @property
+    def n_obs(self) -> int:
+        """Number of observations."""
+        return int(self.steps.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkEvidence:
+    """Observation-only estimate of a landmark relative to a reference feature."""
+
+    residual: FloatArray
+    """(d,) fused residual of the observations from the reference (lines: lateral
+    offset at the reference point (m), angle (rad); circles: dx, dy, dr (m))."""
+    cov: FloatArray
+    """(d, d) its covariance (measurement and pose parts, not the reference's)."""
+    n_obs: int
+    """Observations fused."""
+
+
+def observation_sets(
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    x_Wknown_Wglobal: FloatArray,
+) -> list[ObservationSet]:
+    """Group the logged observations by landmark and put each in ``Wknown``.
+
+    ``poses``/``pose_covs`` are the estimated ``x^Wglobal_R`` per step (a step beyond
+    them, or with a non-finite pose, contributes nothing).
+    """
+    lm = np.asarray(obs_landmark, dtype=np.int64)
+    kn = np.asarray(obs_known_id, dtype=np.int64)
+    if lm.shape != (log.n_features,) or kn.shape != lm.shape:
+        raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
+    n = poses.shape[0]
+    covs = np.nan_to_num(np.asarray(pose_covs, dtype=float), nan=0.0)
+    out = []
+    for t in np.unique(lm[lm >= 0]).tolist():
+        idx = np.nonzero(lm == t)[0]
+        idx = idx[log.feat_step[idx] < n]
+        idx = idx[np.all(np.isfinite(poses[log.feat_step[idx]]), axis=1)]
+        if idx.size == 0:
+            continue
+        kinds = log.feat_kind[idx]
+        kind = FeatureKind(int(np.bincount(kinds).argmax()))
+        idx = idx[kinds == int(kind)]
+        feats = np.zeros((idx.size, 3))
+        mc = np.zeros((idx.size, 3, 3))
+        pc = np.zeros((idx.size, 3, 3))
+        for r, j in enumerate(idx.tolist()):
+            s = int(log.feat_step[j])
+            x_K, _, Jg = compose_jacobians(x_Wknown_Wglobal, poses[s])
+            feats[r], Jx, Jz = transform_feature(kind, x_K, log.feat_params[j])
+            mc[r] = Jz @ log.feat_cov[j] @ Jz.T
+            Jp = Jx @ Jg
+            pc[r] = Jp @ covs[s] @ Jp.T
+        tids = log.feat_true_id[idx]
+        tids = tids[tids >= 0]
+        out.append(
+            ObservationSet(
+                landmark=int(t),
+                known_id=int(np.bincount(kn[idx] + 1).argmax()) - 1,
+                kind=kind,
+                features=feats,
+                meas_covs=mc,
+                pose_covs=pc,
+                extents=np.asarray(log.feat_extent[idx], dtype=float),
+                steps=np.asarray(log.feat_step[idx], dtype=np.int64),
+                true_id=int(np.bincount(tids).argmax()) if tids.size else -1,
+            )
+        )
+    return out
+
+
+def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence:
+    """Fuse ``obs`` in the residual coordinates of ``reference`` (same kind, ``Wknown``)."""
+    info = None
+    vec = None
+    pose_part = None
+    for f, C, D in zip(obs.features, obs.meas_covs, obs.pose_covs, strict=True):
+        r, _, Jf = feature_residual(obs.kind, reference, f)
+        W = np.linalg.pinv(Jf @ C @ Jf.T, hermitian=True)
+        Dp = Jf @ D @ Jf.T
+        info = W if info is None else info + W
+        vec = W @ r if vec is None else vec + W @ r
+        pose_part = Dp if pose_part is None else pose_part + Dp
+    assert info is not None
+    assert vec is not None
+    assert pose_part is not None
+    P = np.linalg.pinv(info, hermitian=True)
+    cov = P + pose_part / obs.n_obs
+    return LandmarkEvidence(residual=P @ vec, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs)

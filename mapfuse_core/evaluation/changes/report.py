@@ -1,0 +1,159 @@
+"""The outcome of change detection: :class:`FeatureChange`, :class:`NewFeature`,
+:class:`ChangeReport`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray
+
+__all__ = ["ChangeReport", "ChangeStatus", "FeatureChange", "NewFeature"]
+
+
+class ChangeStatus(StrEnum):
+    """Class of a known feature after a run."""
+
+    CONFIRMED = "confirmed"
+    """Observed, and the observations agree with the known map (χ² test passed)."""
+    MOVED = "moved"
+    """Observed, and the observations disagree with the known map."""
+    MISSING = "missing"
+    """Predicted in view for at least ``K`` scans and never observed."""
+    UNOBSERVED = "unobserved"
+    """Never observed, and not predicted in view long enough to call it missing."""
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureChange:
+    """The class of one known feature, with the evidence behind it."""
+
+    known_id: int
+    """Known-map id."""
+    kind: FeatureKind
+    """Feature kind."""
+    status: ChangeStatus
+    """Its class."""
+    displacement: FloatArray
+    """(3,) estimated ``(dx, dy, dθ)`` (line: lateral displacement of its reference point
+    and turn) or ``(dx, dy, dr)`` (circle), in ``Wknown``; NaN when not observed."""
+    residual: FloatArray
+    """The tested residual (line: lateral offset (m), angle (rad); circle: dx, dy, dr);
+    empty when not observed."""
+    residual_cov: FloatArray
+    """Its covariance (evidence plus the known feature's), the test's ``S``."""
+    statistic: float
+    """χ² statistic ``rᵀS⁻¹r`` (NaN when not observed)."""
+    dof: int
+    """Degrees of freedom of the test."""
+    threshold: float
+    """χ² threshold at the stated level."""
+    n_obs: int
+    """Observations of the landmark tested against it (0 if none)."""
+    scans_in_view: int
+    """Scans in which the known map predicts the feature in view."""
+    associated: bool
+    """Whether the estimator associated a landmark with it (else the landmark, if any,
+    was found near it afterwards: a move beyond the association gate)."""
+    landmark: int
+    """Landmark (track) id of the observations tested, −1 if none."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "known_id": self.known_id,
+            "kind": self.kind.name.lower(),
+            "status": self.status.value,
+            "displacement": [_num(v) for v in self.displacement],
+            "residual": [_num(v) for v in self.residual],
+            "residual_cov": [[_num(v) for v in row] for row in self.residual_cov],
+            "statistic": _num(self.statistic),
+            "dof": self.dof,
+            "threshold": _num(self.threshold),
+            "n_obs": self.n_obs,
+            "scans_in_view": self.scans_in_view,
+            "associated": self.associated,
+            "landmark": self.landmark,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class NewFeature:
+    """A mapped landmark that no known feature accounts for."""
+
+    landmark: int
+    """Landmark (track) id."""
+    kind: FeatureKind
+    """Feature kind."""
+    params: FloatArray
+    """(3,) its observation-only estimate in ``Wknown``."""
+    cov: FloatArray
+    """(3, 3) its covariance."""
+    n_obs: int
+    """Observations."""
+    true_id: int
+    """Most frequent world id of its observations (simulation), −1 if unknown."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "landmark": self.landmark,
+            "kind": self.kind.name.lower(),
+            "params": [_num(v) for v in self.params],
+            "n_obs": self.n_obs,
+            "true_id": self.true_id,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class ChangeReport:
+    """Every known feature's class and the new features of one run."""
+
+    known: tuple[FeatureChange, ...]
+    """One entry per known feature, in known-map order."""
+    new: tuple[NewFeature, ...]
+    """Mapped landmarks not in the known map."""
+    duplicates: int
+    """Unassociated landmarks consistent with a known feature already observed (a
+    landmark the estimator did not merge): neither new nor a change."""
+    level: float
+    """Probability of the χ² tests."""
+    x_Wknown_Wglobal: FloatArray
+    """(3,) the anchor the evidence was put in ``Wknown`` with."""
+
+    def of(self, status: ChangeStatus) -> list[FeatureChange]:
+        """Known features of one class."""
+        return [c for c in self.known if c.status == status]
+
+    def counts(self) -> dict[str, int]:
+        """Number of known features per class, and of new features."""
+        out = {s.value: len(self.of(s)) for s in ChangeStatus}
+        out["new"] = len(self.new)
+        out["duplicates"] = self.duplicates
+        return out
+
+    def status_of(self, known_id: int) -> ChangeStatus:
+        """Class of known feature ``known_id``."""
+        for c in self.known:
+            if c.known_id == known_id:
+                return c.status
+        raise KeyError(f"known feature {known_id} is not in the report")
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready form (``changes.json``)."""
+        return {
+            "level": self.level,
+            "x_Wknown_Wglobal": [float(v) for v in self.x_Wknown_Wglobal],
+            "counts": self.counts(),
+            "known": [c.as_dict() for c in self.known],
+            "new": [n.as_dict() for n in self.new],
+        }
+
+
+def _num(v: float) -> float | None:
+    f = float(v)
+    return f if np.isfinite(f) else None

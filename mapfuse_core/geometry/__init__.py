@@ -1,0 +1,3 @@
+"""SE(2) geometry and the map features' measurement models
+(``docs/method.md`` §1–2).
+"""

@@ -1,0 +1,273 @@
+"""The correspondence graph: nodes (unary test), rigid-motion invariants, edges (binary test).
+
+Invariants are computed for all feature pairs of each map at once; the pairs of ``A``
+are joined to those of ``B`` by a sorted-window search (cost grows with the number of
+edges, not ``|A|²·|B|²``), each candidate then tested exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapfuse_core.geometry.se2 import FloatArray, wrap_angle_half
+from mapfuse_core.matching.ccda.params import CCDAParams, _Gates
+from mapfuse_core.matching.ccda.prepare import BoolArray, IntArray, _Prep
+
+
+@dataclass(frozen=True)
+class _Pairs:
+    """Invariants of pairs ``(i, k)`` of one map (global feature indices)."""
+
+    i: IntArray
+    """First feature of each pair."""
+    k: IntArray
+    """Second feature of each pair."""
+    g: FloatArray
+    """(m, 2) invariants: (distance, unused) or (angle, distance) for line pairs."""
+    S: FloatArray
+    """(m, 2, 2) covariance of :attr:`g`."""
+
+
+def _pairs_cc(P: _Prep) -> _Pairs:
+    """Circle–circle pairs ``i < k``: centre distance."""
+    a, b = np.triu_indices(P.circ.size, 1)
+    i, k = P.circ[a], P.circ[b]
+    diff = P.p[k] - P.p[i]
+    d = np.hypot(diff[:, 0], diff[:, 1])
+    # Coincident centres have no direction; any unit vector gives a fair variance.
+    u = np.where(d[:, None] > 1e-9, diff / np.maximum(d, 1e-300)[:, None], [1.0, 0.0])
+    var = np.einsum("mi,mij,mj->m", u, P.Sp[i] + P.Sp[k], u)
+    g = np.zeros((i.size, 2))
+    g[:, 0] = d
+    S = np.zeros((i.size, 2, 2))
+    S[:, 0, 0] = var
+    S[:, 1, 1] = 1.0
+    return _Pairs(i=i, k=k, g=g, S=S)
+
+
+def _pairs_cl(P: _Prep) -> _Pairs:
+    """Every (circle, line) pair: unsigned distance from the centre to the line."""
+    ii, kk = np.meshgrid(P.circ, P.line, indexing="ij")
+    i, k = ii.ravel(), kk.ravel()
+    th = P.th[k]
+    t = np.stack([np.cos(th), np.sin(th)], axis=1)
+    nrm = np.stack([-np.sin(th), np.cos(th)], axis=1)
+    rel = P.p[i] - P.p[k]
+    s = np.einsum("mi,mi->m", nrm, rel)
+    a = np.einsum("mi,mi->m", t, rel)
+    # s = n·(p − q) moves by n·δp − e_lat − a·e_θ (rotation of the line about q).
+    J = np.stack([-np.ones_like(a), -a], axis=1)
+    var = np.einsum("mi,mij,mj->m", nrm, P.Sp[i], nrm) + np.einsum("mi,mij,mj->m", J, P.C[k], J)
+    g = np.zeros((i.size, 2))
+    g[:, 0] = np.abs(s)
+    S = np.zeros((i.size, 2, 2))
+    S[:, 0, 0] = var
+    S[:, 1, 1] = 1.0
+    return _Pairs(i=i, k=k, g=g, S=S)
+
+
+def _pairs_ll(P: _Prep, ordered: bool) -> _Pairs:
+    """Line pairs (``i < k``, or all ``i ≠ k`` when ``ordered``): signed angle from
+    ``i`` to ``k`` modulo π, and unsigned lateral distance of ``k``'s origin from
+    ``i`` (used only when the lines are parallel)."""
+    ln = P.line
+    if ordered:
+        ii, kk = np.meshgrid(ln, ln, indexing="ij")
+        mask = ii != kk
+        i, k = ii[mask], kk[mask]
+    else:
+        a_, b_ = np.triu_indices(ln.size, 1)
+        i, k = ln[a_], ln[b_]
+    thi, thk = P.th[i], P.th[k]
+    ti = np.stack([np.cos(thi), np.sin(thi)], axis=1)
+    ni = np.stack([-np.sin(thi), np.cos(thi)], axis=1)
+    nk = np.stack([-np.sin(thk), np.cos(thk)], axis=1)
+    rel = P.p[k] - P.p[i]
+    delta = wrap_angle_half(thk - thi)
+    s = np.einsum("mi,mi->m", ni, rel)
+    a = np.einsum("mi,mi->m", ti, rel)
+    m = np.einsum("mi,mi->m", ni, nk)
+    Ci, Ck = P.C[i], P.C[k]
+    # Δ = θk − θi;  s = n_i·(q_k − q_i) moves by −e_lat_i − a·e_θi + (n_i·n_k)·e_lat_k.
+    var_d = Ci[:, 1, 1] + Ck[:, 1, 1]
+    var_s = Ci[:, 0, 0] + 2.0 * a * Ci[:, 0, 1] + a * a * Ci[:, 1, 1] + m * m * Ck[:, 0, 0]
+    cov_ds = (Ci[:, 0, 1] + a * Ci[:, 1, 1] + m * Ck[:, 0, 1]) * np.where(s >= 0.0, 1.0, -1.0)
+    g = np.stack([delta, np.abs(s)], axis=1)
+    S = np.empty((i.size, 2, 2))
+    S[:, 0, 0] = var_d
+    S[:, 1, 1] = var_s
+    S[:, 0, 1] = S[:, 1, 0] = cov_ds
+    return _Pairs(i=i, k=k, g=g, S=S)
+
+
+#: Candidate pairs materialised at once by the window join (bounds its memory).
+_CHUNK = 1 << 20
+
+_Emit = Callable[[IntArray, IntArray], None]
+
+
+class _GraphTooLargeError(Exception):
+    """The correspondence graph exceeds ``CCDAParams.max_edges``."""
+
+    def __init__(self, n_nodes: int) -> None:
+        super().__init__(n_nodes)
+        self.n_nodes = n_nodes
+
+
+def _gated_join(
+    va: FloatArray,
+    var_a: FloatArray,
+    vb: FloatArray,
+    var_b: FloatArray,
+    gate: float,
+    emit: _Emit,
+    period: float | None = None,
+) -> None:
+    """Emit, in chunks, all ``(a, b)`` with ``(va[a] − vb[b])² ≤ gate · (var_a[a] + var_b[b])``.
+
+    ``B`` is sorted and each ``a`` searches a window around its value, so the cost
+    follows the number of matches, not ``|A|·|B|``.  ``B`` is split into groups
+    whose variances are within a factor of 4, each searched with a window sized for
+    its largest variance, so one very uncertain pair does not widen every window.
+    With a ``period`` the difference is taken modulo it (line angles, period π).
+    """
+    if va.size == 0 or vb.size == 0:
+        return
+    group = np.floor(np.log(np.maximum(var_b, 1e-300)) / math.log(4.0)).astype(np.int64)
+    for key in np.unique(group).tolist():
+        members = np.nonzero(group == key)[0].astype(np.int64)
+        # Widen slightly: the window only preselects; the exact test follows.
+        h = np.sqrt(gate * (var_a + float(var_b[members].max()))) * (1.0 + 1e-9)
+        vals = vb[members]
+        if period is not None:
+            h = np.minimum(h, 0.49 * period)
+            vals = np.concatenate([vals - period, vals, vals + period])
+        order = np.argsort(vals, kind="stable")
+        sb = vals[order]
+        lo = np.searchsorted(sb, va - h, side="left")
+        cnt = np.maximum(np.searchsorted(sb, va + h, side="right") - lo, 0)
+        ends = np.cumsum(cnt)
+        a0 = 0
+        while a0 < va.size:
+            base = int(ends[a0 - 1]) if a0 else 0
+            a1 = min(va.size, max(a0 + 1, int(np.searchsorted(ends, base + _CHUNK, "right"))))
+            c = cnt[a0:a1]
+            total = int(c.sum())
+            if total:
+                ia = np.repeat(np.arange(a0, a1, dtype=np.int64), c)
+                start = np.repeat(lo[a0:a1] - (np.cumsum(c) - c), c)
+                ib = members[order[np.arange(total, dtype=np.int64) + start] % members.size]
+                d = va[ia] - vb[ib]
+                if period is not None:
+                    d = d - period * np.round(d / period)
+                ok = d * d <= gate * (var_a[ia] + var_b[ib])
+                emit(ia[ok], ib[ok])
+            a0 = a1
+
+
+def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit: _Emit) -> _Emit:
+    """Wrap ``emit`` with the test of parallel line pairs: angle and distance jointly."""
+
+    def parallel_test(ia: IntArray, ib: IntArray) -> None:
+        dang = wrap_angle_half(pa.g[ia, 0] - pb.g[ib, 0])
+        abs_a, abs_b = np.abs(pa.g[ia, 0]), np.abs(pb.g[ib, 0])
+        par = (abs_a <= params.parallel_tol_rad) & (abs_b <= params.parallel_tol_rad)
+        ok = np.ones(ia.size, dtype=bool)
+        if np.any(par):
+            ja, jb, da = ia[par], ib[par], dang[par]
+            dd = pa.g[ja, 1] - pb.g[jb, 1]
+            S = pa.S[ja] + pb.S[jb]
+            # Nearly parallel lines: their distance depends on where it is measured.
+            sin_max = np.sin(np.maximum(abs_a[par], abs_b[par]))
+            S[:, 1, 1] += (sin_max * params.parallel_along_std_m) ** 2
+            det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
+            q = (S[:, 1, 1] * da * da - 2.0 * S[:, 0, 1] * da * dd + S[:, 0, 0] * dd * dd) / det
+            ok[par] = q <= gates.g2
+        emit(ia[ok], ib[ok])
+
+    return parallel_test
+
+
+def _build_graph(
+    A: _Prep, B: _Prep, params: CCDAParams, gates: _Gates
+) -> tuple[IntArray, IntArray, IntArray, IntArray]:
+    """Nodes ``(ni, nj)`` and edges ``(eu, ev)`` (node indices) of the correspondence graph.
+
+    Raises :class:`_GraphTooLargeError` as soon as the edges exceed ``params.max_edges``.
+    """
+    node_of = np.full((A.n, B.n), -1, dtype=np.int64)
+    # Circles: unary radius test.
+    cag, cbg = np.meshgrid(A.circ, B.circ, indexing="ij")
+    ca, cb = cag.ravel(), cbg.ravel()
+    dr = A.params[ca, 2] - B.params[cb, 2]
+    okr = dr * dr <= gates.g1 * (A.vr[ca] + B.vr[cb])
+    la, lb = np.meshgrid(A.line, B.line, indexing="ij")
+    ni = np.concatenate([ca[okr], la.ravel()]).astype(np.int64)
+    nj = np.concatenate([cb[okr], lb.ravel()]).astype(np.int64)
+    node_of[ni, nj] = np.arange(ni.size, dtype=np.int64)
+
+    us: list[IntArray] = []
+    vs: list[IntArray] = []
+    count = [0]
+
+    def add(ai: IntArray, ak: IntArray, bj: IntArray, bl: IntArray) -> None:
+        u, v = node_of[ai, bj], node_of[ak, bl]
+        keep = (u >= 0) & (v >= 0)
+        us.append(u[keep])
+        vs.append(v[keep])
+        count[0] += int(keep.sum())
+        if count[0] > params.max_edges:
+            raise _GraphTooLargeError(int(ni.size))
+
+    # Circle–circle: distances are symmetric, so unordered pairs on both sides and
+    # both orientations of the B pair.
+    cc_a, cc_b = _pairs_cc(A), _pairs_cc(B)
+
+    def emit_cc(ia: IntArray, ib: IntArray) -> None:
+        add(cc_a.i[ia], cc_a.k[ia], cc_b.i[ib], cc_b.k[ib])
+        add(cc_a.i[ia], cc_a.k[ia], cc_b.k[ib], cc_b.i[ib])
+
+    _gated_join(cc_a.g[:, 0], cc_a.S[:, 0, 0], cc_b.g[:, 0], cc_b.S[:, 0, 0], gates.g1, emit_cc)
+    # Circle–line: (circle, line) on both sides, one orientation.
+    cl_a, cl_b = _pairs_cl(A), _pairs_cl(B)
+
+    def emit_cl(ia: IntArray, ib: IntArray) -> None:
+        add(cl_a.i[ia], cl_a.k[ia], cl_b.i[ib], cl_b.k[ib])
+
+    _gated_join(cl_a.g[:, 0], cl_a.S[:, 0, 0], cl_b.g[:, 0], cl_b.S[:, 0, 0], gates.g1, emit_cl)
+    # Line–line: the angle is signed, so unordered in A against ordered in B.
+    ll_a, ll_b = _pairs_ll(A, ordered=False), _pairs_ll(B, ordered=True)
+
+    def emit_ll(ia: IntArray, ib: IntArray) -> None:
+        add(ll_a.i[ia], ll_a.k[ia], ll_b.i[ib], ll_b.k[ib])
+
+    _gated_join(
+        ll_a.g[:, 0],
+        ll_a.S[:, 0, 0],
+        ll_b.g[:, 0],
+        ll_b.S[:, 0, 0],
+        gates.g1,
+        _line_filter(ll_a, ll_b, gates, params, emit_ll),
+        period=math.pi,
+    )
+    eu = np.concatenate(us) if us else np.zeros(0, np.int64)
+    ev = np.concatenate(vs) if vs else np.zeros(0, np.int64)
+    return ni, nj, eu, ev
+
+
+def _k_core(n: int, eu: IntArray, ev: IntArray, k: int) -> BoolArray:
+    """Mask of the nodes of the ``k``-core (every node has ≥ ``k`` neighbours in it)."""
+    alive = np.ones(n, dtype=bool)
+    if k <= 0:
+        return alive
+    while True:
+        keep = alive[eu] & alive[ev]
+        deg = np.bincount(eu[keep], minlength=n) + np.bincount(ev[keep], minlength=n)
+        new = alive & (deg >= k)
+        if np.array_equal(new, alive):
+            return alive
+        alive = new

@@ -1,0 +1,202 @@
+"""The CCDA driver: centring, graph, cliques, hypotheses, competitors and acceptance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.geometry.se2 import FloatArray, rot2, wrap_angle
+from mapfuse_core.matching.ccda.clique import _CliqueGraph, _SearchBudget, _SearchLimitError
+from mapfuse_core.matching.ccda.graph import _build_graph, _GraphTooLargeError, _k_core
+from mapfuse_core.matching.ccda.params import CCDAParams, CCDAResult, _check_params, _Gates
+from mapfuse_core.matching.ccda.prepare import _centred, _Prep, _prepare
+from mapfuse_core.matching.ccda.verification import _compatible, _Hypothesis, _hypothesis
+
+_DEFAULT_PARAMS = CCDAParams()
+"""The default tuning (a frozen dataclass, shared safely as a default argument)."""
+
+
+def _uncentre(
+    T: FloatArray, P: FloatArray, ca: FloatArray, cb: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``x_A_B = (ca, 0) ⊕ T ⊕ (−cb, 0)`` from the transform ``T`` between the centred
+    frames, and its covariance ``J P Jᵀ`` (``J = ∂x_A_B/∂T``)."""
+    th = float(T[2])
+    R = rot2(th)
+    dR = np.array([[-math.sin(th), -math.cos(th)], [math.cos(th), -math.sin(th)]])
+    x = np.empty(3)
+    x[:2] = ca + T[:2] - R @ cb
+    x[2] = float(wrap_angle(th))
+    J = np.eye(3)
+    J[:2, 2] = -dR @ cb
+    cov = J @ P @ J.T
+    return x, 0.5 * (cov + cov.T)
+
+
+def _overlap_std(B: _Prep, h: _Hypothesis) -> tuple[float, float]:
+    """Largest standard deviation (worst direction) of the position, in ``A``, of the
+    centroid of ``h``'s paired ``B`` features, and that of the angle.
+
+    The position of the frame origin is as uncertain as the lever arm of the angle
+    from the pairings to wherever that origin happens to be; the centroid of the
+    pairings is where the match is judged, whatever the maps' origins.
+    """
+    c = B.p[h.jj].mean(axis=0) if h.jj.size else np.zeros(2)
+    th = float(h.T[2])
+    dR = np.array([[-math.sin(th), -math.cos(th)], [math.cos(th), -math.sin(th)]])
+    J = np.zeros((2, 3))
+    J[:, :2] = np.eye(2)
+    J[:, 2] = dR @ c
+    w = np.linalg.eigvalsh(J @ h.cov @ J.T)
+    return math.sqrt(max(float(w.max()), 0.0)), math.sqrt(max(float(h.cov[2, 2]), 0.0))
+
+
+def _result(
+    accepted: bool,
+    reason: str,
+    h: _Hypothesis | None,
+    centres: tuple[FloatArray, FloatArray],
+    n_nodes: int = 0,
+    n_edges: int = 0,
+    runner_up: int = 0,
+    n_hyp: int = 0,
+    search_work: int = 0,
+) -> CCDAResult:
+    if h is None:
+        return CCDAResult(
+            accepted=accepted,
+            reason=reason,
+            pairings=(),
+            x_A_B=np.full(3, np.nan),
+            cov=np.full((3, 3), np.nan),
+            n_nodes=n_nodes,
+            n_edges=n_edges,
+            clique_size=0,
+            runner_up_size=runner_up,
+            n_hypotheses=n_hyp,
+            search_work=search_work,
+        )
+    pairs = tuple(sorted(zip(h.ii.tolist(), h.jj.tolist(), strict=True)))
+    x, cov = _uncentre(h.T, h.cov, *centres)
+    return CCDAResult(
+        accepted=accepted,
+        reason=reason,
+        pairings=tuple((int(i), int(j)) for i, j in pairs),
+        x_A_B=x,
+        cov=cov,
+        n_nodes=n_nodes,
+        n_edges=n_edges,
+        clique_size=h.clique,
+        runner_up_size=runner_up,
+        n_hypotheses=n_hyp,
+        search_work=search_work,
+    )
+
+
+def _rival_floor(params: CCDAParams, best_support: int) -> int:
+    """Fewest pairings with which an incompatible hypothesis makes the match ambiguous."""
+    if params.ambiguity_margin is None:
+        return max(params.min_pairings, math.ceil(params.rival_fraction * best_support - 1e-9))
+    return max(params.min_pairings, best_support - params.ambiguity_margin)
+
+
+def _best_and_runner_up(hyps: list[_Hypothesis], gates: _Gates) -> tuple[_Hypothesis, int]:
+    """The best-supported hypothesis and the support of its strongest incompatible rival."""
+    best = max(hyps, key=lambda h: (h.ii.size, h.clique))
+    rivals = [h for h in hyps if h is not best and not _compatible(best, h, gates)]
+    return best, max((int(h.ii.size) for h in rivals), default=0)
+
+
+def _ambiguous(hyps: list[_Hypothesis], params: CCDAParams, gates: _Gates) -> bool:
+    best, runner_up = _best_and_runner_up(hyps, gates)
+    return runner_up >= _rival_floor(params, int(best.ii.size))
+
+
+def ccda_match(
+    map_a: KnownMapArrays, map_b: KnownMapArrays, params: CCDAParams = _DEFAULT_PARAMS
+) -> CCDAResult:
+    """Match ``map_b`` into ``map_a`` by CCDA (the package docstring explains how).
+
+    ``map_a`` features are expected at ``x_A_B ⊕ b`` for their partners ``b`` of
+    ``map_b``.  Returns a :class:`CCDAResult`; raises :class:`ValueError` only for
+    malformed input (non-finite values, wrong shapes, unknown kinds, bad params).
+    """
+    _check_params(params)
+    A, ca = _centred(_prepare(map_a, "map_a", params))
+    B, cb = _centred(_prepare(map_b, "map_b", params))
+    centres = (ca, cb)
+    if A.n == 0 or B.n == 0:
+        return _result(False, "empty map", None, centres)
+    if min(A.n, B.n) < params.min_pairings:
+        return _result(False, "too few features", None, centres)
+    gates = _Gates.of(params.gate_prob)
+    try:
+        ni, nj, eu, ev = _build_graph(A, B, params, gates)
+    except _GraphTooLargeError as err:
+        return _result(False, "graph too large", None, centres, err.n_nodes, params.max_edges + 1)
+    n_nodes, n_edges = int(ni.size), int(eu.size)
+
+    alive = _k_core(n_nodes, eu, ev, params.min_pairings - 1)
+    if not np.any(alive):
+        # No clique can reach min_pairings; search the whole (then very sparse)
+        # graph anyway so that the rejection reports the best partial match.
+        alive[:] = True
+    keep = alive[eu] & alive[ev]
+    G = _CliqueGraph(np.nonzero(alive)[0].astype(np.int64), eu[keep], ev[keep], ni, nj)
+    budget = _SearchBudget(params.max_clique_work)
+
+    hyps: list[_Hypothesis] = []
+    complete = True  # every clique that could compete was searched
+    try:
+        for n_search in range(params.max_hypotheses + 1):
+            needed = 1
+            if hyps:
+                # A feature shared by two hypotheses (the centre of a rotational
+                # symmetry) went with the first one's nodes: one pairing of slack.
+                needed = _rival_floor(params, max(int(h.ii.size) for h in hyps)) - 1
+            c = G.max_clique(at_least=needed, budget=budget)
+            if c.size == 0:
+                break
+            if n_search == params.max_hypotheses:
+                # One more candidate than the hypotheses allowed: unresolved.
+                complete = False
+                break
+            h = _hypothesis(A, B, c, ni, nj, gates)
+            hyps.append(h)
+            # Remove what this transform explains, not the whole clique: with distance
+            # invariants a mirror image of a symmetric map is a clique too, and its
+            # fit keeps only a few inliers; the other nodes may belong to a genuine
+            # rival (the 180° rotation of a rectangular grid shares a row with a
+            # mirror).  The clique's own final pairings go too, and the whole clique
+            # if none of it did: every search must remove something of the clique.
+            in_final = np.isin(ni[c] * B.n + nj[c], h.ii * B.n + h.jj)
+            gone = np.concatenate([h.nodes, c[in_final]])
+            G.remove(gone if np.isin(c, gone).any() else c)
+            if _ambiguous(hyps, params, gates):
+                break  # refusing needs no further search (a periodic world has many)
+    except _SearchLimitError:
+        complete = False
+
+    n_hyp = len(hyps)
+    if not hyps:
+        reason = "search_limit" if not complete else "too few pairings"
+        return _result(False, reason, None, centres, n_nodes, n_edges, 0, 0, budget.used)
+    best, runner_up = _best_and_runner_up(hyps, gates)
+
+    def out(ok: bool, reason: str) -> CCDAResult:
+        return _result(ok, reason, best, centres, n_nodes, n_edges, runner_up, n_hyp, budget.used)
+
+    if best.ii.size < params.min_pairings:
+        # Complete or not, nothing found reaches min_pairings; an unfinished search
+        # may have missed a larger clique, so say so.
+        return out(False, "too few pairings" if complete else "search_limit")
+    std_xy, std_th = _overlap_std(B, best)
+    if std_xy > params.max_transform_std_xy_m or std_th > params.max_transform_std_theta_rad:
+        return out(False, "degenerate geometry")
+    if _ambiguous(hyps, params, gates):
+        return out(False, "ambiguous")
+    if not complete:
+        return out(False, "search_limit")
+    return out(True, "accepted")

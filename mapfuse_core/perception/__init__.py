@@ -1,0 +1,1 @@
+"""Feature extraction from laser scans (``docs/method.md`` §2)."""

@@ -1,0 +1,74 @@
+"""The laser's range-noise model as the fits need it, and the χ² acceptance bound.
+
+A return at nominal bearing ``β`` has range ``ρ(β + δβ) + δρ``
+(:mod:`mapfuse_core.sim.laser`).  Point-space fits weight a residual along a unit normal
+by :func:`_normal_var`; range-space fits predict the mean and variance of each
+measured range with :func:`_range_moments`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.perception.extraction.params import ExtractionParams
+
+
+@dataclass(frozen=True)
+class _Noise:
+    """Laser noise as the fits need it."""
+
+    var_r: float
+    """σρ² (m²)."""
+    var_b: float
+    """σβ² (rad²)."""
+    floor2: float
+    """Variance floor (m²)."""
+
+
+def _normal_var(noise: _Noise, rng_: FloatArray, cos_inc: FloatArray) -> FloatArray:
+    """Variance of a point's offset along a unit normal at incidence ``inc`` to its beam.
+
+    ``nᵀ Σ n`` with ``Σ = J diag(σρ², σβ²) Jᵀ``: the range error projects with
+    ``cos inc`` and the cross-beam error ``ρ δβ`` with ``sin inc``.
+    """
+    c2 = cos_inc * cos_inc
+    return noise.var_r * c2 + rng_ * rng_ * noise.var_b * (1.0 - c2) + noise.floor2
+
+
+def _range_moments(noise: _Noise, d1: FloatArray, d2: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean offset and variance of a measured range, given ``ρ'`` and ``ρ''`` of its beam.
+
+    The measured range is ``ρ(β + δβ) + δρ ≈ ρ + ρ' δβ + ½ ρ'' δβ² + δρ`` at the nominal
+    bearing ``β``: its mean is ``ρ + ½ ρ'' σβ²`` and its variance
+    ``σρ² + ρ'² σβ² + ½ ρ''² σβ⁴``.
+    """
+    bias = 0.5 * d2 * noise.var_b
+    var = noise.var_r + d1 * d1 * noise.var_b + 0.5 * d2 * d2 * noise.var_b**2 + noise.floor2
+    return bias, var
+
+
+def _nonlinearity(noise: _Noise, d2: FloatArray, var: FloatArray) -> FloatArray:
+    """Standard deviation of the quadratic term ``½ ρ'' δβ²`` relative to the range's.
+
+    Near a circle's silhouette ``ρ(β)`` bends sharply (``ρ''`` grows like
+    ``D² / (r cos³γ)``), and the linearised model stops describing the range error long
+    before the incidence angle looks extreme when the circle is far and small.
+    """
+    out: FloatArray = np.abs(d2) * noise.var_b / math.sqrt(2.0) / np.sqrt(var)
+    return out
+
+
+@functools.lru_cache(maxsize=4096)
+def _chi2_quantile(q: float, dof: int) -> float:
+    return float(chi2_dist.ppf(q, max(dof, 1)))
+
+
+def _chi2_max(params: ExtractionParams, dof: int) -> float:
+    """Acceptance bound on a fit's χ² with ``dof`` degrees of freedom."""
+    return _chi2_quantile(params.chi2_quantile, dof)
