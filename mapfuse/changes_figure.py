@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -109,24 +110,18 @@ def changes_figure(
 
 def _draw_truth(ax: Axes, scenario: Scenario, truth: ChangeTruth, log: MeasurementLog) -> None:
     frame = scenario.known_map.frame
-    first = {"moved": True, "removed": True, "added": True}
+    first = {"removed": True}
     lengths = {s.id: (-0.5 * s.length, 0.5 * s.length) for s in scenario.world.segments}
-    for fid in truth.moved:
-        if fid not in scenario.world.ids:
-            continue
-        kind, p = scenario.world.feature(fid)
-        q = express_in(kind, frame, p)[0]
-        _draw(
-            ax,
-            int(kind),
-            q,
-            np.array(lengths.get(fid, (-5.0, 5.0))),
-            color="k",
-            lw=1.0,
-            ls=":",
-            label="true place of moved" if first["moved"] else None,
-        )
-        first["moved"] = False
+
+    def draw_world_features(fids: Iterable[int], label: str, **style: object) -> None:
+        """The true features ``fids`` in ``Wknown``, labelled once."""
+        for n, fid in enumerate(f for f in fids if f in scenario.world.ids):
+            kind, p = scenario.world.feature(fid)
+            q = express_in(kind, frame, p)[0]
+            ext = np.array(lengths.get(fid, (-5.0, 5.0)))
+            _draw(ax, int(kind), q, ext, lw=1.0, label=label if n == 0 else None, **style)
+
+    draw_world_features(truth.moved, "true place of moved", color="k", ls=":")
     ids = log.known_map.ids.tolist()
     for fid in truth.removed:
         r = ids.index(fid)
@@ -140,17 +135,4 @@ def _draw_truth(ax: Axes, scenario: Scenario, truth: ChangeTruth, log: Measureme
             label="truly removed" if first["removed"] else None,
         )
         first["removed"] = False
-    for fid in truth.added:
-        kind, p = scenario.world.feature(fid)
-        q = express_in(kind, frame, p)[0]
-        _draw(
-            ax,
-            int(kind),
-            q,
-            np.array(lengths.get(fid, (-5.0, 5.0))),
-            color="tab:purple",
-            lw=1.0,
-            ls="--",
-            label="truly added" if first["added"] else None,
-        )
-        first["added"] = False
+    draw_world_features(truth.added, "truly added", color="tab:purple", ls="--")

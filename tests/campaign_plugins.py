@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from mapfuse.result import EstimatorResult
@@ -26,13 +27,4 @@ class FailsOnOddSeeds(DeadReckoning):
         if log.seed % 2:
             raise RuntimeError(f"deliberate failure on seed {log.seed}")
         res = super().run(log, options, fusion=fusion, progress=progress)
-        return EstimatorResult(
-            estimator=self.name,
-            scenario=res.scenario,
-            seed=res.seed,
-            fusion=res.fusion,
-            timestamps=res.timestamps,
-            step_time_s=res.step_time_s,
-            map=res.map,
-            filtered=res.filtered,
-        )
+        return dataclasses.replace(res, estimator=self.name)
