@@ -144,9 +144,8 @@ def _near_reference(
     d = t[:2] - q[:2]
     if kind == FeatureKind.CIRCLE:
         return bool(math.hypot(*d) < max_dist)
-    n_q = np.array([-math.sin(q[2]), math.cos(q[2])])
     n_t = np.array([-math.sin(t[2]), math.cos(t[2])])
-    lateral = min(abs(float(n_q @ d)), abs(float(n_t @ d)))
+    lateral = abs(float(n_t @ d))  # the query's point from the target's line
     return bool(lateral < max_dist and abs(float(wrap_angle_half(t[2] - q[2]))) < max_ang)
 
 
@@ -166,14 +165,14 @@ def test_vectorised_near_equals_one_at_a_time(kind: FeatureKind) -> None:
         assert got.tolist() == want
 
 
-def test_near_takes_lines_modulo_pi_and_either_offset() -> None:
+def test_near_takes_lines_modulo_pi_and_the_querys_offset_from_the_target_line() -> None:
     q = np.array([0.0, 0.0, 0.0])
     targets = np.array(
         [
             [5.0, 1.0, math.pi],  # same line reversed, 1 m off
             [5.0, 1.0, 0.5],  # 0.5 rad off
             [40.0, 4.0, 0.1],  # 4 m from q's line, but q's point is on its line
-            [40.0, 4.0, 0.0],  # 4 m from both lines
+            [40.0, 4.0, 0.0],  # q's point 4 m from its line
         ]
     )
     assert near(FeatureKind.LINE, q, targets, 3.0, 0.3).tolist() == [True, False, True, False]

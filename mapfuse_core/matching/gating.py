@@ -61,20 +61,16 @@ def near(
     """(n,) bool: which ``targets`` (n, 3) of ``kind`` pass the cheap pre-gate with ``query``.
 
     Circles: centre distance below ``max_dist``.  Lines: angle between them (modulo π)
-    below ``max_ang`` and lateral offset below ``max_dist``, where either offset passes:
-    the target's reference point from the query's line, or the query's from the
-    target's.  Residuals measure one or the other (a known wall is measured at the
-    query's point, an estimated line at its own), and this is only a pre-gate.
+    below ``max_ang`` and the offset of the query's reference point from the target's
+    line below ``max_dist``: the lateral residual of the line model
+    (:func:`mapfuse_core.models.line.line_residual`), for estimated and known lines alike.
     """
     targets = np.asarray(targets, dtype=float).reshape(-1, 3)
     dx, dy = targets[:, 0] - query[0], targets[:, 1] - query[1]
     if kind == FeatureKind.CIRCLE:
         out: np.ndarray = np.hypot(dx, dy) < max_dist
         return out
-    c, s = math.cos(query[2]), math.sin(query[2])
-    lateral = np.minimum(
-        np.abs(-s * dx + c * dy), np.abs(np.sin(targets[:, 2]) * dx - np.cos(targets[:, 2]) * dy)
-    )
+    lateral = np.abs(np.sin(targets[:, 2]) * dx - np.cos(targets[:, 2]) * dy)
     dang = np.abs(wrap_angle_half(targets[:, 2] - query[2]))
     ok: np.ndarray = (lateral < max_dist) & (dang < max_ang)
     return ok
