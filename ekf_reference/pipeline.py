@@ -84,6 +84,7 @@ class _Run:
         self.local, self.ctx = new_local_map(self.global_map)
         self.anchor: AnchorResult | None = None
         self.ccda_attempts = 0
+        self.ccda_reasons: dict[str, int] = {}
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
@@ -426,6 +427,7 @@ class _Run:
             covs=np.stack([g.block(i) for i in feats]),
         )
         res = ccda_match(map_a, known, self.config.data_association.ccda)
+        self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
         if not res.accepted:
             return
         # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
@@ -582,5 +584,6 @@ def _result(
         obs_landmark=roots.astype(np.int64),
         obs_known_id=obs_known,
         ccda_attempts=run.ccda_attempts,
+        ccda_reasons=dict(run.ccda_reasons),
         loop_closures=tuple(run.loop_closures),
     )
