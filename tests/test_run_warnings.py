@@ -200,3 +200,28 @@ def test_cli_prints_each_warning_once_on_stderr_and_keeps_stdout_json(
     assert main([*argv, "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "mapfuse: warning: ekf with fusion: fusion requested, no match found" in err
+
+
+def test_a_grid_of_identical_trees_reports_the_ambiguous_matchings() -> None:
+    # 7 × 7 trees 8 m apart: every overlap fits many shifts, CCDA refuses them all.
+    xs = np.arange(-24.0, 25.0, 8.0)
+    trees = np.array([[x, y, 0.3] for x in xs for y in xs])
+    n = len(trees)
+    world = KnownMapArrays(
+        np.arange(100, 100 + n), np.ones(n, np.int8), trees, np.zeros((n, 3, 3)), None
+    )
+    m = run(synthetic_log(60, 0, world=world, radius=16.0), "ekf").metrics
+    assert m["anchor"] is None
+    reasons = m["matching"]["ccda_reasons"]
+    assert reasons.get("ambiguous", 0) >= 1
+    assert "accepted" not in reasons
+    assert any(w.startswith("fusion requested, no match found") for w in m["warnings"])
+
+
+def test_batch_with_its_own_association_reports_its_matchings(log: MeasurementLog) -> None:
+    # Batch decides its own associations in an iSAM2 pass first: its CCDA calls count.
+    m = run(log, "batch", association="own").metrics
+    assert m["matching"]["ccda_by"] == "batch"
+    assert m["matching"]["ccda_attempts"] >= 1
+    assert m["matching"]["achieved"] is (m["anchor"] is not None)
+    assert sum(m["matching"]["ccda_reasons"].values()) == m["matching"]["ccda_attempts"]
