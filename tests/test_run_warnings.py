@@ -200,6 +200,8 @@ def test_cli_prints_each_warning_once_on_stderr_and_keeps_stdout_json(
     assert main([*argv, "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "mapfuse: warning: ekf with fusion: fusion requested, no match found" in err
+    report = (cmp_out / "report.md").read_text()
+    assert "- ekf with fusion: fusion requested, no match found" in report
 
 
 def test_a_grid_of_identical_trees_reports_the_ambiguous_matchings() -> None:
