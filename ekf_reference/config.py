@@ -32,6 +32,16 @@ class EKFConfig:
     observations become unassociated (−1).  1 keeps every feature; 2 drops the trunks
     seen in a single scan, which keeps the global map (and every join's O(F²) cost) to
     the trees that were tracked (``docs/configuration.md``)."""
+    tentative_min_sightings: int = 1
+    """*(choice, beyond the paper)* A new feature joins the map only once seen on this
+    many distinct steps within :attr:`tentative_window_steps` of its birth; until then
+    it is tentative (not paired with the known map) and it is dropped (marginalised
+    out, its observations unassociated) when it is not (:mod:`ekf_reference.tentative`).
+    1 (default) is the paper's method: every new feature is permanent, spurious
+    detections (clutter) too."""
+    tentative_window_steps: int = 10
+    """Steps, from its birth, within which a tentative feature must reach
+    :attr:`tentative_min_sightings` (cut short by its local map's join)."""
 
     carry_seen_steps: int = 0
     """*(choice, beyond the paper)* Start every local map with the global features seen
@@ -70,6 +80,15 @@ class EKFConfig:
             # The registration tells local from global circles by in_local; carried
             # circles are both, and that case is neither designed nor tested.
             raise ValueError("carry_seen_steps and loop_closure cannot be used together")
+        for name in ("tentative_min_sightings", "tentative_window_steps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+        if self.tentative_window_steps < self.tentative_min_sightings:
+            raise ValueError(
+                f"tentative_window_steps ({self.tentative_window_steps}) must be >= "
+                f"tentative_min_sightings ({self.tentative_min_sightings})"
+            )
         if self.min_obs_to_join < 1:
             raise ValueError(f"min_obs_to_join must be >= 1, got {self.min_obs_to_join}")
         if not isinstance(self.data_association, AssociationConfig):

@@ -36,6 +36,7 @@ from ekf_reference.maps import (
 )
 from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from ekf_reference.tentative import Tentatives
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
@@ -84,6 +85,8 @@ class _Run:
         self.local, self.ctx = new_local_map(self.global_map)
         self.anchor: AnchorResult | None = None
         self.ccda_attempts = 0
+        self.ccda_reasons: dict[str, int] = {}
+        self.tentative = Tentatives(config.tentative_min_sightings, config.tentative_window_steps)
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
@@ -153,10 +156,12 @@ class _Run:
                     cov,
                 )
             )
+        self.tentative.review(k, loc, born, self.obs_track, self.obs_track[sl.start : sl.stop])
         if loc.has(Role.ANCHOR):
             # Only features touched at this step can have become pairable with a known
             # feature; the others were tested when last seen (saves ~80 % of the tests).
-            seen = {int(t) for t in self.obs_track[sl.start : sl.stop]}
+            # Tentative features are not, until promoted.
+            seen = {int(t) for t in self.obs_track[sl.start : sl.stop]} - self.tentative.pending
             # Carried features are shared with the global map and stay until the join.
             self.constrain_to_known(loc, lambda e: e.in_local and e.track in seen)
 
@@ -208,6 +213,8 @@ class _Run:
         loc.remove(drop)
 
     def join(self, k: int) -> None:
+        last = k == self.log.n_steps - 1
+        joined = self.tentative.flush(k, self.local, self.obs_track, last)
         if self.config.min_obs_to_join > 1:
             self.drop_rare_local_features()
         g, loc, ctx = self.global_map, self.local, self.ctx
@@ -242,6 +249,7 @@ class _Run:
         for e in joint.elements:
             e.in_local = False
         joint.bind_lines()
+        self.tentative.settle(joint, self.obs_track, self.tracks.root, joined)
         self.global_map = joint
         if self.config.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
@@ -426,6 +434,7 @@ class _Run:
             covs=np.stack([g.block(i) for i in feats]),
         )
         res = ccda_match(map_a, known, self.config.data_association.ccda)
+        self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
         if not res.accepted:
             return
         # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
@@ -582,5 +591,8 @@ def _result(
         obs_landmark=roots.astype(np.int64),
         obs_known_id=obs_known,
         ccda_attempts=run.ccda_attempts,
+        ccda_reasons=dict(run.ccda_reasons),
+        tentative_promoted=run.tentative.promoted,
+        tentative_dropped=run.tentative.dropped,
         loop_closures=tuple(run.loop_closures),
     )

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -104,6 +105,13 @@ class EKFResult:
     loop_closures: tuple[LoopClosure, ...] = ()
     """Loop closures found at the joins, in order (none unless ``config.loop_closure``,
     and none once the known map is fused: the local maps are then held to it)."""
+    ccda_reasons: Mapping[str, int] = field(default_factory=dict)
+    """CCDA matchings per outcome (:attr:`~mapfuse_core.matching.ccda.CCDAResult.reason`);
+    the counts sum to :attr:`ccda_attempts`."""
+    tentative_promoted: int = 0
+    """Tentative features promoted to the map (``config.tentative_min_sightings`` > 1)."""
+    tentative_dropped: int = 0
+    """Tentative features dropped, never promoted; their observations are unassociated."""
 
     @property
     def decisions(self) -> AssociationDecisions:

@@ -50,6 +50,15 @@ def _note(text: str) -> None:
     print(text, file=sys.stderr)
 
 
+def _warn_runs(runs: Sequence[Any], label: bool = False) -> None:
+    """Each run's ``metrics.json`` warnings, once each, on stderr (stdout is JSON)."""
+    for r in runs:
+        m = r.metrics
+        who = f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion: " if label else ""
+        for w in m.get("warnings", ()):
+            _note(f"mapfuse: warning: {who}{w}")
+
+
 # --------------------------------------------------------------------------- validation
 
 
@@ -206,6 +215,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         log, estimator, fusion=args.fusion, progress=_progress(args.backend, args), **flags
     )
     paths = write_outputs(run, out)
+    _warn_runs([run])
     if args.export_graph:
         from mapfuse_graph.export import export_graph
 
@@ -244,6 +254,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     simulated = not (args.scenario.endswith(".npz") or _is_dataset(args.scenario))
     scenario = load_scenario(args.scenario) if simulated else None
     paths = write_comparison(comparison, out, scenario=scenario)
+    _warn_runs(comparison.runs, label=True)
     _emit({"outputs": paths})
     if not args.quiet:
         _note(f"Report: {paths['report']}")

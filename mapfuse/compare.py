@@ -372,6 +372,12 @@ def _gps_table(comparison: Comparison) -> list[str]:
     return lines
 
 
+def _warning_lines(metrics: Sequence[Mapping[str, Any]]) -> list[str]:
+    """A *Warnings* section: every run's ``metrics.json`` warnings (docs/warnings.md)."""
+    items = [f"- {_label(m)}: {w}" for m in metrics for w in m.get("warnings", ())]
+    return ["", "Warnings:", "", *items] if items else []
+
+
 def _paper_anchor_error() -> tuple[float, float]:
     e, t = PAPER_ANCHOR_ESTIMATE, PAPER_ANCHOR_TRUTH
     return math.hypot(e[0] - t[0], e[1] - t[1]), abs(wrap_scalar(e[2] - t[2]))
@@ -434,6 +440,7 @@ def report_markdown(
 
         lines += _gps_table(comparison)
         lines += change_report_lines([r.result for r in comparison.runs], log, None)
+        lines += _warning_lines(metrics)
         lines += _figure_list(figures)
         return "\n".join(lines) + "\n"
     if not truth:
@@ -493,6 +500,7 @@ def report_markdown(
     from mapfuse.changes import change_report_lines
 
     lines += change_report_lines([r.result for r in comparison.runs], log, scenario)
+    lines += _warning_lines(metrics)
     lines += _figure_list(figures)
     return "\n".join(lines) + "\n"
 

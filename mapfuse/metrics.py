@@ -6,7 +6,9 @@ against GPS on real data); the anchor; the map size; per-step run times.  A resu
 with a smoothed estimate also says which estimate a metrics object is of
 (``estimate``) and, when it has a filtered one too, adds that one's errors
 (``nees_filtered``, ``position_error_filtered_m``); a result that took its
-association decisions as an input names their source (``association``).
+association decisions as an input names their source (``association``).  Every
+object ends with the map-matching outcome (``matching``) and the run's ``warnings``
+(:mod:`mapfuse.diagnostics`, ``docs/warnings.md``).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from mapfuse.diagnostics import matching_block, run_warnings
 from mapfuse.result import Anchor, EstimatorResult
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
@@ -121,6 +124,9 @@ def run_metrics(
         timestamps=log.timestamps,
         gps=log.gps,
     )
+    out["map"]["seen_once"] = result.map.seen_once
+    out["map"]["tentative_dropped"] = int(result.tentative_dropped)
+    out["matching"] = matching_block(result)
     if result.association is not None:
         out["association"] = result.association
     if result.smoothed is not None:
@@ -135,4 +141,5 @@ def run_metrics(
         out["position_error_filtered_m"] = gps_position_metrics(
             log.timestamps[: f.poses.shape[0]], f.poses, *log.gps, ref
         )
+    out["warnings"] = run_warnings(result, log, out["nees"], track.covs)
     return out

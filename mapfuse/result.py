@@ -16,7 +16,7 @@ import numpy as np
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.matching.decisions import AssociationDecisions
 
-__all__ = ["Anchor", "EstimatorResult", "MapEstimate", "PoseTrack"]
+__all__ = ["Anchor", "EstimatorResult", "MapEstimate", "MatchAttempts", "PoseTrack"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,8 +68,16 @@ class MapEstimate:
 
     @property
     def matched_known(self) -> int:
-        """Features linked to the known map."""
-        return int(np.sum(np.asarray(self.known_ids) >= 0))
+        """Known features paired with an observed feature: entries tied to a known id
+        with at least one observation.  A known feature an estimator only carries (the
+        EKF inserts the whole known map when it fuses) does not count."""
+        return int(np.sum((np.asarray(self.known_ids) >= 0) & (np.asarray(self.n_obs) > 0)))
+
+    @property
+    def seen_once(self) -> int:
+        """Estimated features (not tied to the known map) built from a single
+        observation: where spurious detections (clutter) end up."""
+        return int(np.sum((np.asarray(self.known_ids) < 0) & (np.asarray(self.n_obs) == 1)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +92,23 @@ class Anchor:
     """Step at which the map match was accepted (or entered the estimate)."""
     pairings: tuple[tuple[int, int], ...]
     """(true world id of the estimated feature or −1, known-map id) per pairing."""
+
+
+@dataclass(frozen=True)
+class MatchAttempts:
+    """The map matchings (CCDA calls) a run made and how each ended."""
+
+    attempts: int
+    """CCDA calls."""
+    reasons: Mapping[str, int]
+    """Calls per outcome: a :data:`mapfuse_core.matching.ccda.REASONS` entry
+    (``"accepted"``, ``"ambiguous"``, ``"search_limit"``, ...), or ``"anchor refused"``
+    for an accepted match the estimator's own anchor check turned down."""
+
+    @property
+    def search_limit(self) -> int:
+        """Calls that ended at CCDA's search budget (``"search_limit"``)."""
+        return int(self.reasons.get("search_limit", 0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,6 +143,12 @@ class EstimatorResult:
     has no such choice (reported in ``metrics.json`` only when set)."""
     upstream: EstimatorResult | None = None
     """The run whose decisions this one consumed (the EKF's for graph backends), if any."""
+    matching: MatchAttempts | None = None
+    """The map matchings the run made itself; ``None`` when it made none by design
+    (it took its anchor from :attr:`upstream`, or matches no map)."""
+    tentative_dropped: int = 0
+    """New features dropped as tentative before entering the map (the EKF's
+    ``tentative_min_sightings`` above 1), with their observations left unassociated."""
     extras: Mapping[str, Any] = field(default_factory=dict)
     """Backend-specific results for power users, e.g. ``extras["ekf"]`` the
     :class:`~ekf_reference.result.EKFResult`, ``extras["graph"]`` the

@@ -89,7 +89,16 @@ def prepare_log(
     data_dir: str | None = None,
 ) -> MeasurementLog:
     """A log from a ``.npz`` file, a real dataset (``carpark``, ``victoria-park``, needs
-    ``data_dir``), or by simulating a scenario (built-in name or TOML)."""
+    ``data_dir``), or by simulating a scenario (built-in name or TOML).
+
+    ``seed`` applies to a simulated scenario only: given with a saved log or a dataset
+    it is an error (it would change nothing), as is ``data_dir`` for a scenario.
+    """
+    if seed is not None and (source.endswith(".npz") or source in DATASETS):
+        what = "a saved log" if source.endswith(".npz") else "the real dataset"
+        raise ValueError(f"seed does not apply to {what} {source!r}: only a simulation has one")
+    if data_dir is not None and source not in DATASETS:
+        raise ValueError(f"a data directory applies to {', '.join(DATASETS)} only, not {source!r}")
     if source.endswith(".npz"):
         return load_log(source)
     if source in DATASETS:

@@ -213,8 +213,11 @@ def spectrum(
     per: dict[tuple[str, float], list[tuple[float, float, tuple[float, float], float]]] = {}
     scenario = source
     used_fusion = fusion
+    saved = source.endswith(".npz")
+    if saved and len(seeds) > 1:
+        raise ValueError(f"--seeds: a saved log ({source}) is one run, not {len(seeds)} seeds")
     for seed in seeds:
-        log = prepare_log(source, seed=seed, data_dir=data_dir)
+        log = prepare_log(source, seed=None if saved else seed, data_dir=data_dir)
         if log.true_poses is None:
             raise ValueError(f"{source}: the spectrum needs true poses (a simulated log)")
         if steps is not None:

@@ -120,6 +120,9 @@ class GraphBuilder(OwnAssociation):
         self.anchor_step = -1
         self.anchor_init: FloatArray | None = None
         self.anchor_source = ""
+        self.ccda_reasons: dict[str, int] = {}
+        """CCDA calls of the ``own`` association per outcome (``"anchor refused"``: an
+        accepted match the anchor check turned down)."""
         self.pairings: list[tuple[int, int]] = []
         """(landmark index, known row) of every tie factor added."""
         self._next_step = 0

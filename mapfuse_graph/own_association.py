@@ -53,6 +53,7 @@ class OwnAssociation:
     anchor_step: int
     anchor_source: str
     _gate: dict[int, float]
+    ccda_reasons: dict[str, int]
 
     def landmark_map(
         self, est: Estimate, which: Sequence[int], covs: bool = True
@@ -73,7 +74,10 @@ class OwnAssociation:
             return
         map_a = self.landmark_map(est_now, feats)
         res = ccda_match(map_a, self.known, self.options.data_association.ccda)
-        if not res.accepted or not self._anchor_ok(res.x_A_B, res.cov):
+        refused = res.accepted and not self._anchor_ok(res.x_A_B, res.cov)
+        reason = "anchor refused" if refused else res.reason
+        self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + 1
+        if not res.accepted or refused:
             return
         for ia, jb in res.pairings:
             self.landmarks[feats[ia]].known = int(jb)

@@ -144,6 +144,10 @@ class GraphResult:
     joint_pose_cov: JointPoseCovariance | None = None
     """Batch with ``joint_stride``: the joint covariance of every ``joint_stride``-th pose,
     for consistency statistics that need it (``evaluation.nees_mean_distribution``)."""
+    ccda_reasons: dict[str, int] | None = None
+    """``association="own"``: CCDA calls per outcome (a
+    :data:`~mapfuse_core.matching.ccda.REASONS` entry, or ``"anchor refused"`` for an
+    accepted match the anchor check turned down); ``None`` with any other association."""
     graph: gtsam.NonlinearFactorGraph | None = field(default=None, compare=False, repr=False)
     """The final nonlinear factor graph, to optimise with another solver or export
     (:mod:`mapfuse_graph.export`); its keys are named by :attr:`keys`.  The observation

@@ -146,6 +146,7 @@ def run_graph(
         **{**base.__dict__, "fusion": bool(fusion), "association": association, "robust": robust}
     )
     anchor_given: tuple[FloatArray, int, str] | None = None
+    pre_reasons: dict[str, int] | None = None
     if backend == "batch" and associations is None and association == "own":
         # Own association is decided against an incremental estimate: run iSAM2 first.
         pre = GraphBuilder(log, opts, decisions, None, steps)
@@ -154,6 +155,7 @@ def run_graph(
         if pre.anchor_added:
             assert pre.anchor_init is not None
             anchor_given = (pre.anchor_init, pre.anchor_step, pre.anchor_source)
+        pre_reasons = pre.ccda_reasons
     label = association if associations is None else "given"
     fl = fixedlag or FixedLagOptions()
     if backend == "fixedlag" and fl.landmarks == "window":
@@ -206,6 +208,13 @@ def run_graph(
         lm=out.lm,
         extra=out.extra,
         joint_pose_cov=out.joint_pose_cov,
+        ccda_reasons=(
+            dict(pre_reasons)
+            if pre_reasons is not None
+            else dict(builder.ccda_reasons)
+            if association == "own" and associations is None
+            else None
+        ),
         graph=out.graph,
         values=out.values,
         initial=out.initial,

@@ -166,3 +166,44 @@ def with_known(log: MeasurementLog, keep: list[int]) -> MeasurementLog:
         None if k.extents is None else k.extents[sel].reshape(-1, 2),
     )
     return dataclasses.replace(log, known_map=known)
+
+
+def with_clutter(log: MeasurementLog, per_step: int, seed: int = 0) -> MeasurementLog:
+    """``log`` with ``per_step`` spurious detections added to every scan, half trunks
+    and half short walls, uniform in front of the sensor (true id −1)."""
+    rng = np.random.default_rng(seed)
+    steps, kinds, params, covs, exts = [], [], [], [], []
+    for k in range(log.n_steps):
+        for _ in range(per_step):
+            x, y = rng.uniform(1.0, 20.0), rng.uniform(-15.0, 15.0)
+            if rng.random() < 0.5:
+                kinds.append(int(FeatureKind.CIRCLE))
+                params.append([x, y, rng.uniform(0.1, 0.6)])
+                covs.append(np.diag([0.03**2, 0.03**2, 0.015**2]))
+                exts.append([math.nan, math.nan])
+            else:
+                z = canonical_line(np.array([x, y, rng.uniform(-math.pi, math.pi)]))
+                c, s = math.cos(z[2]), math.sin(z[2])
+                Rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+                kinds.append(int(FeatureKind.LINE))
+                params.append(z)
+                covs.append(Rot @ np.diag([4.0, 0.02**2, 0.005**2]) @ Rot.T)
+                exts.append([-1.0, 1.0])
+            steps.append(k)
+    n = len(steps)
+    step = np.concatenate([log.feat_step, np.array(steps, dtype=np.int64)])
+    order = np.argsort(step, kind="stable")
+
+    def cat(a: np.ndarray, b: object, dtype: object) -> np.ndarray:
+        return np.concatenate([a, np.asarray(b, dtype=dtype).reshape((n, *a.shape[1:]))])[order]
+
+    return dataclasses.replace(
+        log,
+        feat_step=step[order],
+        feat_kind=cat(log.feat_kind, kinds, np.int8),
+        feat_params=cat(log.feat_params, params, float),
+        feat_cov=cat(log.feat_cov, covs, float),
+        feat_true_id=cat(log.feat_true_id, np.full(n, -1), np.int64),
+        feat_n_points=cat(log.feat_n_points, np.full(n, 10), np.int64),
+        feat_extent=cat(log.feat_extent, exts, float),
+    )

@@ -47,7 +47,12 @@ def test_registered_estimator_runs_and_is_scored(log: MeasurementLog, toy: DeadR
     m = done.metrics
     assert (m["backend"], m["fusion"], m["steps"]) == ("toy", False, log.n_steps)
     assert m["anchor"] is None
-    assert m["map"] == {"features": 0, "matched_known": 0}
+    assert m["map"] == {
+        "features": 0,
+        "matched_known": 0,
+        "seen_once": 0,
+        "tentative_dropped": 0,
+    }
     assert "association" not in m
     assert "estimate" not in m
     # Dead reckoning from the true start: its error is the odometry's drift, which the

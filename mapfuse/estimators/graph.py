@@ -11,7 +11,7 @@ import numpy as np
 from mapfuse import registry
 from mapfuse.estimator import Progress
 from mapfuse.profiles import default_options
-from mapfuse.result import Anchor, EstimatorResult, MapEstimate, PoseTrack
+from mapfuse.result import Anchor, EstimatorResult, MapEstimate, MatchAttempts, PoseTrack
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_graph.graph import ASSOCIATIONS, GraphOptions, centre_radius_correlated
 from mapfuse_graph.solvers import (
@@ -86,6 +86,9 @@ def to_result(
         decisions=g.decisions,
         association=g.association,
         upstream=upstream,
+        matching=None
+        if g.ccda_reasons is None or not g.fusion
+        else MatchAttempts(sum(g.ccda_reasons.values()), dict(g.ccda_reasons)),
         extras={"graph": g},
     )
 
