@@ -432,6 +432,7 @@ class _Run:
             kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
             params=g.mean[feats].copy(),
             covs=np.stack([g.block(i) for i in feats]),
+            extents=np.array([g.elements[i].extent for i in feats], dtype=np.float64),
         )
         res = ccda_match(map_a, known, self.config.data_association.ccda)
         self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1

@@ -186,10 +186,13 @@ def _truss(
     the dense line–line regions that angle-only edges create).  Counts from before
     a peel are upper bounds afterwards (removing edges only lowers them), so peeling
     goes on with them until stable and they are recounted, on the renumbered
-    remainder, only then.
+    remainder, only then.  Peeling is only pruning, so it stops after a fixed number
+    of passes and rounds (each linear in the edges), or as soon as a pass removes
+    under 1 % of the edges: the exact search handles what remains, within its
+    budget, and the cost of this step stays bounded.
     """
-    while u.size:
-        while u.size:
+    for _ in range(_TRUSS_ROUNDS):
+        for _ in range(_TRUSS_PASSES):
             deg = np.bincount(u, minlength=n) + np.bincount(v, minlength=n)
             ok = (common >= k - 2) & (deg[u] >= k - 1) & (deg[v] >= k - 1)
             if ok.all():
@@ -197,7 +200,10 @@ def _truss(
                 ok = (reach[u] >= k - 1) & (reach[v] >= k - 1)
                 if ok.all():
                     break
+            dropped = u.size - int(ok.sum())
             u, v, common = u[ok], v[ok], common[ok]
+            if dropped * _TRUSS_MIN_DROP < u.size:
+                break  # diminishing returns: recount instead
         if not u.size:
             break
         ids, (cu, cv) = _compact(n, u, v)
@@ -211,8 +217,25 @@ def _truss(
 def _distinct_partners(n: int, u: IntArray, v: IntArray, feat: IntArray) -> IntArray:
     """For each node, the number of distinct ``feat`` values among its neighbours."""
     m = int(feat.max(initial=0)) + 1
-    keys = np.unique(np.concatenate([u * m + feat[v], v * m + feat[u]]))
+    keys = np.concatenate([u * m + feat[v], v * m + feat[u]])
+    if n * m <= _DENSE_CELLS:
+        # A (node, feature) occupancy table: linear in edges, no sort or hash.
+        seen = np.bincount(keys, minlength=n * m).reshape(n, m) > 0
+        out: IntArray = seen.sum(axis=1, dtype=np.int64)
+        return out
+    keys = np.unique(keys)
     return np.bincount(keys // m, minlength=n)
+
+
+#: Recounts of common neighbours in :func:`_truss`.
+_TRUSS_ROUNDS = 8
+#: Peeling passes between recounts.
+_TRUSS_PASSES = 16
+#: A pass removing fewer than 1/this of the edges ends the peeling between recounts.
+_TRUSS_MIN_DROP = 100
+
+#: Largest (node × feature) table :func:`_distinct_partners` counts in (64 MB of int64).
+_DENSE_CELLS = 1 << 23
 
 
 def _bits(x: int) -> list[int]:

@@ -30,6 +30,13 @@ class _Pairs:
     """(m, 2) invariants: (distance, unused) or (angle, distance) for line pairs."""
     S: FloatArray
     """(m, 2, 2) covariance of :attr:`g`."""
+    corner: FloatArray | None = None
+    """Line pairs: (m, 6) segment intervals along each line measured from the lines'
+    intersection, ``(lo_i, hi_i, lo_k, hi_k)``, and the variances of the
+    intersection's position along ``i`` and along ``k``; NaN where an extent is
+    unknown or the lines are parallel."""
+    directed: FloatArray | None = None
+    """Line pairs: (m,) directed angle ``θ_k − θ_i`` (not modulo π)."""
 
 
 def _pairs_cc(P: _Prep) -> _Pairs:
@@ -101,7 +108,48 @@ def _pairs_ll(P: _Prep, ordered: bool) -> _Pairs:
     S[:, 0, 0] = var_d
     S[:, 1, 1] = var_s
     S[:, 0, 1] = S[:, 1, 0] = cov_ds
-    return _Pairs(i=i, k=k, g=g, S=S)
+    corner = _corners(P, i, k, ti, ni, nk, rel)
+    return _Pairs(i=i, k=k, g=g, S=S, corner=corner, directed=thk - thi)
+
+
+def _corners(
+    P: _Prep,
+    i: IntArray,
+    k: IntArray,
+    ti: FloatArray,
+    ni: FloatArray,
+    nk: FloatArray,
+    rel: FloatArray,
+) -> FloatArray:
+    """Segment intervals of line pairs measured from their intersection (see
+    :attr:`_Pairs.corner`).
+
+    With ``c = q_i + s_i t_i = q_k + s_k t_k`` the intersection, ``s_i = n_k·(q_k −
+    q_i) / (n_k·t_i)`` and ``s_k = n_i·(q_i − q_k) / (n_i·t_k)``; a rigid motion
+    keeps ``c`` on both lines, so the intervals ``extent − s`` are invariants (up
+    to the sign of each line's direction).  The intersection moves along ``i`` by
+    ``(δ_lat_k + s_k δθ_k − cos Δ (δ_lat_i + s_i δθ_i)) / sin Δ``, whose variance
+    is bounded by the sum of the four terms' variances over ``sin² Δ``.
+    """
+    out = np.full((i.size, 6), np.nan)
+    sin_d = np.einsum("mi,mi->m", nk, ti)  # n_k·t_i = sin(θ_k − θ_i) up to sign
+    tk = np.stack([nk[:, 1], -nk[:, 0]], axis=1)
+    ok = (np.abs(sin_d) > 1e-6) & np.all(np.isfinite(P.ext[i]), axis=1)
+    ok &= np.all(np.isfinite(P.ext[k]), axis=1)
+    if not np.any(ok):
+        return out
+    sd = sin_d[ok]
+    s_i = np.einsum("mi,mi->m", nk[ok], rel[ok]) / sd
+    s_k = np.einsum("mi,mi->m", ni[ok], -rel[ok]) / np.einsum("mi,mi->m", ni[ok], tk[ok])
+    Ci, Ck = P.C[i[ok]], P.C[k[ok]]
+    lat = Ci[:, 0, 0] + Ck[:, 0, 0]
+    var_i = (lat + s_k**2 * Ck[:, 1, 1] + s_i**2 * Ci[:, 1, 1]) / sd**2
+    var_k = (lat + s_i**2 * Ci[:, 1, 1] + s_k**2 * Ck[:, 1, 1]) / sd**2
+    out[ok, 0:2] = P.ext[i[ok]] - s_i[:, None]
+    out[ok, 2:4] = P.ext[k[ok]] - s_k[:, None]
+    out[ok, 4] = var_i
+    out[ok, 5] = var_k
+    return out
 
 
 #: Candidate pairs materialised at once by the window join (bounds its memory).
@@ -169,6 +217,49 @@ def _gated_join(
             a0 = a1
 
 
+def _corners_overlap(
+    ca: FloatArray, cb: FloatArray, sign: FloatArray, gates: _Gates, params: CCDAParams
+) -> BoolArray:
+    """Whether the segments of two non-parallel line pairings can overlap, pair by pair.
+
+    ``ca``, ``cb``: :attr:`_Pairs.corner` rows of the ``A`` pair ``(i, k)`` and the
+    ``B`` pair ``(j, l)``; ``sign`` from the directed angles.  The rotation is known
+    only modulo π from the lines, so both are tried: line ``i``'s direction maps to
+    ``j``'s (and ``k``'s to ``sign`` times ``l``'s), or both reversed.  Rows with an
+    unknown extent pass.
+    """
+    out = np.ones(ca.shape[0], dtype=bool)
+    known = np.all(np.isfinite(ca[:, :4]), axis=1) & np.all(np.isfinite(cb[:, :4]), axis=1)
+    if not np.any(known):
+        return out
+    a, b, sg = ca[known], cb[known], sign[known]
+    m_i = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 4] + b[:, 4]))
+    m_k = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 5] + b[:, 5]))
+
+    def overlap(
+        lo: FloatArray,
+        hi: FloatArray,
+        blo: FloatArray,
+        bhi: FloatArray,
+        s: FloatArray,
+        margin: FloatArray,
+    ) -> BoolArray:
+        lo2 = np.where(s > 0, lo, -hi)
+        hi2 = np.where(s > 0, hi, -lo)
+        res: BoolArray = (lo2 <= bhi + margin) & (blo <= hi2 + margin)
+        return res
+
+    one = np.ones(sg.size)
+    fwd = overlap(a[:, 0], a[:, 1], b[:, 0], b[:, 1], one, m_i) & overlap(
+        a[:, 2], a[:, 3], b[:, 2], b[:, 3], sg, m_k
+    )
+    rev = overlap(a[:, 0], a[:, 1], b[:, 0], b[:, 1], -one, m_i) & overlap(
+        a[:, 2], a[:, 3], b[:, 2], b[:, 3], -sg, m_k
+    )
+    out[known] = fwd | rev
+    return out
+
+
 def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit: _Emit) -> _Emit:
     """Wrap ``emit`` with the test of parallel line pairs: angle and distance jointly."""
 
@@ -187,7 +278,23 @@ def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit
             det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
             q = (S[:, 1, 1] * da * da - 2.0 * S[:, 0, 1] * da * dd + S[:, 0, 0] * dd * dd) / det
             ok[par] = q <= gates.g2
+        if pa.corner is not None and pb.corner is not None and np.any(~par):
+            ok[~par] = _corners_overlap(
+                pa.corner[ia[~par]],
+                pb.corner[ib[~par]],
+                dang_sign(ia[~par], ib[~par]),
+                gates,
+                params,
+            )
         emit(ia[ok], ib[ok])
+
+    def dang_sign(ia: IntArray, ib: IntArray) -> FloatArray:
+        # +1 when the directed angles from i to k agree in both maps, −1 when they
+        # differ by π (one line's direction is reversed relative to the other).
+        assert pa.directed is not None
+        assert pb.directed is not None
+        sign: FloatArray = np.where(np.cos(pa.directed[ia] - pb.directed[ib]) >= 0.0, 1.0, -1.0)
+        return sign
 
     return parallel_test
 

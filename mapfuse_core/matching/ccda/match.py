@@ -104,14 +104,14 @@ def _rival_floor(params: CCDAParams, best_support: int) -> int:
 
 def _best_and_runner_up(hyps: list[_Hypothesis], gates: _Gates) -> tuple[_Hypothesis, int]:
     """The best-supported hypothesis and the support of its strongest incompatible rival."""
-    best = max(hyps, key=lambda h: (h.ii.size, h.clique))
+    best = max(hyps, key=lambda h: (h.support, h.clique))
     rivals = [h for h in hyps if h is not best and not _compatible(best, h, gates)]
-    return best, max((int(h.ii.size) for h in rivals), default=0)
+    return best, max((h.support for h in rivals), default=0)
 
 
 def _ambiguous(hyps: list[_Hypothesis], params: CCDAParams, gates: _Gates) -> bool:
     best, runner_up = _best_and_runner_up(hyps, gates)
-    return runner_up >= _rival_floor(params, int(best.ii.size))
+    return runner_up >= _rival_floor(params, best.support)
 
 
 def ccda_match(
@@ -155,7 +155,7 @@ def ccda_match(
             if hyps:
                 # A feature shared by two hypotheses (the centre of a rotational
                 # symmetry) went with the first one's nodes: one pairing of slack.
-                needed = _rival_floor(params, max(int(h.ii.size) for h in hyps)) - 1
+                needed = _rival_floor(params, max(h.support for h in hyps)) - 1
             c = G.max_clique(at_least=needed, budget=budget)
             if c.size == 0:
                 break
@@ -163,7 +163,7 @@ def ccda_match(
                 # One more candidate than the hypotheses allowed: unresolved.
                 complete = False
                 break
-            h = _hypothesis(A, B, c, ni, nj, gates)
+            h = _hypothesis(A, B, c, ni, nj, gates, params.extent_margin_m, params.unique_partners)
             hyps.append(h)
             # Remove what this transform explains, not the whole clique: with distance
             # invariants a mirror image of a symmetric map is a clique too, and its
@@ -188,7 +188,7 @@ def ccda_match(
     def out(ok: bool, reason: str) -> CCDAResult:
         return _result(ok, reason, best, centres, n_nodes, n_edges, runner_up, n_hyp, budget.used)
 
-    if best.ii.size < params.min_pairings:
+    if best.support < params.min_pairings:
         # Complete or not, nothing found reaches min_pairings; an unfinished search
         # may have missed a larger clique, so say so.
         return out(False, "too few pairings" if complete else "search_limit")
@@ -199,4 +199,7 @@ def ccda_match(
         return out(False, "ambiguous")
     if not complete:
         return out(False, "search_limit")
+    if best.ii.size < params.min_pairings:
+        # Enough support, but too few of its pairings are unambiguous to be fused.
+        return out(False, "too few pairings")
     return out(True, "accepted")

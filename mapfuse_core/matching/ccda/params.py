@@ -67,6 +67,23 @@ class CCDAParams:
     ``edges × nodes / 64`` word operations (timings in ``docs/method.md`` §5.1): beyond
     this the call returns ``"graph too large"`` instead of running for minutes; match
     a cropped map."""
+    extent_margin_m: float = 0.5
+    """Slack (m) of the segment-overlap tests, on top of the propagated position
+    noise.  Where both maps give a line's extent, a pairing needs the two segments
+    to overlap along the line (the observed part of a wall lies on the known wall,
+    not on its extension past a door or a corridor's end): in the binary test of
+    two non-parallel line pairings, whose intersection fixes where along each line
+    the segments are, and in the re-association under a fitted transform.  Extents
+    are shortened by occlusion and lengthened by merges of collinear pieces, so
+    the test only refuses segments that miss each other by more than this."""
+    unique_partners: bool = True
+    """Re-association pairs a feature of ``map_a`` only when it has a single partner
+    inside the gate under the fitted transform.  A feature with two (a wall between
+    two parallel walls a door width apart, a tree of a regular grid) says nothing
+    about which is right, and counting it would let repetition add support to a
+    wrong transform; it stays unpaired, for the estimator's own association later.
+    Hypotheses are still ranked by all the features they explain; a match is
+    accepted only when at least ``min_pairings`` of its pairings are unambiguous."""
     var_floor_m: float = 1e-4
     """Standard deviation (m) added in quadrature to every positional variance."""
     var_floor_rad: float = 1e-5
@@ -166,6 +183,7 @@ def _check_params(p: CCDAParams) -> None:
         "max_transform_std_theta_rad",
         "parallel_tol_rad",
         "parallel_along_std_m",
+        "extent_margin_m",
         "var_floor_m",
         "var_floor_rad",
     ):

@@ -52,6 +52,9 @@ class _Prep:
     C: FloatArray
     """(n, 2, 2) covariance of a line's ``(e_lat, e_θ)`` perturbation (unused for
     circles)."""
+    ext: FloatArray
+    """(n, 2) along-line interval of each line's segment relative to its origin, in
+    the direction of its angle; NaN where unknown (circles, maps without extents)."""
 
     @property
     def n(self) -> int:
@@ -88,6 +91,14 @@ def _prepare(m: KnownMapArrays, name: str, params: CCDAParams) -> _Prep:
     kinds = kinds.astype(np.int8)
     circ = np.nonzero(kinds == _CIRCLE)[0].astype(np.int64)
     line = np.nonzero(kinds == _LINE)[0].astype(np.int64)
+    ext = np.full((n, 2), np.nan)
+    if m.extents is not None:
+        E = np.asarray(m.extents, dtype=np.float64)
+        if E.shape != (n, 2):
+            raise ValueError(f"{name}.extents has shape {E.shape}, expected ({n}, 2)")
+        ok = np.all(np.isfinite(E), axis=1) & (E[:, 0] <= E[:, 1])
+        ext[ok] = E[ok]
+        ext[circ] = np.nan
     vm, va = params.var_floor_m**2, params.var_floor_rad**2
 
     covs = S.copy()
@@ -104,7 +115,17 @@ def _prepare(m: KnownMapArrays, name: str, params: CCDAParams) -> _Prep:
     C[:, 0, 1] = C[:, 1, 0] = np.einsum("ni,ni->n", nrm, S[:, :2, 2])
     C[:, 1, 1] = S[:, 2, 2] + va
     return _Prep(
-        kinds=kinds, params=P, covs=covs, circ=circ, line=line, p=p, Sp=Sp, vr=vr, th=th, C=C
+        kinds=kinds,
+        params=P,
+        covs=covs,
+        circ=circ,
+        line=line,
+        p=p,
+        Sp=Sp,
+        vr=vr,
+        th=th,
+        C=C,
+        ext=ext,
     )
 
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
 from mapfuse_core.matching.ccda.params import _Gates
-from mapfuse_core.matching.ccda.prepare import _INFO_FLOOR, IntArray, _Prep
+from mapfuse_core.matching.ccda.prepare import _INFO_FLOOR, BoolArray, IntArray, _Prep
 from mapfuse_core.matching.ccda.residuals import _residuals
 from mapfuse_core.matching.ccda.transform import _estimate
 
@@ -29,6 +30,9 @@ class _Hypothesis:
     """Inliers of the maximum clique the hypothesis grew from."""
     nodes: IntArray
     """All graph nodes passing the gate under :attr:`T` (before one-to-one)."""
+    support: int
+    """Features of ``A`` the transform explains one-to-one (ambiguous ones included):
+    what hypotheses are ranked and compared by."""
 
 
 def _gate_ratio(
@@ -105,6 +109,30 @@ def _fit_inliers(
     return ii, jj, T, cov
 
 
+def _segments_overlap(
+    A: _Prep, B: _Prep, T: FloatArray, ii: IntArray, jj: IntArray, margin: float
+) -> BoolArray:
+    """Whether each line pairing's segments overlap along ``A``'s line under ``T``
+    (within ``margin``); circles and lines without extents pass."""
+    out = np.ones(ii.size, dtype=bool)
+    known = np.all(np.isfinite(A.ext[ii]), axis=1) & np.all(np.isfinite(B.ext[jj]), axis=1)
+    if not np.any(known):
+        return out
+    i, j = ii[known], jj[known]
+    c, s = math.cos(float(T[2])), math.sin(float(T[2]))
+    thb = B.th[j] + float(T[2])
+    qb = np.stack([c * B.p[j, 0] - s * B.p[j, 1], s * B.p[j, 0] + c * B.p[j, 1]], axis=1) + T[:2]
+    ta = np.stack([np.cos(A.th[i]), np.sin(A.th[i])], axis=1)
+    tb = np.stack([np.cos(thb), np.sin(thb)], axis=1)
+    base = np.einsum("mi,mi->m", qb - A.p[i], ta)
+    slope = np.einsum("mi,mi->m", tb, ta)
+    e0 = base + slope * B.ext[j, 0]
+    e1 = base + slope * B.ext[j, 1]
+    lo, hi = np.minimum(e0, e1), np.maximum(e0, e1)
+    out[known] = (lo <= A.ext[i, 1] + margin) & (A.ext[i, 0] <= hi + margin)
+    return out
+
+
 def _one_to_one(
     A: _Prep,
     B: _Prep,
@@ -113,16 +141,25 @@ def _one_to_one(
     ni: IntArray,
     nj: IntArray,
     gates: _Gates,
+    margin: float,
+    unique: bool,
 ) -> tuple[IntArray, IntArray, IntArray]:
     """Greedy one-to-one assignment of the nodes passing the gate under ``T`` (whose
-    covariance ``P`` widens the gate).
+    covariance ``P`` widens the gate) whose segments overlap (``margin``); with
+    ``unique``, only of the ``A`` features that have a single such partner.
 
     Returns the chosen ``(ii, jj)`` and the indices of every passing node.
     """
     ratio = _gate_ratio(A, B, T, ni, nj, gates, P)
+    ratio[~_segments_overlap(A, B, T, ni, nj, margin)] = np.inf
     passing = np.nonzero(ratio <= 1.0)[0].astype(np.int64)
     used_a: set[int] = set()
     used_b: set[int] = set()
+    if unique:
+        # A feature with two partners inside the gate (parallel walls a door width
+        # apart, trees of a grid) is ambiguous under this transform: leave it out.
+        u, cnt = np.unique(ni[passing], return_counts=True)
+        used_a |= set(u[cnt > 1].tolist())
     chosen: list[int] = []
     # Best residual first, so a feature goes to its nearest compatible partner.
     for n in passing[np.argsort(ratio[passing], kind="stable")].tolist():
@@ -136,7 +173,14 @@ def _one_to_one(
 
 
 def _hypothesis(
-    A: _Prep, B: _Prep, clique: IntArray, ni: IntArray, nj: IntArray, gates: _Gates
+    A: _Prep,
+    B: _Prep,
+    clique: IntArray,
+    ni: IntArray,
+    nj: IntArray,
+    gates: _Gates,
+    margin: float = math.inf,
+    unique: bool = False,
 ) -> _Hypothesis:
     """Fit a clique, then re-associate every node with the fitted transform."""
     ii, jj, T, cov = _fit_inliers(A, B, ni[clique], nj[clique], gates)
@@ -146,7 +190,7 @@ def _hypothesis(
     # (collinear walls); the transform then tells which one is nearest.  A few
     # rounds: the refit moves the transform, which can change the assignment.
     for _ in range(3):
-        ri, rj, passing = _one_to_one(A, B, T, cov, ni, nj, gates)
+        ri, rj, passing = _one_to_one(A, B, T, cov, ni, nj, gates, margin, False)
         if ri.size == 0:
             break
         same = ri.size == ii.size and np.array_equal(ri, ii) and np.array_equal(rj, jj)
@@ -158,8 +202,20 @@ def _hypothesis(
     if passing.size == 0:
         # The nodes this transform explains (removed before the search for rivals).
         ratio = _gate_ratio(A, B, T, ni, nj, gates, cov)
+        ratio[~_segments_overlap(A, B, T, ni, nj, margin)] = np.inf
         passing = np.nonzero(ratio <= 1.0)[0].astype(np.int64)
-    return _Hypothesis(ii=ii, jj=jj, T=T, cov=cov, clique=n_clique, nodes=passing)
+    support = int(ii.size)
+    if unique and ii.size:
+        # Support counts every feature the transform explains; the pairings handed
+        # on are those without a rival partner inside the gate.
+        feats, cnt = np.unique(ni[passing], return_counts=True)
+        keep = ~np.isin(ii, feats[cnt > 1])
+        if not keep.all():
+            ii, jj = ii[keep], jj[keep]
+            if ii.size:
+                # The transform handed on is the one its pairings give.
+                T, cov = _estimate(A, B, ii, jj, T)
+    return _Hypothesis(ii=ii, jj=jj, T=T, cov=cov, clique=n_clique, nodes=passing, support=support)
 
 
 def _compatible(h1: _Hypothesis, h2: _Hypothesis, gates: _Gates) -> bool:

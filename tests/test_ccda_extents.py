@@ -1,0 +1,138 @@
+"""CCDA with line extents (segment overlap tests) and with ambiguous partners left
+unpaired; the bounded k-truss peeling."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.matching.ccda import CCDAParams, ccda_match
+from mapfuse_core.matching.ccda import clique as clique_mod
+from mapfuse_core.matching.ccda.inspect import correspondence_graph
+from mapfuse_core.matching.ccda.params import _check_params
+from mapfuse_core.matching.ccda.prepare import _prepare
+from mapfuse_core.matching.ccda.verification import _segments_overlap
+from tests.ccda_helpers import LINE, line_cov, move, random_overlap, rotate_cov
+
+S_LAT, S_TH = 0.02, 0.005
+"""Line noise of the hand-made maps: centimetres and a fraction of a degree, so that
+only the extents decide what these tests check."""
+
+
+def corner(extents: list[tuple[float, float]], T: np.ndarray | None = None) -> KnownMapArrays:
+    """Two perpendicular walls meeting at the origin (along +x and +y), with the
+    given extents from the origin, moved by ``T``."""
+    T = np.zeros(3) if T is None else T
+    walls = [np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, math.pi / 2])]
+    params = [move(LINE, T, w) for w in walls]
+    covs = [rotate_cov(LINE, T, line_cov(float(w[2]), S_LAT, S_TH)) for w in walls]
+    return KnownMapArrays(
+        ids=np.arange(2, dtype=np.int64),
+        kinds=np.full(2, LINE, dtype=np.int8),
+        params=np.array(params),
+        covs=np.array(covs),
+        extents=np.array(extents, dtype=float),
+    )
+
+
+def without_extents(m: KnownMapArrays) -> KnownMapArrays:
+    return dataclasses.replace(m, extents=None)
+
+
+def has_edge(
+    a: KnownMapArrays, b: KnownMapArrays, na: tuple[int, int], nb: tuple[int, int]
+) -> bool:
+    """Whether the pairings ``na[0]→nb[0]`` and ``na[1]→nb[1]`` share an edge."""
+    g = correspondence_graph(a, b)
+    node = {(int(i), int(j)): n for n, (i, j) in enumerate(zip(g.node_a, g.node_b, strict=True))}
+    u, v = node[(na[0], nb[0])], node[(na[1], nb[1])]
+    edges = set(zip(g.edge_u.tolist(), g.edge_v.tolist(), strict=True))
+    return (u, v) in edges or (v, u) in edges
+
+
+@pytest.mark.parametrize(
+    "T",
+    [np.zeros(3), np.array([7.0, -3.0, 0.4]), np.array([-2.0, 5.0, math.pi])],
+    ids=["identity", "turned", "reversed"],
+)
+def test_perpendicular_walls_whose_segments_meet_alike_share_an_edge(T: np.ndarray) -> None:
+    # A rigid motion keeps each segment's interval measured from the corner (a turn
+    # by π reverses both lines' directions, which the test must allow).
+    a = corner([(0.0, 5.0), (0.0, 4.0)])
+    b = corner([(-1.0, 6.0), (0.5, 3.0)], T)
+    assert has_edge(a, b, (0, 1), (0, 1))
+
+
+def test_perpendicular_walls_whose_segments_lie_apart_share_no_edge() -> None:
+    # The same corner, but B's first wall lies 10–15 m from the corner: the local
+    # map's segment would have to be on the wall's extension past its end.
+    a = corner([(0.0, 5.0), (0.0, 4.0)])
+    b = corner([(10.0, 15.0), (0.0, 4.0)])
+    assert not has_edge(a, b, (0, 1), (0, 1))
+    # Without extents only the angle is tested, and the edge is there.
+    assert has_edge(without_extents(a), without_extents(b), (0, 1), (0, 1))
+    # Beyond the margin plus noise only: 0.3 m apart passes with the default margin.
+    assert has_edge(a, corner([(5.3, 9.0), (0.0, 4.0)]), (0, 1), (0, 1))
+
+
+def test_segment_overlap_under_a_transform_follows_the_along_line_shift() -> None:
+    p = CCDAParams()
+    A = _prepare(corner([(0.0, 5.0), (0.0, 4.0)]), "map_a", p)
+    B = _prepare(corner([(20.0, 25.0), (0.0, 4.0)]), "map_b", p)
+    ii, jj = np.array([0]), np.array([0])
+    assert not _segments_overlap(A, B, np.zeros(3), ii, jj, 0.5)[0]
+    # Shifting B by −18 m along the wall puts its segment at 2–7 m: overlap.
+    assert _segments_overlap(A, B, np.array([-18.0, 0.0, 0.0]), ii, jj, 0.5)[0]
+    # Turned by π about the wall's far end, the segment runs back over A's.
+    assert _segments_overlap(A, B, np.array([25.0, 0.0, math.pi]), ii, jj, 0.5)[0]
+
+
+def test_a_feature_with_two_partners_in_the_gate_is_counted_but_not_paired() -> None:
+    case = random_overlap(4)
+    ref = ccda_match(case.map_a, case.map_b)
+    assert ref.accepted
+    lines = [(i, j) for i, j in ref.pairings if int(case.map_b.kinds[j]) == LINE]
+    i, j = lines[0]
+    # A second known wall 1 mm beside the paired one: both pass the gate.
+    twin = case.map_b.params[j].copy()
+    th = float(twin[2])
+    twin[:2] += 1e-3 * np.array([-math.sin(th), math.cos(th)])
+    b = dataclasses.replace(
+        case.map_b,
+        ids=np.append(case.map_b.ids, 10_000),
+        kinds=np.append(case.map_b.kinds, LINE).astype(np.int8),
+        params=np.vstack([case.map_b.params, twin]),
+        covs=np.concatenate([case.map_b.covs, case.map_b.covs[j : j + 1]]),
+    )
+    res = ccda_match(case.map_a, b)
+    assert res.accepted, res.reason
+    paired_a = {p for p, _ in res.pairings}
+    assert i not in paired_a
+    assert set(res.pairings) == set(ref.pairings) - {(i, j)}
+    # With the rule off, the feature goes to one of the two.
+    loose = ccda_match(case.map_a, b, CCDAParams(unique_partners=False))
+    assert i in {p for p, _ in loose.pairings}
+
+
+def test_distinct_partner_counts_agree_between_the_table_and_the_hash(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rng = np.random.default_rng(0)
+    n, m = 300, 40
+    u = rng.integers(0, n, 5000)
+    v = rng.integers(0, n, 5000)
+    feat = rng.integers(0, m, n)
+    dense = clique_mod._distinct_partners(n, u, v, feat)
+    monkeypatch.setattr(clique_mod, "_DENSE_CELLS", 0)
+    hashed = clique_mod._distinct_partners(n, u, v, feat)
+    np.testing.assert_array_equal(dense, hashed)
+    assert dense.max() <= m
+
+
+def test_a_negative_extent_margin_is_refused() -> None:
+    with pytest.raises(ValueError, match="extent_margin_m"):
+        _check_params(CCDAParams(extent_margin_m=-1.0))
