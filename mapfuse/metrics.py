@@ -6,7 +6,9 @@ against GPS on real data); the anchor; the map size; per-step run times.  A resu
 with a smoothed estimate also says which estimate a metrics object is of
 (``estimate``) and, when it has a filtered one too, adds that one's errors
 (``nees_filtered``, ``position_error_filtered_m``); a result that took its
-association decisions as an input names their source (``association``).
+association decisions as an input names their source (``association``); a log that
+says how it was made (``MeasurementLog.metadata``, e.g. a CARMEN log's ``odometry:
+simulated from reference``) has it under ``log``.
 """
 
 from __future__ import annotations
@@ -121,6 +123,8 @@ def run_metrics(
         timestamps=log.timestamps,
         gps=log.gps,
     )
+    if log.metadata:
+        out["log"] = dict(log.metadata)
     if result.association is not None:
         out["association"] = result.association
     if result.smoothed is not None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mapfuse import registry
+from mapfuse.carmen_input import is_carmen, load_carmen_input
 from mapfuse.estimator import Estimator, Progress
 from mapfuse.metrics import run_metrics
 from mapfuse.profiles import default_options
@@ -87,9 +88,16 @@ def prepare_log(
     seed: int | None = None,
     progress: Progress | None = None,
     data_dir: str | None = None,
+    known_map: str | None = None,
 ) -> MeasurementLog:
     """A log from a ``.npz`` file, a real dataset (``carpark``, ``victoria-park``, needs
-    ``data_dir``), or by simulating a scenario (built-in name or TOML)."""
+    ``data_dir``), a CARMEN log (``carmen:PATH``; ``seed`` of its simulated odometry,
+    ``known_map`` ``"floorplan"`` or ``"none"``, :mod:`mapfuse.carmen_input`), or by
+    simulating a scenario (built-in name or TOML)."""
+    if is_carmen(source):
+        return load_carmen_input(source, seed=seed, known_map=known_map)
+    if known_map is not None:
+        raise ValueError(f"a known-map choice applies to CARMEN logs only, not {source!r}")
     if source.endswith(".npz"):
         return load_log(source)
     if source in DATASETS:
