@@ -37,8 +37,10 @@ def carmen_path(source: str) -> Path:
     if not raw:
         raise ValueError(f"{source!r}: give the log file after 'carmen:' (carmen:PATH.log[.gz])")
     path = Path(raw)
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"CARMEN log {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"CARMEN log {path} is not a file")
     return path
 
 

@@ -150,6 +150,7 @@ def _out(tmp_path: Path) -> list[str]:
     [
         (["carmen:"], "give the log file after 'carmen:'"),
         (["carmen:/no/such.log.gz"], "CARMEN log /no/such.log.gz does not exist"),
+        ([f"carmen:{SNIPPET.parent}"], "is not a file"),
         (["loop600", "--known-map", "none"], "--known-map applies to CARMEN logs"),
     ],
 )
