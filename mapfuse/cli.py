@@ -68,10 +68,28 @@ def _is_dataset(source: str) -> bool:
     return source in DATASETS
 
 
+def _is_carmen(source: str) -> bool:
+    from mapfuse.carmen_input import is_carmen
+
+    return is_carmen(source)
+
+
+def _simulated(source: str) -> bool:
+    """Whether ``source`` is a scenario to simulate (not a saved log or real data)."""
+    return not (source.endswith(".npz") or _is_dataset(source) or _is_carmen(source))
+
+
 def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> None:
     """The input and the options that depend on it, checked before any work."""
     data = getattr(args, "data", None)
-    if source.endswith(".npz"):
+    known_map = getattr(args, "known_map", None)
+    if known_map is not None and not _is_carmen(source):
+        raise UsageError(f"--known-map applies to CARMEN logs (carmen:PATH) only, not {source!r}")
+    if _is_carmen(source):
+        from mapfuse.carmen_input import carmen_path
+
+        carmen_path(source)  # names a missing file
+    elif source.endswith(".npz"):
         if not Path(source).is_file():
             raise UsageError(f"log file {source} does not exist")
         if seed is not None:
@@ -192,6 +210,7 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
         seed=seed,
         progress=_progress("simulate", args),
         data_dir=getattr(args, "data", None),
+        known_map=getattr(args, "known_map", None),
     )
 
 
@@ -251,8 +270,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         log, progress=progress, backends=backends, fusions=fusions, overrides=overrides
     )
     progress.close()
-    simulated = not (args.scenario.endswith(".npz") or _is_dataset(args.scenario))
-    scenario = load_scenario(args.scenario) if simulated else None
+    scenario = load_scenario(args.scenario) if _simulated(args.scenario) else None
     paths = write_comparison(comparison, out, scenario=scenario)
     _warn_runs(comparison.runs, label=True)
     _emit({"outputs": paths})
@@ -284,8 +302,9 @@ def _cmd_baseline_check(args: argparse.Namespace) -> int:
     entries = load_baseline(args.baseline)
     m0 = entries[0]["metrics"]
     source = args.scenario or m0["scenario"]
-    simulated = not (source.endswith(".npz") or _is_dataset(source))
-    seed = m0["seed"] if simulated else None
+    # A CARMEN log's seed is that of its simulated odometry (-1: raw odometry, none).
+    keeps_seed = _simulated(source) or (_is_carmen(source) and m0["seed"] >= 0)
+    seed = m0["seed"] if keeps_seed else None
     _check_source(args, source, seed)
     log = _log_from_args(args, source, seed)
     tolerances = None
@@ -311,7 +330,8 @@ def _sources() -> str:
 
     return (
         f"built-in scenario ({', '.join(list_builtin_scenarios())}), a scenario .toml path, "
-        f"a saved log .npz, or a real dataset ({', '.join(DATASETS)}; needs --data)"
+        f"a saved log .npz, a real dataset ({', '.join(DATASETS)}; needs --data), or a "
+        "CARMEN laser log carmen:PATH.log[.gz]"
     )
 
 
@@ -323,8 +343,9 @@ def _add_common(
             "--seed",
             type=int,
             default=None,
-            help="random seed of the simulation (default: the scenario's); not for a saved "
-            "log or a real dataset",
+            help="random seed of the simulation (default: the scenario's), or of a corrected "
+            "CARMEN log's simulated odometry (default 0); not for a saved log or the car park "
+            "and Victoria Park",
         )
     if data:
         p.add_argument(
@@ -356,6 +377,19 @@ def _add_fusion(p: argparse.ArgumentParser, default: bool | None, what: str) -> 
         dest="fusion",
         action="store_false",
         help=f"{what} without map fusion only" if default is None else "SLAM without map fusion",
+    )
+
+
+def _add_known_map(p: argparse.ArgumentParser) -> None:
+    from mapfuse.carmen_input import KNOWN_MAPS
+
+    p.add_argument(
+        "--known-map",
+        default=None,
+        choices=list(KNOWN_MAPS),
+        help="CARMEN logs only: the floor plan built from the log's reference trajectory "
+        "as known map, or none (default: the floor plan when the log has a reference "
+        "trajectory, else none)",
     )
 
 
@@ -420,6 +454,7 @@ def _parser() -> argparse.ArgumentParser:
         "the 'mapfuse.estimators' group)",
     )
     _add_graph_flags(run)
+    _add_known_map(run)
     _add_fusion(run, True, "run")
     run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
     run.add_argument(
@@ -447,6 +482,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_fusion(cmp_, None, "compare")
     _add_graph_flags(cmp_)
+    _add_known_map(cmp_)
     _add_common(cmp_)
     cmp_.set_defaults(func=_cmd_compare)
 

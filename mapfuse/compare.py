@@ -430,6 +430,9 @@ def report_markdown(
     if scenario is not None and scenario.description:
         lines += [f"Scenario: {scenario.description}.", ""]
     lines += [desc, ""]
+    if log.metadata:
+        facts = "; ".join(f"{k.replace('_', ' ')}: {v}" for k, v in sorted(log.metadata.items()))
+        lines += [f"Log: {facts}.", ""]
     if not truth and comparison.has_gps:
         lines += [
             "**Real data**: no true poses, so errors are against GPS; heading errors and "

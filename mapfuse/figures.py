@@ -255,7 +255,11 @@ def _display_frame(run: Run) -> tuple[FloatArray, str]:
     return np.zeros(3), "in Wglobal (no anchor, no truth)"
 
 
-def fig10_maps(runs: Sequence[Run], world: World | None = None) -> Figure:
+def fig10_maps(
+    runs: Sequence[Run],
+    world: World | None = None,
+    line_extent_m: tuple[float, float] = (-4.0, 4.0),
+) -> Figure:
     """Estimated map and trajectory of each run over the known map, in ``Wknown``.
 
     One panel per run; features never observed (the known features an EKF with fusion
@@ -264,6 +268,8 @@ def fig10_maps(runs: Sequence[Run], world: World | None = None) -> Figure:
     drawn through the true start pose when the log has truth (said in the title),
     else in ``Wglobal``.  The true world (``world``, else the log's world arrays) and
     the true trajectory (or the GPS track of real data) are drawn underneath.
+    Estimated lines are drawn over ``line_extent_m`` along them (m from their reference
+    point; short indoor walls want a shorter piece than the default).
     """
     from matplotlib.figure import Figure
 
@@ -309,6 +315,7 @@ def fig10_maps(runs: Sequence[Run], world: World | None = None) -> Figure:
             ax,
             kinds[seen],
             _in_frame(T, kinds[seen], params[seen]),
+            default_extent=line_extent_m,
             color=_colour(run),
             lw=1.6,
             label="estimated map",

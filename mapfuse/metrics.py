@@ -6,8 +6,10 @@ against GPS on real data); the anchor; the map size; per-step run times.  A resu
 with a smoothed estimate also says which estimate a metrics object is of
 (``estimate``) and, when it has a filtered one too, adds that one's errors
 (``nees_filtered``, ``position_error_filtered_m``); a result that took its
-association decisions as an input names their source (``association``).  Every
-object ends with the map-matching outcome (``matching``) and the run's ``warnings``
+association decisions as an input names their source (``association``); a log that
+says how it was made (``MeasurementLog.metadata``, e.g. a CARMEN log's ``odometry:
+simulated from reference``) has it under ``log``.  Every object ends with the
+map-matching outcome (``matching``) and the run's ``warnings``
 (:mod:`mapfuse.diagnostics`, ``docs/warnings.md``).
 """
 
@@ -127,6 +129,8 @@ def run_metrics(
     out["map"]["seen_once"] = result.map.seen_once
     out["map"]["tentative_dropped"] = int(result.tentative_dropped)
     out["matching"] = matching_block(result)
+    if log.metadata:
+        out["log"] = dict(log.metadata)
     if result.association is not None:
         out["association"] = result.association
     if result.smoothed is not None:

@@ -2,7 +2,9 @@
 
 A log whose scenario name has a profile runs each estimator with the profile's
 overrides of the estimator's defaults (``options_type()``); any other log runs with
-the defaults.  Why each Victoria Park setting is what it is: ``docs/victoria-park.md``.
+the defaults.  A key ending in ``:`` names a family of logs by prefix (``carmen:``, every
+CARMEN log, whatever its file).  Why each Victoria Park setting is what it is:
+``docs/victoria-park.md``; the CARMEN one: ``docs/carmen.md``.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from mapfuse.carmen_input import CARMEN_PREFIX
 from mapfuse.estimator import Estimator
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
 from mapfuse_core.data.measlog import MeasurementLog
@@ -28,7 +31,8 @@ class Profile:
     """How the estimators run on one dataset."""
 
     dataset: str
-    """Scenario name of the dataset's logs (``MeasurementLog.scenario``)."""
+    """Scenario name of the dataset's logs (``MeasurementLog.scenario``), or the prefix,
+    ending in ``:``, of a family's names."""
     summary: str
     """One line on what the profile changes and why."""
     overrides: Mapping[str, Overrides]
@@ -44,6 +48,12 @@ def _victoria_park_ekf() -> Mapping[str, Any]:
         "loop_closure": LoopClosureParams(),
         "join_circle_sigma_m": 0.1,
     }
+
+
+def _carmen_ekf() -> Mapping[str, Any]:
+    from mapfuse_core.data.datasets import carmen_association
+
+    return {"data_association": carmen_association()}
 
 
 def _victoria_park_graph() -> Mapping[str, Any]:
@@ -65,12 +75,25 @@ PROFILES: Mapping[str, Profile] = {
             "fixedlag": _victoria_park_graph,
         },
     ),
+    CARMEN_PREFIX: Profile(
+        dataset=CARMEN_PREFIX,
+        summary="CCDA needs 12 pairings to accept a floor-plan match (office walls come in "
+        "parallel families a door or corridor width apart)",
+        overrides={"ekf": _carmen_ekf},
+    ),
 }
 
 
 def profile_of(log: MeasurementLog) -> Profile | None:
-    """The profile of ``log``'s dataset, or ``None``."""
-    return PROFILES.get(log.scenario)
+    """The profile of ``log``'s dataset (its exact name first, then a family prefix),
+    or ``None``."""
+    exact = PROFILES.get(log.scenario)
+    if exact is not None:
+        return exact
+    for key, profile in PROFILES.items():
+        if key.endswith(":") and log.scenario.startswith(key):
+            return profile
+    return None
 
 
 def default_options(estimator: Estimator, log: MeasurementLog) -> Any:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mapfuse import registry
+from mapfuse.carmen_input import is_carmen, load_carmen_input
 from mapfuse.estimator import Estimator, Progress
 from mapfuse.metrics import run_metrics
 from mapfuse.profiles import default_options
@@ -87,18 +88,26 @@ def prepare_log(
     seed: int | None = None,
     progress: Progress | None = None,
     data_dir: str | None = None,
+    known_map: str | None = None,
 ) -> MeasurementLog:
     """A log from a ``.npz`` file, a real dataset (``carpark``, ``victoria-park``, needs
-    ``data_dir``), or by simulating a scenario (built-in name or TOML).
+    ``data_dir``), a CARMEN log (``carmen:PATH``; ``seed`` of its simulated odometry,
+    ``known_map`` ``"floorplan"`` or ``"none"``, :mod:`mapfuse.carmen_input`), or by
+    simulating a scenario (built-in name or TOML).
 
-    ``seed`` applies to a simulated scenario only: given with a saved log or a dataset
-    it is an error (it would change nothing), as is ``data_dir`` for a scenario.
+    ``seed`` applies to a simulation and to a CARMEN log's simulated odometry only:
+    given with a saved log or a dataset it is an error (it would change nothing), as
+    is ``data_dir`` for anything but a dataset.
     """
+    if data_dir is not None and source not in DATASETS:
+        raise ValueError(f"a data directory applies to {', '.join(DATASETS)} only, not {source!r}")
+    if is_carmen(source):
+        return load_carmen_input(source, seed=seed, known_map=known_map)
+    if known_map is not None:
+        raise ValueError(f"a known-map choice applies to CARMEN logs only, not {source!r}")
     if seed is not None and (source.endswith(".npz") or source in DATASETS):
         what = "a saved log" if source.endswith(".npz") else "the real dataset"
         raise ValueError(f"seed does not apply to {what} {source!r}: only a simulation has one")
-    if data_dir is not None and source not in DATASETS:
-        raise ValueError(f"a data directory applies to {', '.join(DATASETS)} only, not {source!r}")
     if source.endswith(".npz"):
         return load_log(source)
     if source in DATASETS:

@@ -36,7 +36,7 @@ def _victoria(log: MeasurementLog) -> MeasurementLog:
 
 
 def test_victoria_park_profile_changes_only_its_own_dataset(log: MeasurementLog) -> None:
-    assert set(PROFILES) == {VICTORIA_PARK_NAME}
+    assert set(PROFILES) == {VICTORIA_PARK_NAME, "carmen:"}
     ekf = get("ekf")
     assert default_options(ekf, log) == EKFConfig()
     assert default_options(ekf, _victoria(log)) == EKFConfig(

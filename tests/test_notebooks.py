@@ -26,9 +26,10 @@ NOTEBOOKS = (
     "05_real_data_carpark",
     "06_victoria_park",
     "07_montecarlo",
+    "08_indoor_lines",
 )
 # Notebooks that read the real datasets: skipped, like the real-data tests, without them.
-NEEDS_DATA = ("05_real_data_carpark", "06_victoria_park")
+NEEDS_DATA = ("05_real_data_carpark", "06_victoria_park", "08_indoor_lines")
 # Per-cell timeout (s): a whole notebook targets two minutes; the margin is for loaded
 # machines, the timeout only catches a hung or runaway cell.
 TIMEOUT_S = 600

@@ -1,0 +1,229 @@
+"""``mapfuse run|compare carmen:PATH``: a CARMEN log as input, its floor plan as known map,
+errors against its reference trajectory; raw logs without a reference."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mapfuse.run
+from mapfuse.cli import main
+from mapfuse.profiles import default_options, profile_of
+from mapfuse.registry import get
+from mapfuse_core.data.datasets import carmen_association
+from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sim.world import WallSegment, World
+from tests.synthetic import synthetic_log
+
+SNIPPET = Path(__file__).parent / "data" / "carmen" / "snippet.log"
+
+_NO_RETURN = 81.83
+"""Range a SICK LMS logs for no return (above its 80 m maximum), as the real logs do."""
+
+
+def _room() -> World:
+    """A 10 m × 6 m room with a partition and a cupboard: walls 1–10 m long."""
+    segs = [
+        ((-2.0, -3.0), (8.0, -3.0)),
+        ((8.0, -3.0), (8.0, 3.0)),
+        ((8.0, 3.0), (-2.0, 3.0)),
+        ((-2.0, 3.0), (-2.0, -3.0)),
+        ((3.0, -3.0), (3.0, -1.5)),
+        ((5.0, 2.0), (6.5, 2.0)),
+    ]
+    return World(tuple(WallSegment(i, a, b) for i, (a, b) in enumerate(segs)), ())
+
+
+def _write_corrected_log(path: Path, n: int = 40) -> Path:
+    """A corrected-style CARMEN log of the room: the robot drives an arc, every pose field
+    holds the reference pose, ranges simulated with 1 cm noise (seeded)."""
+    laser = LaserParams(
+        fov_rad=math.pi,
+        max_range_m=80.0,
+        n_beams=181,
+        sigma_range_m=0.01,
+        sigma_bearing_rad=math.radians(0.05),
+    )
+    rng = np.random.default_rng(5)
+    world = _room()
+    lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    for k in range(n):
+        a = 0.04 * k
+        pose = np.array([2.0 * math.sin(a), 1.0 - 1.0 * math.cos(a), 0.5 * a])
+        scan = simulate_scan(world, pose, laser, rng)
+        r = np.where(np.isfinite(scan.ranges), scan.ranges, _NO_RETURN)
+        p = f"{pose[0]:.6f} {pose[1]:.6f} {pose[2]:.6f}"
+        ranges = " ".join(f"{v:.2f}" for v in r)
+        lines.append(f"FLASER 181 {ranges} {p} {p} {k}.5 host {k}.5")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def room_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _write_corrected_log(tmp_path_factory.mktemp("carmen") / "room-corrected.log")
+
+
+def _main_json(args: list[str], capsys: pytest.CaptureFixture[str]) -> dict[str, object]:
+    assert main(args) == 0
+    out: dict[str, object] = json.loads(capsys.readouterr().out)
+    return out
+
+
+def test_run_measures_errors_against_the_reference_and_fuses_its_floor_plan(
+    room_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    res = _main_json(
+        ["run", f"carmen:{room_log}", "--backend", "ekf", "--out", str(out), "--quiet"], capsys
+    )
+    m = json.loads((out / "metrics.json").read_text())
+    assert res["metrics"] == m
+    assert m["scenario"] == "carmen:room-corrected.log"
+    assert m["steps"] == 40
+    assert m["fusion"] is True
+    assert m["log"]["odometry"] == "simulated from reference"
+    assert m["log"]["known_map"].startswith("floor plan from the reference trajectory")
+    # Errors at every scan, heading and NEES included: 40 scans of a 1.2 m arc with 5 %
+    # odometry noise stay within decimetres of the reference.
+    assert 0.0 < m["position_error_m"]["rmse"] < 0.3
+    assert m["heading_error_rad"]["rmse"] is not None
+    assert m["nees"]["mean"] > 0.0
+    for name in ("trajectory.tum", "truth.tum", "errors.png"):
+        assert (out / name).is_file()
+
+
+def test_known_map_none_runs_slam_only_and_seed_changes_the_odometry(
+    room_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a = _main_json(
+        ["run", f"carmen:{room_log}", "--known-map", "none", "--out", str(tmp_path / "a")], capsys
+    )["metrics"]
+    b = _main_json(
+        [
+            "run",
+            f"carmen:{room_log}",
+            "--known-map",
+            "none",
+            "--seed",
+            "3",
+            "--out",
+            str(tmp_path / "b"),
+        ],
+        capsys,
+    )["metrics"]
+    assert isinstance(a, dict)
+    assert isinstance(b, dict)
+    assert a["fusion"] is False
+    assert a["anchor"] is None
+    assert a["log"]["known_map"] == "none"
+    assert (a["seed"], b["seed"]) == (0, 3)
+    assert a["position_error_m"]["rmse"] != b["position_error_m"]["rmse"]
+
+
+def test_raw_log_runs_without_truth_and_refuses_a_floor_plan(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    m = _main_json(["run", f"carmen:{SNIPPET}", "--out", str(tmp_path / "raw")], capsys)["metrics"]
+    assert isinstance(m, dict)
+    assert m["log"]["odometry"] == "raw"
+    assert m["position_error_m"] is None
+    assert m["nees"] is None
+    assert main(["run", f"carmen:{SNIPPET}", "--known-map", "floorplan", *_out(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "has no reference trajectory" in err
+    assert "--known-map none" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def _out(tmp_path: Path) -> list[str]:
+    return ["--out", str(tmp_path / "x")]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["carmen:"], "give the log file after 'carmen:'"),
+        (["carmen:/no/such.log.gz"], "CARMEN log /no/such.log.gz does not exist"),
+        ([f"carmen:{SNIPPET.parent}"], "is not a file"),
+        (["loop600", "--known-map", "none"], "--known-map applies to CARMEN logs"),
+    ],
+)
+def test_bad_carmen_inputs_fail_before_any_work(
+    args: list[str],
+    message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def fail(*a: object, **kw: object) -> None:
+        raise AssertionError("work started before the options were checked")
+
+    monkeypatch.setattr(mapfuse.run, "prepare_log", fail)
+    assert main(["run", *args, *_out(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_compare_report_states_the_simulated_odometry_and_the_plan(
+    room_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "cmp"
+    _main_json(
+        ["compare", f"carmen:{room_log}", "--backends", "ekf,isam2", "--quiet", "--out", str(out)],
+        capsys,
+    )
+    report = (out / "report.md").read_text()
+    assert "odometry: simulated from reference" in report
+    assert "known map: floor plan from the reference trajectory" in report
+    comparison = json.loads((out / "comparison.json").read_text())
+    runs = comparison["runs"] if isinstance(comparison, dict) else comparison
+    assert len(runs) == 4  # ekf and isam2, with and without the plan
+
+
+def test_carmen_profile_applies_to_every_carmen_log_and_only_to_them() -> None:
+    plain = synthetic_log(5, 0)
+    carmen = dataclasses.replace(plain, scenario="carmen:any-name.log")
+    ekf = get("ekf")
+    profile = profile_of(carmen)
+    assert profile is not None
+    assert profile.dataset == "carmen:"
+    assert profile_of(plain) is None
+    assert default_options(ekf, carmen).data_association == carmen_association()
+    assert default_options(ekf, plain).data_association != carmen_association()
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_real_csail_log_runs_end_to_end(
+    data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = data_dir / "carmen" / "csail-corrected.log.gz"
+    if not path.is_file():
+        pytest.skip(f"CARMEN log not found ({path})")
+    m = _main_json(
+        [
+            "run",
+            f"carmen:{path}",
+            "--backend",
+            "ekf",
+            "--known-map",
+            "none",
+            "--quiet",
+            "--out",
+            str(tmp_path / "csail"),
+        ],
+        capsys,
+    )["metrics"]
+    assert isinstance(m, dict)
+    assert m["steps"] == 406
+    # docs/carmen.md: 3.61 m RMSE, 8.25 m max without the plan (seed 0); the bound is
+    # loose against round-off changing a split decision.
+    assert m["position_error_m"]["rmse"] < 6.0
+    assert m["nees"]["mean"] > 0.0
