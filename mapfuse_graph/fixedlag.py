@@ -193,10 +193,11 @@ def _run_fixedlag(
     stamp: dict[int, float] = {}  # mirror of the smoother's timestamps
     always: set[int] = set()  # keys refreshed at every update
     times = np.zeros(n)
+    cpu = np.zeros(n)
     relin = 0
     keep = fl.landmarks == "keep"
     for k in range(n):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         tk = float(t_of[k])
         sg = builder.step(k, est)
         xk = pose_key(k)
@@ -252,6 +253,7 @@ def _run_fixedlag(
                         smoother.calculateEstimateVector(key), dtype=float
                     )
         times[k] = time.perf_counter() - t0
+        cpu[k] = time.process_time() - c0
         if progress is not None:
             progress(k + 1, n)
     t0 = time.perf_counter()
@@ -304,6 +306,7 @@ def _run_fixedlag(
         filtered_poses=f_poses,
         filtered_covs=f_covs,
         step_time_s=times,
+        step_cpu_s=cpu,
         build_time_s=0.0,
         solve_time_s=solve,
         marginals_time_s=marg,

@@ -206,6 +206,7 @@ def run_graph(
         lm=out.lm,
         extra=out.extra,
         joint_pose_cov=out.joint_pose_cov,
+        step_cpu_s=out.step_cpu_s,
         graph=out.graph,
         values=out.values,
         initial=out.initial,
