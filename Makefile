@@ -48,6 +48,7 @@ bench: venv
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ekf.py
 	$(PY) benchmarks/bench_graph.py
+	$(PY) benchmarks/bench_isam2_sparse.py
 	$(PY) benchmarks/bench_real.py --data $(DATA)
 
 clean:

@@ -57,9 +57,7 @@ def _carmen_ekf() -> Mapping[str, Any]:
 
 
 def _victoria_park_graph() -> Mapping[str, Any]:
-    from mapfuse_graph.solvers import ISAM2Options
-
-    return {"split_circles_where_exact": True, "isam2": ISAM2Options(relinearize_skip=10)}
+    return {"split_circles_where_exact": True}
 
 
 #: Every dataset with its own defaults, by scenario name.
@@ -67,7 +65,7 @@ PROFILES: Mapping[str, Profile] = {
     VICTORIA_PARK_NAME: Profile(
         dataset=VICTORIA_PARK_NAME,
         summary="long local maps, seen-twice features, loop closure at the joins (EKF); "
-        "split circle landmarks and relinearisation every 10 updates (graph)",
+        "split circle landmarks (graph)",
         overrides={
             "ekf": _victoria_park_ekf,
             "batch": _victoria_park_graph,

@@ -37,13 +37,20 @@ __all__ = ["ISAM2Options", "isam2_params"]
 _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
 
 
+# Angles 5 mrad; positions, line distances and radii 10 cm.  Every residual of the graph is
+# affine in the position-like entries once the angles are fixed (observation, odometry,
+# tie and prior factors alike), so a position-only change moves a factor's linearisation
+# only through position × angle cross terms: 10 cm × 5 mrad = 0.5 mm, below the
+# angle-only term (5 mrad)² × a 50 m lever arm.
+_POS_M = 0.1
+_ANG_RAD = 0.005
 _DEFAULT_THRESHOLDS: dict[str, tuple[float, ...]] = {
-    "x": (0.05, 0.05, 0.005),
-    "l": (0.05, 0.005),
-    "c": (0.05, 0.05, 0.05),
-    "k": (0.05, 0.005),
-    "q": (0.05, 0.05, 0.05),
-    "a": (0.05, 0.05, 0.005),
+    "x": (_POS_M, _POS_M, _ANG_RAD),
+    "l": (_POS_M, _ANG_RAD),
+    "c": (_POS_M, _POS_M, _POS_M),
+    "k": (_POS_M, _ANG_RAD),
+    "q": (_POS_M, _POS_M, _POS_M),
+    "a": (_POS_M, _POS_M, _ANG_RAD),
 }
 
 
@@ -57,25 +64,35 @@ class ISAM2Options:
     """Relinearise a variable when any entry of its linear delta exceeds this: one float
     for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
     ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
-    dimension.  The defaults (5 cm, 5 mrad) keep the final estimate close to the batch
-    optimum while relinearising far fewer variables than 0.01 for all
-    (``docs/performance.md``): a line landmark seen from hundreds of poses costs
-    hundreds of Python callbacks each time it is relinearised.  With
+    dimension.  The defaults (10 cm for positions, line distances and radii, 5 mrad for
+    angles) keep the final estimate close to the batch optimum while relinearising far
+    fewer variables than 0.01 for all (``docs/performance.md``): a line landmark seen
+    from hundreds of poses costs hundreds of Python callbacks each time it is
+    relinearised, and a long, sparsely observed trajectory that a loop closure shifts
+    by centimetres would otherwise be relinearised whole at every step.  The residuals
+    are affine in the position-like entries for fixed angles, hence the looser
+    position thresholds.  With
     ``GraphOptions.split_circles`` the ``c`` entries ``(x, y, r)`` go to the centre and
     the radius variables."""
-    relinearize_skip: int = 1
-    """Check for relinearisation every this many updates."""
+    relinearize_skip: int = 10
+    """Check for relinearisation every this many updates (GTSAM's default).  The check
+    back-substitutes the whole Bayes tree and compares every variable's delta with its
+    threshold, which costs more than an update that relinearises nothing; between checks
+    each update still solves its linear system exactly, at the last linearisation
+    point."""
     factorization: str = "CHOLESKY"
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
     final_updates: int = 5
-    """Extra empty updates at the end so the final estimate is fully relinearised."""
-    final_marginals: str = "isam2"
-    """Smoothed marginals of iSAM2's own linear system (``"isam2"``: the graph linearised
-    at iSAM2's linearisation point, whose marginals are those of its Bayes tree; close
-    to, not equal to, the exact ones because a variable's linearisation point may lag
-    its estimate by up to the relinearisation threshold) or of a fresh linearisation at the
-    final estimate (``"relinearized"``: exact, one more pass of the Python callbacks).
-    Both are read by :func:`tree_marginals`."""
+    """Extra empty updates at the end so the final estimate is fully relinearised; each
+    checks for relinearisation whatever :attr:`relinearize_skip`."""
+    final_marginals: str = "relinearized"
+    """Smoothed marginals of a fresh linearisation at the final estimate
+    (``"relinearized"``: exact) or of iSAM2's own linear system (``"isam2"``: the graph
+    linearised at iSAM2's linearisation point, whose marginals are those of its Bayes
+    tree; close to, not equal to, the exact ones because a variable's linearisation
+    point may lag its estimate by up to the relinearisation threshold).  Both linearise
+    the whole graph once and are read by :func:`tree_marginals`, so they cost the
+    same."""
 
     def __post_init__(self) -> None:
         th = self.relinearize_threshold
@@ -164,6 +181,8 @@ class _LastVariableMarginal:
     def __init__(self, key: int, dim: int) -> None:
         self.key, self.dim = key, dim
         self.shortcut = False
+        self.rows: tuple[FloatArray, FloatArray] | None = None
+        """``(R_kk, d_k)`` of the shortcut: the marginal is ``R_kk δ_k = d_k``, unit noise."""
 
     def __call__(self, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Any:
         if graph.size() == 1:
@@ -175,11 +194,9 @@ class _LastVariableMarginal:
                     R, rhs = f.R(), f.d()  # views into the conditional
                     if R.shape[0] == R.shape[1] == rhs.shape[0] and not R[-d:, :-d].any():
                         self.shortcut = True
+                        self.rows = (np.array(R[-d:, -d:]), np.array(rhs[-d:]))
                         marginal = gtsam.JacobianFactor(
-                            self.key,
-                            np.array(R[-d:, -d:]),
-                            np.array(rhs[-d:]),
-                            gtsam.noiseModel.Unit.Create(d),
+                            self.key, *self.rows, gtsam.noiseModel.Unit.Create(d)
                         )
                         return f, marginal
         return gtsam.EliminateQR(graph, ordering)
@@ -201,10 +218,30 @@ def _newest_pose_marginal(
     """
     elim = _LastVariableMarginal(key, 3)
     m = isam.marginalFactor(key, elim)
-    delta = m.solve(gtsam.VectorValues()).at(key)
+    if elim.rows is not None:
+        # R_kk is upper triangular: δ = R⁻¹ d and P = R⁻¹ R⁻ᵀ without a general inverse.
+        Rinv = _inv_upper3(elim.rows[0])
+        delta = Rinv @ elim.rows[1]
+        P: FloatArray = Rinv @ Rinv.T
+    else:
+        delta = m.solve(gtsam.VectorValues()).at(key)
+        P = np.linalg.inv(np.asarray(m.information(), dtype=float))
     x = pose_of(linearization_point.atPose2(key).retract(delta))
-    P: FloatArray = np.linalg.inv(np.asarray(m.information(), dtype=float))
     return x, P, elim.shortcut
+
+
+def _inv_upper3(R: FloatArray) -> FloatArray:
+    """Inverse of a 3×3 upper-triangular matrix with a non-zero diagonal, in closed form
+    (a general ``inv`` costs more in call overhead than in arithmetic at this size)."""
+    a, b, c = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
+    e, f, i = float(R[1, 1]), float(R[1, 2]), float(R[2, 2])
+    return np.array(
+        [
+            [1.0 / a, -b / (a * e), (b * f - c * e) / (a * e * i)],
+            [0.0, 1.0 / e, -f / (e * i)],
+            [0.0, 0.0, 1.0 / i],
+        ]
+    )
 
 
 def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
@@ -243,10 +280,11 @@ def _run_isam2(
     f_covs = np.zeros((n, 3, 3))
     est = _ISAM2Estimate(isam, f_covs)
     times = np.zeros(n)
+    cpu = np.zeros(n)
     relin = 0
     shortcuts = 0
     for k in range(n):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         sg = builder.step(k, est)
         xk = pose_key(k)
         # Bound to a name first: iterating the temporary KeySet directly segfaults (the
@@ -263,11 +301,14 @@ def _run_isam2(
         f_covs[k] = body_to_abs_cov(P, x[2])
         est.last_pose = (k, x)
         times[k] = time.perf_counter() - t0
+        cpu[k] = time.process_time() - c0
         if progress is not None:
             progress(k + 1, n)
     t0 = time.perf_counter()
+    final_params = gtsam.ISAM2UpdateParams()
+    final_params.force_relinearize = True
     for _ in range(opts.final_updates):
-        isam.update()
+        isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), final_params)
     # Full back-substitution: calculateEstimate() stops propagating changes below the
     # wildfire threshold (1e-3), a millimetre-level difference from the batch optimum.
     values = isam.calculateBestEstimate()
@@ -295,6 +336,7 @@ def _run_isam2(
         filtered_poses=f_poses,
         filtered_covs=f_covs,
         step_time_s=times,
+        step_cpu_s=cpu,
         build_time_s=0.0,
         solve_time_s=solve,
         marginals_time_s=marg,

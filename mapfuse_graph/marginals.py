@@ -4,6 +4,7 @@ one pass down its Bayes tree (:func:`tree_marginals`)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gtsam
@@ -24,7 +25,8 @@ def _body_to_abs(thetas: FloatArray) -> FloatArray:
 
 def body_to_abs_cov(P_body: FloatArray, theta: float) -> FloatArray:
     """Pose2 covariance in GTSAM's body tangent → absolute ``(x, y, θ)``: ``G P Gᵀ``."""
-    G = _body_to_abs(np.array([theta]))[0]
+    c, s = math.cos(theta), math.sin(theta)
+    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     out: FloatArray = G @ P_body @ G.T
     return 0.5 * (out + out.T)
 

@@ -148,6 +148,10 @@ class GraphResult:
     """``association="own"``: CCDA calls per outcome (a
     :data:`~mapfuse_core.matching.ccda.REASONS` entry, or ``"anchor refused"`` for an
     accepted match the anchor check turned down); ``None`` with any other association."""
+    step_cpu_s: FloatArray | None = None
+    """(N,) iSAM2 and fixedlag: CPU time of this process in each step (the same span as
+    :attr:`step_time_s`); unlike wall time, it does not grow with other load on the
+    machine."""
     graph: gtsam.NonlinearFactorGraph | None = field(default=None, compare=False, repr=False)
     """The final nonlinear factor graph, to optimise with another solver or export
     (:mod:`mapfuse_graph.export`); its keys are named by :attr:`keys`.  The observation
@@ -217,6 +221,8 @@ class _Solved:
     """Diagnostics."""
     joint_pose_cov: JointPoseCovariance | None = None
     """Batch with ``joint_stride``: the joint pose covariance."""
+    step_cpu_s: FloatArray | None = None
+    """(N,) per-step CPU time (iSAM2, fixedlag), else ``None``."""
     initial: gtsam.Values | None = None
     """The values the solver started from."""
 

@@ -215,6 +215,7 @@ def run_graph(
             if association == "own" and associations is None
             else None
         ),
+        step_cpu_s=out.step_cpu_s,
         graph=out.graph,
         values=out.values,
         initial=out.initial,
