@@ -41,6 +41,7 @@ from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction import ExtractionParams, ExtractionResult, extract_features
 from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
+from mapfuse_core.sim.limits import check_seed, check_steps
 from mapfuse_core.sim.scenario import Scenario, build_known_map, check_visibility, simulate_drive
 from mapfuse_core.sim.vehicle import MotionResult
 from mapfuse_core.sim.world import WallSegment, World
@@ -206,14 +207,16 @@ def simulate(
 ) -> SimulationResult:
     """Simulate ``scenario`` with ``seed`` (default: the scenario's own seed).
 
+    ``seed`` is an integer in ``0 … 2**63 - 1`` and the scenario within the limits of
+    :mod:`mapfuse_core.sim.limits`; :class:`ValueError` before any work otherwise.
+
     ``progress(k, n)`` is called after each step when given (with workers, in step
     order as the extracted scans come back).  ``workers`` processes extract the
     features (see :func:`extraction_workers`; ``workers=1`` keeps everything in this
     process); the result is the same bit for bit whatever their number.
     """
-    seed = scenario.seed if seed is None else int(seed)
-    if seed < 0:
-        raise ValueError(f"seed must be >= 0, got {seed}")
+    seed = check_seed(scenario.seed if seed is None else seed)
+    check_steps(scenario.steps, scenario.laser.n_beams, f"scenario {scenario.name!r}: steps")
     params = extraction if extraction is not None else ExtractionParams()
     n_workers = extraction_workers(workers, scenario.steps)
     pool = _start_pool(n_workers, scenario.laser, params) if n_workers > 1 else None

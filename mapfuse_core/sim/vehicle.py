@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, as_pose, compose, relative, wrap_angle
+from mapfuse_core.sim.limits import MAX_STEPS
 
 __all__ = [
     "MotionResult",
@@ -363,6 +364,8 @@ def _drive(
     control: Callable[[int, FloatArray], tuple[float, float]],
 ) -> MotionResult:
     """``n`` poses from ``x0``; ``control(k, x_{k−1})`` gives the true ``(v, φ)`` of step k."""
+    if n > MAX_STEPS:
+        raise ValueError(f"{n} poses is above the maximum of {MAX_STEPS:,} steps")
     dt, L = params.dt_s, params.wheelbase_m
     slip_sd = np.asarray(params.slip_sigma)
     noise_sd = np.array([params.sigma_v, params.sigma_phi])

@@ -8,6 +8,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
+from mapfuse_core.sim.limits import MAX_FEATURE_ID
 from mapfuse_core.sim.scenario.types import ScenarioError
 
 
@@ -69,11 +70,23 @@ class _Reader:
             raise self.fail(key, f"must be >= 0, got {x}")
         return x
 
-    def integer(self, value: object, key: str, *, minimum: int | None = None) -> int:
+    def integer(
+        self,
+        value: object,
+        key: str,
+        *,
+        minimum: int | None = None,
+        maximum: int | None = None,
+        what: str = "",
+    ) -> int:
+        """An integer in ``minimum … maximum`` (``what`` names the maximum in the error)."""
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(key, f"must be an integer, got {_tname(value)}")
         if minimum is not None and value < minimum:
             raise self.fail(key, f"must be >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            limit = what or f"{maximum:,}"
+            raise self.fail(key, f"must be <= {limit} (the documented maximum), got {value}")
         return value
 
     def string(self, value: object, key: str) -> str:
@@ -96,7 +109,15 @@ class _Reader:
         ]
 
     def feature_id(self, value: object, key: str) -> int:
-        return self.integer(value, key, minimum=0)
+        """A feature id, ``0 … 2**63 - 1`` (int64 in the log)."""
+        return self.integer(value, key, minimum=0, maximum=MAX_FEATURE_ID, what="2**63 - 1")
+
+    def sigma(self, value: object, key: str, *, angle: bool = False) -> float:
+        """A standard deviation: > 0 with a square that is a finite, non-zero float."""
+        x = self.number(value, key, positive=True, angle=angle)
+        if not 1e-300 <= x * x < math.inf:
+            raise self.fail(key, f"{x:g} squared is not a usable variance (give 1e-150 … 1e150)")
+        return x
 
 
 _PI_RE = re.compile(
