@@ -202,6 +202,10 @@ def _check_array(
 #: down to ``-PSD_TOLERANCE`` count as zero.  Rounding in ``J Σ Jᵀ`` leaves errors of
 #: about 1e-15 there; a wrong sign or a bad correlation gives far more.
 PSD_TOLERANCE = 1e-9
+#: Smallest eigenvalue of the correlation matrix of a covariance that must be positive
+#: definite (odometry): three orders above rounding, so an exact zero or a rank-deficient
+#: ``J Σ Jᵀ`` is refused while strongly correlated noise is not.
+PD_THRESHOLD = 1e-12
 
 
 def _correlation_eigenvalues(covs: FloatArray) -> FloatArray:
@@ -237,7 +241,7 @@ def _check_covs(name: str, covs: FloatArray, definite_from: int | None = None) -
             f"(min eigenvalue {_min_eigenvalue(covs[i]):.3g})"
         )
     if definite_from is not None:
-        weak = (low <= PSD_TOLERANCE) | np.any(diag <= 0.0, axis=1)
+        weak = (low <= PD_THRESHOLD) | np.any(diag <= 0.0, axis=1)
         bad = np.nonzero(weak[definite_from:])[0]
         if bad.size:
             i = int(bad[0]) + definite_from
@@ -253,8 +257,8 @@ def _min_eigenvalue(cov: FloatArray) -> float:
 
 
 def _check_map(prefix: str, m: KnownMapArrays) -> None:
+    _check_array(f"{prefix}_ids", m.ids, (None,), kinds="iu")
     n = len(m)
-    _check_array(f"{prefix}_ids", m.ids, (n,), kinds="iu")
     _check_array(f"{prefix}_kinds", m.kinds, (n,), kinds="iu")
     _check_array(f"{prefix}_params", m.params, (n, 3))
     _check_array(f"{prefix}_covs", m.covs, (n, 3, 3))
@@ -284,8 +288,8 @@ def _validate(log: MeasurementLog) -> None:
         raise MeasurementLogError(f"'seed' must be an integer, got {type(seed).__name__}")
     if not -1 <= int(seed) <= _INT64.max:
         raise MeasurementLogError(f"'seed' must be in -1 … 2**63 - 1, got {int(seed)}")
-    n = log.timestamps.shape[0] if isinstance(log.timestamps, np.ndarray) else -1
     _check_array("timestamps", log.timestamps, (None,))
+    n = log.timestamps.shape[0]
     if n < 1:
         raise MeasurementLogError("the log has no steps")
     _check_array("odometry", log.odometry, (n, 3))
@@ -293,8 +297,8 @@ def _validate(log: MeasurementLog) -> None:
     _check_covs("odometry_cov", log.odometry_cov, definite_from=1)
     if np.any(np.diff(log.timestamps) < 0):
         raise MeasurementLogError("'timestamps' decrease")
-    m = log.feat_step.shape[0] if isinstance(log.feat_step, np.ndarray) else -1
     _check_array("feat_step", log.feat_step, (None,), kinds="iu")
+    m = log.feat_step.shape[0]
     _check_array("feat_kind", log.feat_kind, (m,), kinds="iu")
     _check_array("feat_params", log.feat_params, (m, 3))
     _check_array("feat_cov", log.feat_cov, (m, 3, 3))

@@ -14,12 +14,19 @@ from numbers import Integral
 __all__ = [
     "MAX_BEAMS",
     "MAX_FEATURE_ID",
+    "MAX_MAGNITUDE",
     "MAX_SCAN_BEAMS",
     "MAX_SEED",
     "MAX_STEPS",
     "check_seed",
     "check_steps",
 ]
+
+MAX_MAGNITUDE = 1e9
+"""Largest magnitude of any number in a scenario file: coordinates to 1e9 m (float64
+still resolves 1e-7 m there, and UTM-like surveyed coordinates are below 1e7 m),
+speeds, ranges and standard deviations likewise, so that squares and products of
+them stay finite."""
 
 MAX_SEED = 2**63 - 1
 """Largest seed: seeds are stored as int64 in the measurement log (``0 ≤ seed ≤ 2⁶³ − 1``)."""

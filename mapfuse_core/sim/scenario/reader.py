@@ -8,7 +8,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
-from mapfuse_core.sim.limits import MAX_FEATURE_ID
+from mapfuse_core.sim.limits import MAX_FEATURE_ID, MAX_MAGNITUDE
 from mapfuse_core.sim.scenario.types import ScenarioError
 
 
@@ -50,7 +50,8 @@ class _Reader:
         nonneg: bool = False,
         angle: bool = False,
     ) -> float:
-        """A finite float (ints accepted); angles may be ``"k*pi/n"`` strings."""
+        """A finite float of magnitude at most :data:`MAX_MAGNITUDE` (ints accepted);
+        angles may be ``"k*pi/n"`` strings."""
         if angle and isinstance(value, str):
             x = _parse_pi(value)
             if x is None:
@@ -64,6 +65,8 @@ class _Reader:
             x = float(value)
         if not math.isfinite(x):
             raise self.fail(key, f"must be finite, got {x}")
+        if abs(x) > MAX_MAGNITUDE:
+            raise self.fail(key, f"must be within ±1e9 (the documented maximum), got {x:g}")
         if positive and x <= 0.0:
             raise self.fail(key, f"must be > 0, got {x}")
         if nonneg and x < 0.0:
