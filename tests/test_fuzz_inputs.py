@@ -216,10 +216,9 @@ def _load_and_run_scenario(text: str) -> None:
             scenario = scenario_from_toml(text, SOURCE)
             scenario = dataclasses.replace(scenario, steps=min(scenario.steps, RUN_STEPS))
             log = simulate(scenario, workers=1).log
+            refused: ScenarioError | None = None
         except ScenarioError as exc:
             refused = exc
-        else:
-            refused = None
         if refused is not None:
             assert refused.file == SOURCE
             _one_line(str(refused), SOURCE)

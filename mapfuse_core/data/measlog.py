@@ -177,10 +177,10 @@ def _check_array(
     name: str, a: Any, shape: tuple[int | None, ...], finite: bool = True, kinds: str = "fiu"
 ) -> None:
     """A numpy array of the given shape (``None``: any length) whose dtype kind is one of
-    ``kinds``, finite unless ``finite=False``."""
+    ``kinds`` (an empty array may be of any numeric kind), finite unless ``finite=False``."""
     if not isinstance(a, np.ndarray):
         raise MeasurementLogError(f"'{name}' must be a numpy array, got {type(a).__name__}")
-    if a.dtype.kind not in kinds:
+    if a.dtype.kind not in (kinds if a.size else "fiu"):
         what = "integer" if kinds == "iu" else "numeric"
         raise MeasurementLogError(f"'{name}' must be {what}, got dtype {a.dtype}")
     mismatch = a.ndim != len(shape) or any(
@@ -356,7 +356,7 @@ _LOG_ARRAYS = tuple(
     }
     and not f.name.startswith("_")
 )
-_DTYPES = {
+_DTYPES: dict[str, type[np.signedinteger[Any]]] = {
     "feat_step": np.int64,
     "feat_kind": np.int8,
     "feat_true_id": np.int64,
@@ -441,20 +441,20 @@ def _get(arrays: dict[str, np.ndarray], path: Path, name: str) -> np.ndarray:
             )
         return arr
     base = name.split("_", 1)[1] if name.startswith(("known_", "world_")) else name
-    want = _DTYPES.get(base, np.int64 if name in _INTS else None)
-    if want is not None:
+    dtype = _DTYPES.get(base, np.int64 if name in _INTS else None)
+    if dtype is not None:
         if arr.dtype.kind not in "iu":
             raise MeasurementLogError(f"{path}: '{name}' must be integer, got {arr.dtype}")
         if name in _INTS and arr.ndim != _INTS[name]:
             what = "a scalar" if _INTS[name] == 0 else "1-D"
             raise MeasurementLogError(f"{path}: '{name}' must be {what}, got shape {arr.shape}")
-        limits = np.iinfo(want)
+        limits = np.iinfo(dtype)
         if arr.size and (arr.min() < limits.min or arr.max() > limits.max):
             raise MeasurementLogError(
-                f"{path}: '{name}' has a value outside {np.dtype(want).name} "
+                f"{path}: '{name}' has a value outside {np.dtype(dtype).name} "
                 f"({limits.min} … {limits.max})"
             )
-        return arr.astype(want)
+        return arr.astype(dtype)
     if arr.dtype.kind not in "fiu":
         raise MeasurementLogError(f"{path}: '{name}' must be numeric, got {arr.dtype}")
     return arr.astype(np.float64)

@@ -119,7 +119,7 @@ class _Reader:
         """A standard deviation: > 0 with a square that is a finite, non-zero float."""
         x = self.number(value, key, positive=True, angle=angle)
         if not 1e-300 <= x * x < math.inf:
-            raise self.fail(key, f"{x:g} squared is not a usable variance (give 1e-150 … 1e150)")
+            raise self.fail(key, f"{x:g} squared is not a usable variance (give at least 1e-150)")
         return x
 
 
