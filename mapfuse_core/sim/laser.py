@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, as_pose
-from mapfuse_core.sim.limits import MAX_BEAMS
+from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_BEAMS
 from mapfuse_core.sim.world import World
 
 __all__ = ["LaserParams", "Scan", "cast_rays", "simulate_scan"]
@@ -48,7 +48,7 @@ class LaserParams:
     sigma_range_m: float = 0.05
     """Standard deviation σρ of the range noise (m), ≥ 0."""
     sigma_bearing_rad: float = math.pi / 720
-    """Standard deviation σβ of the bearing (pointing) noise (rad), ≥ 0."""
+    """Standard deviation σβ of the bearing (pointing) noise (rad), in ``[0, π]``."""
 
     def __post_init__(self) -> None:
         for name in ("fov_rad", "max_range_m", "sigma_range_m", "sigma_bearing_rad"):
@@ -73,6 +73,10 @@ class LaserParams:
         if self.sigma_bearing_rad < 0.0:
             raise ValueError(
                 f"LaserParams.sigma_bearing_rad must be >= 0, got {self.sigma_bearing_rad}"
+            )
+        if self.sigma_bearing_rad > MAX_ANGLE_SIGMA:
+            raise ValueError(
+                f"LaserParams.sigma_bearing_rad must be <= π, got {self.sigma_bearing_rad}"
             )
 
     @property

@@ -9,9 +9,11 @@ works on beams × features arrays per scan.
 
 from __future__ import annotations
 
+import math
 from numbers import Integral
 
 __all__ = [
+    "MAX_ANGLE_SIGMA",
     "MAX_BEAMS",
     "MAX_FEATURE_ID",
     "MAX_MAGNITUDE",
@@ -27,6 +29,11 @@ MAX_MAGNITUDE = 1e9
 still resolves 1e-7 m there, and UTM-like surveyed coordinates are below 1e7 m),
 speeds, ranges and standard deviations likewise, so that squares and products of
 them stay finite."""
+
+MAX_ANGLE_SIGMA = math.pi
+"""Largest standard deviation of an angle (rad): beyond π the angle is as good as
+uniform, which no linearised filter can represent (its innovation covariances stop
+being positive definite)."""
 
 MAX_SEED = 2**63 - 1
 """Largest seed: seeds are stored as int64 in the measurement log (``0 ≤ seed ≤ 2⁶³ − 1``)."""

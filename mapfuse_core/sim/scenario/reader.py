@@ -8,7 +8,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
-from mapfuse_core.sim.limits import MAX_FEATURE_ID, MAX_MAGNITUDE
+from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_FEATURE_ID, MAX_MAGNITUDE
 from mapfuse_core.sim.scenario.types import ScenarioError
 
 
@@ -116,8 +116,11 @@ class _Reader:
         return self.integer(value, key, minimum=0, maximum=MAX_FEATURE_ID, what="2**63 - 1")
 
     def sigma(self, value: object, key: str, *, angle: bool = False) -> float:
-        """A standard deviation: > 0 with a square that is a finite, non-zero float."""
+        """A standard deviation: > 0 with a square that is a finite, non-zero float; at
+        most π for an angle."""
         x = self.number(value, key, positive=True, angle=angle)
+        if angle and x > MAX_ANGLE_SIGMA:
+            raise self.fail(key, f"an angle's standard deviation must be <= pi, got {x:g}")
         if not 1e-300 <= x * x < math.inf:
             raise self.fail(key, f"{x:g} squared is not a usable variance (give at least 1e-150)")
         return x
