@@ -171,6 +171,7 @@ def _short_run(log: MeasurementLog) -> None:
     head = log.head(RUN_STEPS)
     result = run_ekf(head, EKFConfig(local_map_steps=5))
     assert np.all(np.isfinite(result.poses)), "the EKF gave a non-finite pose"
+    assert np.all(np.isfinite(result.covs)), "the EKF gave a non-finite pose covariance"
 
 
 def _one_line(message: str, source: str) -> None:

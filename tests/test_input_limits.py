@@ -89,6 +89,11 @@ def log_file(tmp_path: Path) -> Path:
     return save_log(small_log(), tmp_path / "log.npz")
 
 
+def _huge(a: np.ndarray, index: tuple[int, ...], value: float) -> np.ndarray:
+    a[index] = value
+    return a
+
+
 @pytest.mark.parametrize(
     ("name", "value", "message"),
     [
@@ -104,6 +109,16 @@ def log_file(tmp_path: Path) -> Path:
         ("format_version", np.ones((1, 1), dtype=np.int64), "'format_version' must be a scalar"),
         ("rejected_counts", np.array([[1, 2]]), "'rejected_counts' must be 1-D"),
         ("timestamps", np.zeros((5, 2)), "'timestamps' has shape (5, 2), expected N"),
+        (
+            "odometry",
+            _huge(np.zeros((5, 3)), (2, 0), 1e300),
+            "'odometry' has a value beyond ±1e+09 (1e+300) at index (2, 0)",
+        ),
+        (
+            "feat_cov",
+            _huge(np.stack([np.eye(3)] * 6), (1, 1, 1), 1e20),
+            "'feat_cov' has a value beyond ±1e+18 (1e+20) at index (1, 1, 1)",
+        ),
     ],
 )
 def test_log_with_a_wrong_dtype_or_shape_is_refused_naming_file_and_array(

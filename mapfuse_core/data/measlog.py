@@ -173,11 +173,25 @@ class MeasurementLog:
 # --------------------------------------------------------------------------- validation
 
 
+#: Largest magnitude of a coordinate, length or angle in a log (poses, odometry, feature
+#: and map parameters, extents, GPS positions): 1e9 m, as in a scenario file, so that
+#: products and squares stay finite in the estimators.  Times are not bounded.
+MAX_MAGNITUDE = 1e9
+#: Largest magnitude of a covariance entry: the square of :data:`MAX_MAGNITUDE`.
+MAX_VARIANCE = MAX_MAGNITUDE**2
+
+
 def _check_array(
-    name: str, a: Any, shape: tuple[int | None, ...], finite: bool = True, kinds: str = "fiu"
+    name: str,
+    a: Any,
+    shape: tuple[int | None, ...],
+    finite: bool = True,
+    kinds: str = "fiu",
+    limit: float | None = MAX_MAGNITUDE,
 ) -> None:
     """A numpy array of the given shape (``None``: any length) whose dtype kind is one of
-    ``kinds`` (an empty array may be of any numeric kind), finite unless ``finite=False``."""
+    ``kinds`` (an empty array may be of any numeric kind), finite unless ``finite=False``
+    (NaN allowed then), and of magnitude at most ``limit`` when given."""
     if not isinstance(a, np.ndarray):
         raise MeasurementLogError(f"'{name}' must be a numpy array, got {type(a).__name__}")
     if a.dtype.kind not in (kinds if a.size else "fiu"):
@@ -195,6 +209,14 @@ def _check_array(
             f"'{name}' has a non-finite value ({a[tuple(idx)]}) "
             f"at index {tuple(int(i) for i in idx)}"
         )
+    if limit is not None and a.dtype.kind == "f" and a.size:
+        mag = np.abs(np.where(np.isnan(a), 0.0, a))
+        worst = int(np.argmax(mag))
+        if mag.flat[worst] > limit:
+            idx = tuple(int(i) for i in np.unravel_index(worst, a.shape))
+            raise MeasurementLogError(
+                f"'{name}' has a value beyond ±{limit:g} ({a[idx]:g}) at index {idx}"
+            )
 
 
 #: Relative tolerance of the covariance checks: symmetry to this fraction of the largest
@@ -261,7 +283,7 @@ def _check_map(prefix: str, m: KnownMapArrays) -> None:
     n = len(m)
     _check_array(f"{prefix}_kinds", m.kinds, (n,), kinds="iu")
     _check_array(f"{prefix}_params", m.params, (n, 3))
-    _check_array(f"{prefix}_covs", m.covs, (n, 3, 3))
+    _check_array(f"{prefix}_covs", m.covs, (n, 3, 3), limit=MAX_VARIANCE)
     _check_kinds(f"{prefix}_kinds", m.kinds)
     _check_covs(f"{prefix}_covs", m.covs)
     if m.extents is not None:
@@ -288,12 +310,12 @@ def _validate(log: MeasurementLog) -> None:
         raise MeasurementLogError(f"'seed' must be an integer, got {type(seed).__name__}")
     if not -1 <= int(seed) <= _INT64.max:
         raise MeasurementLogError(f"'seed' must be in -1 … 2**63 - 1, got {int(seed)}")
-    _check_array("timestamps", log.timestamps, (None,))
+    _check_array("timestamps", log.timestamps, (None,), limit=None)
     n = log.timestamps.shape[0]
     if n < 1:
         raise MeasurementLogError("the log has no steps")
     _check_array("odometry", log.odometry, (n, 3))
-    _check_array("odometry_cov", log.odometry_cov, (n, 3, 3))
+    _check_array("odometry_cov", log.odometry_cov, (n, 3, 3), limit=MAX_VARIANCE)
     _check_covs("odometry_cov", log.odometry_cov, definite_from=1)
     if np.any(np.diff(log.timestamps) < 0):
         raise MeasurementLogError("'timestamps' decrease")
@@ -301,7 +323,7 @@ def _validate(log: MeasurementLog) -> None:
     m = log.feat_step.shape[0]
     _check_array("feat_kind", log.feat_kind, (m,), kinds="iu")
     _check_array("feat_params", log.feat_params, (m, 3))
-    _check_array("feat_cov", log.feat_cov, (m, 3, 3))
+    _check_array("feat_cov", log.feat_cov, (m, 3, 3), limit=MAX_VARIANCE)
     _check_array("feat_true_id", log.feat_true_id, (m,), kinds="iu")
     _check_array("feat_n_points", log.feat_n_points, (m,), kinds="iu")
     _check_array("feat_extent", log.feat_extent, (m, 2), finite=False)
@@ -325,7 +347,7 @@ def _validate(log: MeasurementLog) -> None:
     if (log.gps_times is None) != (log.gps_xy is None):
         raise MeasurementLogError("'gps_times' and 'gps_xy' must be given together")
     if log.gps_times is not None and log.gps_xy is not None:
-        _check_array("gps_times", log.gps_times, (None,))
+        _check_array("gps_times", log.gps_times, (None,), limit=None)
         _check_array("gps_xy", log.gps_xy, (log.gps_times.shape[0], 2))
     for k, v in log.rejected.items():
         if not isinstance(k, str) or not isinstance(v, int) or v < 0:
