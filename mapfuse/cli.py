@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from mapfuse_core.data.measlog import MeasurementLog, save_log
+from mapfuse_core.sim.limits import check_seed
 from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
 from mapfuse_core.sim.simulate import simulate
 
@@ -166,6 +167,8 @@ def _progress(label: str, args: argparse.Namespace) -> Any:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from mapfuse.plotting import world_figure
 
+    if args.seed is not None:
+        check_seed(args.seed, "--seed")
     scenario = load_scenario(args.scenario)
     if args.plot_step is not None and args.plot_step < 0:
         raise UsageError(f"--plot-step must be >= 0, got {args.plot_step}")

@@ -173,9 +173,30 @@ class MeasurementLog:
 # --------------------------------------------------------------------------- validation
 
 
-def _check_array(name: str, a: Any, shape: tuple[int | None, ...], finite: bool = True) -> None:
+#: Largest magnitude of a coordinate, length or angle in a log (poses, odometry, feature
+#: and map parameters, extents, GPS positions): 1e9 m, as in a scenario file, so that
+#: products and squares stay finite in the estimators.  Times are not bounded.
+MAX_MAGNITUDE = 1e9
+#: Largest magnitude of a covariance entry: the square of :data:`MAX_MAGNITUDE`.
+MAX_VARIANCE = MAX_MAGNITUDE**2
+
+
+def _check_array(
+    name: str,
+    a: Any,
+    shape: tuple[int | None, ...],
+    finite: bool = True,
+    kinds: str = "fiu",
+    limit: float | None = MAX_MAGNITUDE,
+) -> None:
+    """A numpy array of the given shape (``None``: any length) whose dtype kind is one of
+    ``kinds`` (an empty array may be of any numeric kind), finite unless ``finite=False``
+    (NaN allowed then), and of magnitude at most ``limit`` when given."""
     if not isinstance(a, np.ndarray):
         raise MeasurementLogError(f"'{name}' must be a numpy array, got {type(a).__name__}")
+    if a.dtype.kind not in (kinds if a.size else "fiu"):
+        what = "integer" if kinds == "iu" else "numeric"
+        raise MeasurementLogError(f"'{name}' must be {what}, got dtype {a.dtype}")
     mismatch = a.ndim != len(shape) or any(
         s is not None and s != d for s, d in zip(shape, a.shape, strict=True)
     )
@@ -188,28 +209,81 @@ def _check_array(name: str, a: Any, shape: tuple[int | None, ...], finite: bool 
             f"'{name}' has a non-finite value ({a[tuple(idx)]}) "
             f"at index {tuple(int(i) for i in idx)}"
         )
+    if limit is not None and a.dtype.kind == "f" and a.size:
+        mag = np.abs(np.where(np.isnan(a), 0.0, a))
+        worst = int(np.argmax(mag))
+        if mag.flat[worst] > limit:
+            idx = tuple(int(i) for i in np.unravel_index(worst, a.shape))
+            raise MeasurementLogError(
+                f"'{name}' has a value beyond ±{limit:g} ({a[idx]:g}) at index {idx}"
+            )
 
 
-def _check_covs(name: str, covs: FloatArray) -> None:
+#: Relative tolerance of the covariance checks: symmetry to this fraction of the largest
+#: entry, and eigenvalues of the correlation matrix ``D^-½ C D^-½`` (``D`` the diagonal)
+#: down to ``-PSD_TOLERANCE`` count as zero.  Rounding in ``J Σ Jᵀ`` leaves errors of
+#: about 1e-15 there; a wrong sign or a bad correlation gives far more.
+PSD_TOLERANCE = 1e-9
+#: Smallest eigenvalue of the correlation matrix of a covariance that must be positive
+#: definite (odometry): three orders above rounding, so an exact zero or a rank-deficient
+#: ``J Σ Jᵀ`` is refused while strongly correlated noise is not.
+PD_THRESHOLD = 1e-12
+
+
+def _correlation_eigenvalues(covs: FloatArray) -> FloatArray:
+    """(M, 3) ascending eigenvalues of each covariance scaled to unit diagonal (a zero
+    variance is scaled by the matrix's largest standard deviation instead)."""
+    d = np.sqrt(np.maximum(np.diagonal(covs, axis1=1, axis2=2), 0.0))
+    top = d.max(axis=1, keepdims=True)
+    d = np.where(d > 0.0, d, np.where(top > 0.0, top, 1.0))
+    corr = covs / (d[:, :, None] * d[:, None, :])
+    return np.asarray(np.linalg.eigvalsh(0.5 * (corr + np.swapaxes(corr, 1, 2))))
+
+
+def _check_covs(name: str, covs: FloatArray, definite_from: int | None = None) -> None:
+    """Symmetric, non-negative variances, positive semi-definite; positive definite from
+    index ``definite_from`` on when given (odometry: row 0 is the zero of no motion)."""
     if covs.size == 0:
         return
     asym = np.abs(covs - np.swapaxes(covs, 1, 2)).max(axis=(1, 2))
     scale = np.maximum(np.abs(covs).max(axis=(1, 2)), 1e-300)
-    bad = np.nonzero(asym > 1e-9 * scale)[0]
+    bad = np.nonzero(asym > PSD_TOLERANCE * scale)[0]
     if bad.size:
         raise MeasurementLogError(f"'{name}'[{int(bad[0])}] is not symmetric")
     diag = np.diagonal(covs, axis1=1, axis2=2)
     neg = np.argwhere(diag < 0.0)
     if neg.size:
         raise MeasurementLogError(f"'{name}'[{int(neg[0][0])}] has a negative variance")
+    low = _correlation_eigenvalues(covs)[:, 0]
+    bad = np.nonzero(low < -PSD_TOLERANCE)[0]
+    if bad.size:
+        i = int(bad[0])
+        raise MeasurementLogError(
+            f"'{name}'[{i}] is not positive semi-definite "
+            f"(min eigenvalue {_min_eigenvalue(covs[i]):.3g})"
+        )
+    if definite_from is not None:
+        weak = (low <= PD_THRESHOLD) | np.any(diag <= 0.0, axis=1)
+        bad = np.nonzero(weak[definite_from:])[0]
+        if bad.size:
+            i = int(bad[0]) + definite_from
+            raise MeasurementLogError(
+                f"'{name}'[{i}] is not positive definite "
+                f"(min eigenvalue {_min_eigenvalue(covs[i]):.3g}): every increment needs "
+                "some uncertainty in x, y and θ"
+            )
+
+
+def _min_eigenvalue(cov: FloatArray) -> float:
+    return float(np.linalg.eigvalsh(0.5 * (cov + cov.T))[0])
 
 
 def _check_map(prefix: str, m: KnownMapArrays) -> None:
+    _check_array(f"{prefix}_ids", m.ids, (None,), kinds="iu")
     n = len(m)
-    _check_array(f"{prefix}_ids", m.ids, (n,))
-    _check_array(f"{prefix}_kinds", m.kinds, (n,))
+    _check_array(f"{prefix}_kinds", m.kinds, (n,), kinds="iu")
     _check_array(f"{prefix}_params", m.params, (n, 3))
-    _check_array(f"{prefix}_covs", m.covs, (n, 3, 3))
+    _check_array(f"{prefix}_covs", m.covs, (n, 3, 3), limit=MAX_VARIANCE)
     _check_kinds(f"{prefix}_kinds", m.kinds)
     _check_covs(f"{prefix}_covs", m.covs)
     if m.extents is not None:
@@ -229,22 +303,29 @@ def _check_kinds(name: str, kinds: IntArray) -> None:
 
 
 def _validate(log: MeasurementLog) -> None:
-    n = log.timestamps.shape[0] if isinstance(log.timestamps, np.ndarray) else -1
-    _check_array("timestamps", log.timestamps, (None,))
+    if not isinstance(log.scenario, str):
+        raise MeasurementLogError(f"'scenario' must be text, got {type(log.scenario).__name__}")
+    seed = log.seed
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+        raise MeasurementLogError(f"'seed' must be an integer, got {type(seed).__name__}")
+    if not -1 <= int(seed) <= _INT64.max:
+        raise MeasurementLogError(f"'seed' must be in -1 … 2**63 - 1, got {int(seed)}")
+    _check_array("timestamps", log.timestamps, (None,), limit=None)
+    n = log.timestamps.shape[0]
     if n < 1:
         raise MeasurementLogError("the log has no steps")
     _check_array("odometry", log.odometry, (n, 3))
-    _check_array("odometry_cov", log.odometry_cov, (n, 3, 3))
-    _check_covs("odometry_cov", log.odometry_cov)
+    _check_array("odometry_cov", log.odometry_cov, (n, 3, 3), limit=MAX_VARIANCE)
+    _check_covs("odometry_cov", log.odometry_cov, definite_from=1)
     if np.any(np.diff(log.timestamps) < 0):
         raise MeasurementLogError("'timestamps' decrease")
-    m = log.feat_step.shape[0] if isinstance(log.feat_step, np.ndarray) else -1
-    _check_array("feat_step", log.feat_step, (None,))
-    _check_array("feat_kind", log.feat_kind, (m,))
+    _check_array("feat_step", log.feat_step, (None,), kinds="iu")
+    m = log.feat_step.shape[0]
+    _check_array("feat_kind", log.feat_kind, (m,), kinds="iu")
     _check_array("feat_params", log.feat_params, (m, 3))
-    _check_array("feat_cov", log.feat_cov, (m, 3, 3))
-    _check_array("feat_true_id", log.feat_true_id, (m,))
-    _check_array("feat_n_points", log.feat_n_points, (m,))
+    _check_array("feat_cov", log.feat_cov, (m, 3, 3), limit=MAX_VARIANCE)
+    _check_array("feat_true_id", log.feat_true_id, (m,), kinds="iu")
+    _check_array("feat_n_points", log.feat_n_points, (m,), kinds="iu")
     _check_array("feat_extent", log.feat_extent, (m, 2), finite=False)
     _check_kinds("feat_kind", log.feat_kind)
     _check_covs("feat_cov", log.feat_cov)
@@ -266,7 +347,7 @@ def _validate(log: MeasurementLog) -> None:
     if (log.gps_times is None) != (log.gps_xy is None):
         raise MeasurementLogError("'gps_times' and 'gps_xy' must be given together")
     if log.gps_times is not None and log.gps_xy is not None:
-        _check_array("gps_times", log.gps_times, (None,))
+        _check_array("gps_times", log.gps_times, (None,), limit=None)
         _check_array("gps_xy", log.gps_xy, (log.gps_times.shape[0], 2))
     for k, v in log.rejected.items():
         if not isinstance(k, str) or not isinstance(v, int) or v < 0:
@@ -297,7 +378,7 @@ _LOG_ARRAYS = tuple(
     }
     and not f.name.startswith("_")
 )
-_DTYPES = {
+_DTYPES: dict[str, type[np.signedinteger[Any]]] = {
     "feat_step": np.int64,
     "feat_kind": np.int8,
     "feat_true_id": np.int64,
@@ -354,18 +435,51 @@ def save_log(log: MeasurementLog, path: str | Path) -> Path:
     return path
 
 
+#: Arrays of text, each 0-d (one string) or 1-D (a list).
+_TEXT = {
+    "format_name": 0,
+    "scenario": 0,
+    "rejected_reasons": 1,
+    "metadata_keys": 1,
+    "metadata_values": 1,
+}
+#: Integer scalars and lists besides the int arrays of :data:`_DTYPES`.
+_INTS = {"format_version": 0, "seed": 0, "rejected_counts": 1}
+_INT64 = np.iinfo(np.int64)
+
+
 def _get(arrays: dict[str, np.ndarray], path: Path, name: str) -> np.ndarray:
+    """Array ``name`` with its dtype checked: text, int64/int8, or float64 (ints and
+    floats of any width are converted)."""
     if name not in arrays:
         raise MeasurementLogError(f"{path}: missing array '{name}'")
     arr = arrays[name]
-    want = _DTYPES.get(name.split("_", 1)[1] if name.startswith(("known_", "world_")) else name)
-    if want is not None:
+    if name in _TEXT:
+        ndim = _TEXT[name]
+        if arr.dtype.kind != "U" or arr.ndim != ndim:
+            want = "a text scalar" if ndim == 0 else "a 1-D array of text"
+            raise MeasurementLogError(
+                f"{path}: '{name}' must be {want}, got {arr.dtype} of shape {arr.shape}"
+            )
+        return arr
+    base = name.split("_", 1)[1] if name.startswith(("known_", "world_")) else name
+    dtype = _DTYPES.get(base, np.int64 if name in _INTS else None)
+    if dtype is not None:
         if arr.dtype.kind not in "iu":
             raise MeasurementLogError(f"{path}: '{name}' must be integer, got {arr.dtype}")
-        arr = arr.astype(want)
-    elif arr.dtype.kind not in "fiu" and arr.dtype.kind != "U":
-        raise MeasurementLogError(f"{path}: '{name}' has unexpected dtype {arr.dtype}")
-    return arr
+        if name in _INTS and arr.ndim != _INTS[name]:
+            what = "a scalar" if _INTS[name] == 0 else "1-D"
+            raise MeasurementLogError(f"{path}: '{name}' must be {what}, got shape {arr.shape}")
+        limits = np.iinfo(dtype)
+        if arr.size and (arr.min() < limits.min or arr.max() > limits.max):
+            raise MeasurementLogError(
+                f"{path}: '{name}' has a value outside {np.dtype(dtype).name} "
+                f"({limits.min} … {limits.max})"
+            )
+        return arr.astype(dtype)
+    if arr.dtype.kind not in "fiu":
+        raise MeasurementLogError(f"{path}: '{name}' must be numeric, got {arr.dtype}")
+    return arr.astype(np.float64)
 
 
 def load_log(path: str | Path) -> MeasurementLog:
@@ -382,10 +496,10 @@ def load_log(path: str | Path) -> MeasurementLog:
             arrays = {k: npz[k] for k in npz.files}
     except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
         raise MeasurementLogError(f"{path}: not a readable .npz measurement log ({exc})") from exc
-    name = str(arrays.get("format_name", ""))
+    name = str(arrays["format_name"]) if "format_name" in arrays else ""
     if name != FORMAT_NAME:
         raise MeasurementLogError(f"{path}: not a mapfuse measurement log (format_name={name!r})")
-    version = int(arrays.get("format_version", -1))
+    version = int(_get(arrays, path, "format_version")) if "format_version" in arrays else -1
     if version != FORMAT_VERSION:
         raise MeasurementLogError(
             f"{path}: measurement log format version {version}, this mapfuse reads version "
@@ -406,7 +520,7 @@ def load_log(path: str | Path) -> MeasurementLog:
     if "metadata_keys" in arrays or "metadata_values" in arrays:
         keys = _get(arrays, path, "metadata_keys")
         values = _get(arrays, path, "metadata_values")
-        if keys.shape != values.shape or keys.dtype.kind != "U" or values.dtype.kind != "U":
+        if keys.shape != values.shape:
             raise MeasurementLogError(f"{path}: 'metadata_keys' and 'metadata_values' differ")
         metadata = {str(k): str(v) for k, v in zip(keys, values, strict=True)}
     try:
@@ -424,4 +538,7 @@ def load_log(path: str | Path) -> MeasurementLog:
             **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},
         )
     except MeasurementLogError as exc:
-        raise MeasurementLogError(f"{path}: {exc}") from None
+        msg = str(exc)
+        if not msg.startswith(f"{path}: "):
+            msg = f"{path}: {msg}"
+        raise MeasurementLogError(msg) from None

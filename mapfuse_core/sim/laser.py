@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, as_pose
+from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_BEAMS
 from mapfuse_core.sim.world import World
 
 __all__ = ["LaserParams", "Scan", "cast_rays", "simulate_scan"]
@@ -42,11 +43,12 @@ class LaserParams:
     max_range_m: float = 80.0
     """Maximum range (m); farther surfaces give no return."""
     n_beams: int = 361
-    """Number of beams, evenly spaced over the field of view (361 → 0.5° spacing)."""
+    """Number of beams, evenly spaced over the field of view (361 → 0.5° spacing);
+    2 … :data:`~mapfuse_core.sim.limits.MAX_BEAMS`."""
     sigma_range_m: float = 0.05
     """Standard deviation σρ of the range noise (m), ≥ 0."""
     sigma_bearing_rad: float = math.pi / 720
-    """Standard deviation σβ of the bearing (pointing) noise (rad), ≥ 0."""
+    """Standard deviation σβ of the bearing (pointing) noise (rad), in ``[0, π]``."""
 
     def __post_init__(self) -> None:
         for name in ("fov_rad", "max_range_m", "sigma_range_m", "sigma_bearing_rad"):
@@ -61,11 +63,20 @@ class LaserParams:
             raise ValueError(f"LaserParams.n_beams must be an integer, got {self.n_beams!r}")
         if self.n_beams < 2:
             raise ValueError(f"LaserParams.n_beams must be >= 2, got {self.n_beams}")
+        if self.n_beams > MAX_BEAMS:
+            raise ValueError(
+                f"LaserParams.n_beams must be <= {MAX_BEAMS:,} (the documented maximum), "
+                f"got {self.n_beams}"
+            )
         if self.sigma_range_m < 0.0:
             raise ValueError(f"LaserParams.sigma_range_m must be >= 0, got {self.sigma_range_m}")
         if self.sigma_bearing_rad < 0.0:
             raise ValueError(
                 f"LaserParams.sigma_bearing_rad must be >= 0, got {self.sigma_bearing_rad}"
+            )
+        if self.sigma_bearing_rad > MAX_ANGLE_SIGMA:
+            raise ValueError(
+                f"LaserParams.sigma_bearing_rad must be <= π, got {self.sigma_bearing_rad}"
             )
 
     @property

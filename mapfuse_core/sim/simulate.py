@@ -36,12 +36,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction import ExtractionParams, ExtractionResult, extract_features
 from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
-from mapfuse_core.sim.scenario import Scenario, build_known_map, check_visibility, simulate_drive
+from mapfuse_core.sim.limits import check_seed, check_steps
+from mapfuse_core.sim.scenario import (
+    Scenario,
+    ScenarioError,
+    build_known_map,
+    check_visibility,
+    simulate_drive,
+)
 from mapfuse_core.sim.vehicle import MotionResult
 from mapfuse_core.sim.world import WallSegment, World
 
@@ -206,14 +213,16 @@ def simulate(
 ) -> SimulationResult:
     """Simulate ``scenario`` with ``seed`` (default: the scenario's own seed).
 
+    ``seed`` is an integer in ``0 … 2**63 - 1`` and the scenario within the limits of
+    :mod:`mapfuse_core.sim.limits`; :class:`ValueError` before any work otherwise.
+
     ``progress(k, n)`` is called after each step when given (with workers, in step
     order as the extracted scans come back).  ``workers`` processes extract the
     features (see :func:`extraction_workers`; ``workers=1`` keeps everything in this
     process); the result is the same bit for bit whatever their number.
     """
-    seed = scenario.seed if seed is None else int(seed)
-    if seed < 0:
-        raise ValueError(f"seed must be >= 0, got {seed}")
+    seed = check_seed(scenario.seed if seed is None else seed)
+    check_steps(scenario.steps, scenario.laser.n_beams, f"scenario {scenario.name!r}: steps")
     params = extraction if extraction is not None else ExtractionParams()
     n_workers = extraction_workers(workers, scenario.steps)
     pool = _start_pool(n_workers, scenario.laser, params) if n_workers > 1 else None
@@ -281,29 +290,36 @@ def simulate(
             extents.append(f.extent)
 
     m = len(steps)
-    log = MeasurementLog(
-        scenario=scenario.name,
-        seed=seed,
-        timestamps=np.arange(n, dtype=float) * scenario.vehicle.dt_s,
-        odometry=motion.odometry,
-        odometry_cov=motion.odometry_cov,
-        feat_step=np.array(steps, dtype=np.int64),
-        feat_kind=np.array(kinds, dtype=np.int8),
-        feat_params=np.array(fparams, dtype=float).reshape(m, 3),
-        feat_cov=np.array(covs, dtype=float).reshape(m, 3, 3),
-        feat_true_id=np.array(true_ids, dtype=np.int64),
-        feat_n_points=np.array(n_points, dtype=np.int64),
-        feat_extent=np.array(extents, dtype=float).reshape(m, 2),
-        known_map=KnownMapArrays(
-            ids=known.ids,
-            kinds=known.kinds,
-            params=known.params,
-            covs=known.covs,
-            extents=_known_extents(scenario, known.ids, known.kinds),
-        ),
-        world=world_arrays(scenario.world),
-        true_poses=motion.true_poses,
-        known_frame=np.array(known.frame, dtype=float),
-        rejected={k: int(v) for k, v in sorted(rejected.items())},
-    )
+    try:
+        log = MeasurementLog(
+            scenario=scenario.name,
+            seed=seed,
+            timestamps=np.arange(n, dtype=float) * scenario.vehicle.dt_s,
+            odometry=motion.odometry,
+            odometry_cov=motion.odometry_cov,
+            feat_step=np.array(steps, dtype=np.int64),
+            feat_kind=np.array(kinds, dtype=np.int8),
+            feat_params=np.array(fparams, dtype=float).reshape(m, 3),
+            feat_cov=np.array(covs, dtype=float).reshape(m, 3, 3),
+            feat_true_id=np.array(true_ids, dtype=np.int64),
+            feat_n_points=np.array(n_points, dtype=np.int64),
+            feat_extent=np.array(extents, dtype=float).reshape(m, 2),
+            known_map=KnownMapArrays(
+                ids=known.ids,
+                kinds=known.kinds,
+                params=known.params,
+                covs=known.covs,
+                extents=_known_extents(scenario, known.ids, known.kinds),
+            ),
+            world=world_arrays(scenario.world),
+            true_poses=motion.true_poses,
+            known_frame=np.array(known.frame, dtype=float),
+            rejected={k: int(v) for k, v in sorted(rejected.items())},
+        )
+    except MeasurementLogError as exc:
+        # Extreme but valid parameters (e.g. a control noise that dwarfs the slip) can
+        # give covariances the log refuses: report them against the scenario file.
+        raise ScenarioError(
+            scenario.source, "", f"the simulated log is invalid (check the noise): {exc}"
+        ) from None
     return SimulationResult(log=log, motion=motion, scans=tuple(scans))

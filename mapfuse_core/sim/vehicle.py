@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, as_pose, compose, relative, wrap_angle
+from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_STEPS
 
 __all__ = [
     "MotionResult",
@@ -68,13 +69,15 @@ class VehicleParams:
     sigma_v: float = 0.10
     """Standard deviation of the measured velocity, m/s (Table 1)."""
     sigma_phi: float = math.pi / 360.0
-    """Standard deviation of the measured steering angle, rad (Table 1)."""
+    """Standard deviation of the measured steering angle, rad (Table 1); with
+    ``max_steer_rad + 8 σφ < π/2`` so that the measured angle stays below π/2."""
     max_steer_rad: float = 0.5
     """Steering limit ``|φ| ≤ max_steer_rad`` (< π/2); 0.5 rad gives a 4.6 m turning radius."""
     lookahead_m: float = 6.0
     """Pure-pursuit look-ahead distance along the path, metres."""
     slip_sigma: tuple[float, float, float] = (0.002, 0.002, 0.0002)
-    """Per-step slip ``(σx m, σy m, σθ rad)`` on the true motion, added to the odometry covariance.
+    """Per-step slip ``(σx m, σy m, σθ rad)`` on the true motion, added to the odometry
+    covariance; ``σθ ≤ π``.
 
     Small next to the control noise at 2 m/s (σv·dt = 0.0125 m along track, about
     9e-4 rad of heading from σφ), so Table 1 still dominates, but well above the
@@ -95,11 +98,20 @@ class VehicleParams:
             _check_positive(name, value)
         if self.max_steer_rad >= math.pi / 2.0:
             raise ValueError(f"max_steer_rad must be < π/2, got {self.max_steer_rad}")
+        # The measured steering φ + n_φ must stay below π/2 (the bicycle model's limit):
+        # 8 σ leaves a chance below 1e-15 a step.
+        if self.max_steer_rad + 8.0 * self.sigma_phi >= math.pi / 2.0:
+            raise ValueError(
+                f"sigma_phi = {self.sigma_phi:g} is too large for max_steer_rad = "
+                f"{self.max_steer_rad:g}: max_steer_rad + 8 sigma_phi must be < π/2"
+            )
         slip = tuple(self.slip_sigma)
         if len(slip) != 3:
             raise ValueError(f"slip_sigma must have 3 entries (σx, σy, σθ), got {len(slip)}")
         for name, value in zip(("σx", "σy", "σθ"), slip, strict=True):
             _check_positive(f"slip_sigma {name}", value)
+        if slip[2] > MAX_ANGLE_SIGMA:
+            raise ValueError(f"slip_sigma σθ must be <= π rad, got {slip[2]}")
         object.__setattr__(self, "slip_sigma", tuple(float(s) for s in slip))
 
     @property
@@ -363,6 +375,8 @@ def _drive(
     control: Callable[[int, FloatArray], tuple[float, float]],
 ) -> MotionResult:
     """``n`` poses from ``x0``; ``control(k, x_{k−1})`` gives the true ``(v, φ)`` of step k."""
+    if n > MAX_STEPS:
+        raise ValueError(f"{n} poses is above the maximum of {MAX_STEPS:,} steps")
     dt, L = params.dt_s, params.wheelbase_m
     slip_sd = np.asarray(params.slip_sigma)
     noise_sd = np.array([params.sigma_v, params.sigma_phi])

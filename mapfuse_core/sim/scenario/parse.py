@@ -15,6 +15,7 @@ import numpy as np
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
 from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sim.limits import MAX_SEED, MAX_STEPS, check_steps
 from mapfuse_core.sim.scenario.reader import _join, _Reader
 from mapfuse_core.sim.scenario.types import (
     ControlSegment,
@@ -188,11 +189,15 @@ def _parse(doc: dict[str, Any], source: str, stem: str) -> Scenario:
     description = (
         r.string(meta["description"], "scenario.description") if "description" in meta else ""
     )
-    seed = r.integer(meta["seed"], "scenario.seed", minimum=0)
+    seed = r.integer(meta["seed"], "scenario.seed", minimum=0, maximum=MAX_SEED, what="2**63 - 1")
 
     start, steps, waypoints, controls = _parse_trajectory(r, top["trajectory"])
     vehicle: VehicleParams = _params_from(r, top.get("vehicle", {}), "vehicle", VehicleParams)
     laser: LaserParams = _params_from(r, top.get("laser", {}), "laser", LaserParams)
+    try:
+        check_steps(steps, laser.n_beams, "steps")
+    except ValueError as e:
+        raise r.fail("trajectory.steps", str(e)) from None
     for i, c in enumerate(controls):
         if abs(c.steer_rad) > vehicle.max_steer_rad:
             raise r.fail(
@@ -247,7 +252,7 @@ def _parse_trajectory(
             )
         if "steps" not in traj:
             raise r.fail(f"{key}.steps", "missing required key")
-        steps = r.integer(traj["steps"], f"{key}.steps", minimum=2)
+        steps = r.integer(traj["steps"], f"{key}.steps", minimum=2, maximum=MAX_STEPS)
         wp_items = r.array(traj["waypoints"], f"{key}.waypoints")
         if len(wp_items) < 2:
             raise r.fail(f"{key}.waypoints", f"needs at least 2 waypoints, got {len(wp_items)}")
@@ -264,6 +269,7 @@ def _parse_trajectory(
     if not rows:
         raise r.fail(f"{key}.controls", "needs at least one control [v, phi, n]")
     controls: list[ControlSegment] = []
+    driven = 0
     for i, row in enumerate(rows):
         k = f"{key}.controls[{i}]"
         items = r.array(row, k)
@@ -273,10 +279,16 @@ def _parse_trajectory(
             ControlSegment(
                 speed_mps=r.number(items[0], f"{k}[0]"),
                 steer_rad=r.number(items[1], f"{k}[1]", angle=True),
-                steps=r.integer(items[2], f"{k}[2]", minimum=1),
+                steps=r.integer(items[2], f"{k}[2]", minimum=1, maximum=MAX_STEPS - 1),
             )
         )
-    driven = sum(c.steps for c in controls)
+        driven += controls[-1].steps
+        if driven + 1 > MAX_STEPS:
+            raise r.fail(
+                f"{k}[2]",
+                f"the controls drive {driven} steps so far, above the maximum of "
+                f"{MAX_STEPS:,} poses",
+            )
     steps = driven + 1
     if "steps" in traj:
         given = r.integer(traj["steps"], f"{key}.steps", minimum=2)
@@ -304,9 +316,9 @@ def _parse_known_map(
         required=("ids", "sigma_xy_m", "sigma_r_m", "sigma_theta_rad"),
         optional=("frame", "moved", "removed", "added"),
     )
-    sigma_xy = r.number(t["sigma_xy_m"], f"{key}.sigma_xy_m", positive=True)
-    sigma_r = r.number(t["sigma_r_m"], f"{key}.sigma_r_m", positive=True)
-    sigma_th = r.number(t["sigma_theta_rad"], f"{key}.sigma_theta_rad", positive=True, angle=True)
+    sigma_xy = r.sigma(t["sigma_xy_m"], f"{key}.sigma_xy_m")
+    sigma_r = r.sigma(t["sigma_r_m"], f"{key}.sigma_r_m")
+    sigma_th = r.sigma(t["sigma_theta_rad"], f"{key}.sigma_theta_rad", angle=True)
     frame = np.array(r.vector(t.get("frame", [0.0, 0.0, 0.0]), f"{key}.frame", 3, True))
     frame[2] = float(wrap_angle(frame[2]))
     frame.setflags(write=False)

@@ -8,6 +8,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
+from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_FEATURE_ID, MAX_MAGNITUDE
 from mapfuse_core.sim.scenario.types import ScenarioError
 
 
@@ -49,7 +50,8 @@ class _Reader:
         nonneg: bool = False,
         angle: bool = False,
     ) -> float:
-        """A finite float (ints accepted); angles may be ``"k*pi/n"`` strings."""
+        """A finite float of magnitude at most :data:`MAX_MAGNITUDE` (ints accepted);
+        angles may be ``"k*pi/n"`` strings."""
         if angle and isinstance(value, str):
             x = _parse_pi(value)
             if x is None:
@@ -63,17 +65,31 @@ class _Reader:
             x = float(value)
         if not math.isfinite(x):
             raise self.fail(key, f"must be finite, got {x}")
+        if abs(x) > MAX_MAGNITUDE:
+            raise self.fail(key, f"must be within ±1e9 (the documented maximum), got {x:g}")
         if positive and x <= 0.0:
             raise self.fail(key, f"must be > 0, got {x}")
         if nonneg and x < 0.0:
             raise self.fail(key, f"must be >= 0, got {x}")
         return x
 
-    def integer(self, value: object, key: str, *, minimum: int | None = None) -> int:
+    def integer(
+        self,
+        value: object,
+        key: str,
+        *,
+        minimum: int | None = None,
+        maximum: int | None = None,
+        what: str = "",
+    ) -> int:
+        """An integer in ``minimum … maximum`` (``what`` names the maximum in the error)."""
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(key, f"must be an integer, got {_tname(value)}")
         if minimum is not None and value < minimum:
             raise self.fail(key, f"must be >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            limit = what or f"{maximum:,}"
+            raise self.fail(key, f"must be <= {limit} (the documented maximum), got {value}")
         return value
 
     def string(self, value: object, key: str) -> str:
@@ -96,7 +112,18 @@ class _Reader:
         ]
 
     def feature_id(self, value: object, key: str) -> int:
-        return self.integer(value, key, minimum=0)
+        """A feature id, ``0 … 2**63 - 1`` (int64 in the log)."""
+        return self.integer(value, key, minimum=0, maximum=MAX_FEATURE_ID, what="2**63 - 1")
+
+    def sigma(self, value: object, key: str, *, angle: bool = False) -> float:
+        """A standard deviation: > 0 with a square that is a finite, non-zero float; at
+        most π for an angle."""
+        x = self.number(value, key, positive=True, angle=angle)
+        if angle and x > MAX_ANGLE_SIGMA:
+            raise self.fail(key, f"an angle's standard deviation must be <= pi, got {x:g}")
+        if not 1e-300 <= x * x < math.inf:
+            raise self.fail(key, f"{x:g} squared is not a usable variance (give at least 1e-150)")
+        return x
 
 
 _PI_RE = re.compile(
