@@ -8,7 +8,7 @@ import numpy as np
 
 from ekf_reference.config import EKFConfig
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions
+from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions, KnownMapGating
 
 __all__ = [
     "AnchorResult",
@@ -104,6 +104,9 @@ class EKFResult:
     loop_closures: tuple[LoopClosure, ...] = ()
     """Loop closures found at the joins, in order (none unless ``config.loop_closure``,
     and none once the known map is fused: the local maps are then held to it)."""
+    known_gating: KnownMapGating | None = None
+    """The known-map gate's rejections and un-fused features (``None`` without fusion or
+    with ``config.known_map_gating`` off)."""
 
     @property
     def decisions(self) -> AssociationDecisions:
@@ -115,4 +118,4 @@ class EKFResult:
                 np.asarray(self.anchor.x_Wknown_Wglobal, dtype=float),
                 int(self.anchor.accepted_at_step),
             )
-        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor)
+        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor, self.known_gating)
