@@ -167,6 +167,16 @@ def _gate_table(rows: list[dict]) -> None:
             f"rejections {sum(x['rejected'] for x in g)}, "
             f"anchors refuted {sum(bool(x['anchor_refuted']) for x in g)}"
         )
+    kept = []
+    for r in rows:
+        g = r.get("changed_gate")
+        if g is None:
+            continue
+        moved = {m["id"] for m in r.get("changed_moves", []) if m["status"] == "moved"}
+        kept += [
+            (r["seed"], k) for k in moved & set(g["fused_changed"]) - set(g["unfused_changed"])
+        ]
+    print(f"classified moved after the run but still fused by the gate (seed, id): {kept}")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,8 @@ inconsistent (``docs/changes.md`` says why this mechanism):
   sum grows linearly with ``n`` and the test fires after a few scans.
 * **Rejections.**  At a step where a known feature received no pairing but an
   observation or landmark of its kind lay inside the association's pre-gate of it
-  and failed its χ² test, the feature is *rejected* at that step (counted once per
+  and was not paired with it (it failed its χ² test, or the search paired it with an
+  estimated landmark), the feature is *rejected* at that step (counted once per
   step).  When, among its last ``window`` outcomes, there are at least
   ``max_rejections`` rejections and more rejections than acceptances, it is un-fused.
 

@@ -53,9 +53,9 @@ class KnownMapGating:
     level: float
     """χ² level of the gate's consistency tests."""
     rejected: dict[int, int]
-    """Known-map id → steps at which a pairing with it was refused (an observation or a
-    landmark near it, inside the pre-gate, failed its individual χ² test while nothing
-    was paired with it)."""
+    """Known-map id → steps at which a pairing with it was refused: nothing was paired
+    with it, and an observation or a landmark inside its pre-gate was not (it failed
+    its individual χ² test, or fitted an estimated landmark better)."""
     accepted: dict[int, int]
     """Known-map id → pairings with it the gate let through."""
     unfused: dict[int, int]
