@@ -2,9 +2,13 @@
 
 For every seed: loop600 cut to ``--steps`` steps, once with its known map and once
 with ``--moved``/``--removed``/``--added`` of it changed (moves 0.3–5 m, lines turned
-0.05–0.3 rad); the EKF runs with fusion on both; the changed run is classified and
-scored, and both runs' position RMSE and mean NEES are recorded.  One JSON line per
-seed is appended to ``--out``.
+0.05–0.3 rad); the EKF runs with fusion on both, with the known-map gate
+(``EKFConfig.known_map_gating``) on and off; the gated runs are classified and
+scored, and every run's position RMSE and mean NEES are recorded, with the gate's
+rejections and un-fused features (which ones were truly changed, and whether any
+observation was fused into one after its un-fuse step).  The ungated run is made
+only when the gate un-fused something: until then the two runs are the same.  One
+JSON line per seed is appended to ``--out``.
 
     PYTHONPATH=. python benchmarks/changes_mc.py --seeds 0 20 --out /tmp/changes.jsonl
 """
@@ -14,15 +18,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from typing import Any
 
 import numpy as np
 
 from mapfuse.changes import detect_changes
+from mapfuse.result import EstimatorResult
 from mapfuse.run import run
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
-from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 
 
@@ -39,10 +46,19 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
     row: dict[str, object] = {"seed": seed}
     for name, sc in (("unchanged", base), ("changed", changed)):
         log = simulate(sc, seed=seed, workers=1).log
-        r = run(log, "ekf", fusion=True)
+        r = run(log, "ekf", fusion=True, known_map_gating=True)
         m = r.metrics
         row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
         row[f"{name}_nees_mean"] = m["nees"]["mean"]
+        kg = m.get("known_map_rejections")
+        changed_ids = _changed_ids(sc)
+        if kg is not None:
+            row[f"{name}_gate"] = _gate_summary(kg, changed_ids, r.result, log)
+        ungated = r
+        if kg is not None and kg["known_unfused"]:
+            ungated = run(log, "ekf", fusion=True, known_map_gating=False)
+        row[f"{name}_off_rmse_m"] = ungated.metrics["position_error_m"]["rmse"]
+        row[f"{name}_off_nees_mean"] = ungated.metrics["nees"]["mean"]
         if r.result.anchor is None:
             row[f"{name}_anchor"] = False
             continue
@@ -78,6 +94,35 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             if c.status.value == "missing" or c.known_id in truth.removed
         ]
     return row
+
+
+def _changed_ids(sc: Scenario) -> set[int]:
+    km = sc.known_map
+    return {m.id for m in km.moved} | {f.id for f in km.removed}
+
+
+def _gate_summary(
+    kg: dict[str, Any], changed: set[int], result: EstimatorResult, log: MeasurementLog
+) -> dict[str, object]:
+    """The gate's counts, split by whether the feature was truly changed, and the
+    observations fused into an un-fused feature after its un-fuse step (0 by design)."""
+    per = kg["per_feature"]
+    unfused = {int(k): v["unfused_at_step"] for k, v in per.items() if v["unfused_at_step"] >= 0}
+    assert result.decisions is not None
+    _, kn = result.decisions.arrays
+    late = 0
+    for kid, step in unfused.items():
+        late += int(np.count_nonzero((kn == kid) & (log.feat_step > step)))
+    return {
+        "rejected": kg["known_rejected"],
+        "unfused_changed": sorted(k for k in unfused if k in changed),
+        "unfused_unchanged": sorted(k for k in unfused if k not in changed),
+        "fused_changed": sorted(
+            int(k) for k, v in per.items() if v["accepted"] and int(k) in changed
+        ),
+        "fused_after_unfuse": late,
+        "anchor_refuted": kg["anchor_refuted"],
+    }
 
 
 def main() -> None:

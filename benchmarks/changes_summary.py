@@ -116,6 +116,68 @@ def main() -> None:
         f"changed {np.mean([r['changed_nees_mean'] for r in ok]):.2f}"
     )
 
+    _gate_table(rows)
+
+
+def _ci(x: np.ndarray, rng: np.random.Generator) -> str:
+    """Mean and its 95 % bootstrap interval over the seeds."""
+    boots = [rng.choice(x, x.size).mean() for _ in range(2000)]
+    lo, hi = np.percentile(boots, [2.5, 97.5])
+    return f"{x.mean():.4f} [{lo:.4f}, {hi:.4f}]"
+
+
+def _gate_table(rows: list[dict]) -> None:
+    """The known-map gate on and off (rows of ``changes_mc.py`` that hold both)."""
+    ok = [
+        r
+        for r in rows
+        if r.get("changed_anchor") and r.get("unchanged_anchor") and "changed_off_rmse_m" in r
+    ]
+    if not ok:
+        return
+    rng = np.random.default_rng(0)
+    print(f"\nknown-map gate on/off over {len(ok)} seeds with an anchor on both maps:")
+    print("| map | gate | RMSE mean [95 % CI] (m) | NEES mean [95 % CI] |")
+    print("|---|---|---|---|")
+    for pre in ("unchanged", "changed"):
+        for gate, key in (("on", ""), ("off", "_off")):
+            rm = np.array([r[f"{pre}{key}_rmse_m"] for r in ok])
+            ne = np.array([r[f"{pre}{key}_nees_mean"] for r in ok])
+            print(f"| {pre} | {gate} | {_ci(rm, rng)} | {_ci(ne, rng)} |")
+    for gate, key in (("on", ""), ("off", "_off")):
+        ratio = np.array([r[f"changed{key}_rmse_m"] / r[f"unchanged{key}_rmse_m"] for r in ok])
+        within = int(np.sum(ratio <= 1.10))
+        print(
+            f"gate {gate}: RMSE ratio changed/unchanged per seed {_ci(ratio, rng)}, "
+            f"worst {ratio.max():.3f}, within 10 % on {within}/{ratio.size} seeds"
+        )
+    band = np.percentile([r["unchanged_nees_mean"] for r in ok], [2.5, 97.5])
+    inside = sum(band[0] <= r["changed_nees_mean"] <= band[1] for r in ok)
+    print(
+        f"NEES: unchanged-map runs' 95 % band over the seeds [{band[0]:.2f}, {band[1]:.2f}]; "
+        f"changed-map runs (gate on) inside it: {inside}/{len(ok)}"
+    )
+    for pre in ("unchanged", "changed"):
+        g = [r[f"{pre}_gate"] for r in rows if f"{pre}_gate" in r]
+        print(
+            f"{pre}: un-fused changed {sum(len(x['unfused_changed']) for x in g)}, "
+            f"un-fused unchanged {sum(len(x['unfused_unchanged']) for x in g)}, "
+            f"changed features fused at least once {sum(len(x['fused_changed']) for x in g)}, "
+            f"observations fused after un-fusing {sum(x['fused_after_unfuse'] for x in g)}, "
+            f"rejections {sum(x['rejected'] for x in g)}, "
+            f"anchors refuted {sum(bool(x['anchor_refuted']) for x in g)}"
+        )
+    kept = []
+    for r in rows:
+        g = r.get("changed_gate")
+        if g is None:
+            continue
+        moved = {m["id"] for m in r.get("changed_moves", []) if m["status"] == "moved"}
+        kept += [
+            (r["seed"], k) for k in moved & set(g["fused_changed"]) - set(g["unfused_changed"])
+        ]
+    print(f"classified moved after the run but still fused by the gate (seed, id): {kept}")
+
 
 if __name__ == "__main__":
     main()

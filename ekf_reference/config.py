@@ -6,6 +6,7 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
+from ekf_reference.known_gating import KnownGatingParams
 from ekf_reference.loops import LoopClosureParams
 from mapfuse_core.matching import AssociationConfig
 
@@ -67,7 +68,19 @@ class EKFConfig:
     local map is joined: the part of a trunk's detection error that depends on the side
     it is seen from is common to the scans of one local map and does not average out."""
 
+    known_map_gating: bool = True
+    """*(choice, beyond the paper)* Watch every known feature's pairings and stop fusing
+    one that keeps failing its χ² tests (:mod:`ekf_reference.known_gating`); ``False``
+    fuses every pairing the association's gate lets through (the paper's fusion, the
+    baseline of ``docs/changes.md``)."""
+    known_gating: KnownGatingParams = field(default_factory=KnownGatingParams)
+    """Level, window and counts of that gate."""
+
     def __post_init__(self) -> None:
+        if not isinstance(self.known_gating, KnownGatingParams):
+            raise ValueError(
+                f"known_gating must be a KnownGatingParams, got {type(self.known_gating).__name__}"
+            )
         if self.local_map_steps < 1:
             raise ValueError(f"local_map_steps must be >= 1, got {self.local_map_steps}")
         if (

@@ -20,6 +20,7 @@ from ekf_reference.association import (
     predict_all_targets,
 )
 from ekf_reference.config import EKFConfig
+from ekf_reference.known_gating import KnownGate, Targets
 from ekf_reference.loops import LoopClosureParams, accepted, register_circles
 from ekf_reference.maps import (
     CIContext,
@@ -90,6 +91,10 @@ class _Run:
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
+        self.gate: KnownGate | None = None
+        if config.fusion and config.known_map_gating:
+            self.gate = KnownGate(config.known_gating, config.data_association)
+        self.step = 0
 
     # ------------------------------------------------------------------ per step
 
@@ -110,8 +115,11 @@ class _Run:
                     extent=(float(ext[0]), float(ext[1])),
                 )
             )
-        targets = predict_all_targets(loc, lambda e: e.moving)
+        self.step = k
+        targets = self._gated(loc, predict_all_targets(loc, lambda e: e.moving))
         chosen = associate(loc, queries, targets, self.config)
+        if self.gate is not None:
+            self.gate.record(k, loc, queries, chosen, targets)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is None:
                 continue
@@ -165,6 +173,10 @@ class _Run:
             # Carried features are shared with the global map and stay until the join.
             self.constrain_to_known(loc, lambda e: e.in_local and e.track in seen)
 
+    def _gated(self, state: GaussianMap, targets: Targets) -> Targets:
+        """``targets`` without the known features the gate has un-fused."""
+        return targets if self.gate is None else self.gate.filter(state, targets)
+
     def _same_step_twin(self, loc: GaussianMap, q: Query, born: list[int]) -> Candidate | None:
         """Best individually compatible line among those created at this step.
 
@@ -186,8 +198,10 @@ class _Run:
         ]
         if not queries:
             return
-        targets = predict_all_targets(state, lambda e: False)
+        targets = self._gated(state, predict_all_targets(state, lambda e: False))
         chosen = associate(state, queries, targets, self.config)
+        if self.gate is not None:
+            self.gate.record(self.step, state, queries, chosen, targets)
         pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         if not pairs:
             return
@@ -287,12 +301,14 @@ class _Run:
             for i, e in enumerate(joint.elements)
             if e.role == Role.FEATURE and e.in_local and i not in paired
         ]
-        targets = predict_all_targets(joint, lambda e: not e.in_local)
+        targets = self._gated(joint, predict_all_targets(joint, lambda e: not e.in_local))
         if used:
             for kind, (idx, preds) in list(targets.items()):
                 keep = [r for r, t in enumerate(idx) if t not in used]
                 targets[kind] = ([idx[r] for r in keep], preds[keep])
         chosen = associate(joint, queries, targets, self.config)
+        if self.gate is not None:
+            self.gate.record(k, joint, queries, chosen, targets)
         new = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         apply(joint, [c for _, c in new])
         return pairs + new
@@ -482,6 +498,8 @@ class _Run:
         g.bind_lines()
         self.anchor_step = k
         self.anchor_pairings = pairings
+        if self.gate is not None:
+            self.gate.anchor_known = [kid for _, kid in pairings]
 
 
 def run_ekf(
@@ -596,4 +614,5 @@ def _result(
         tentative_promoted=run.tentative.promoted,
         tentative_dropped=run.tentative.dropped,
         loop_closures=tuple(run.loop_closures),
+        known_gating=None if run.gate is None else run.gate.report(),
     )

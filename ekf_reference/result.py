@@ -9,7 +9,7 @@ import numpy as np
 
 from ekf_reference.config import EKFConfig
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions
+from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions, KnownMapGating
 
 __all__ = [
     "AnchorResult",
@@ -112,6 +112,9 @@ class EKFResult:
     """Tentative features promoted to the map (``config.tentative_min_sightings`` > 1)."""
     tentative_dropped: int = 0
     """Tentative features dropped, never promoted; their observations are unassociated."""
+    known_gating: KnownMapGating | None = None
+    """The known-map gate's rejections and un-fused features (``None`` without fusion or
+    with ``config.known_map_gating`` off)."""
 
     @property
     def decisions(self) -> AssociationDecisions:
@@ -123,4 +126,4 @@ class EKFResult:
                 np.asarray(self.anchor.x_Wknown_Wglobal, dtype=float),
                 int(self.anchor.accepted_at_step),
             )
-        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor)
+        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor, self.known_gating)

@@ -31,6 +31,7 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.matching.decisions import KnownMapGating
 
 __all__ = ["anchor_block", "build_metrics", "run_metrics"]
 
@@ -91,6 +92,15 @@ def build_metrics(
     return out
 
 
+def _known_gating(result: EstimatorResult) -> KnownMapGating | None:
+    """The known-map gate's report of ``result``, or of the run whose decisions it
+    consumed (a graph backend honours the EKF's un-fuse decisions)."""
+    for r in (result, result.upstream):
+        if r is not None and r.decisions is not None and r.decisions.known_gating is not None:
+            return r.decisions.known_gating
+    return None
+
+
 def run_metrics(
     result: EstimatorResult, log: MeasurementLog, which: str | None = None
 ) -> dict[str, Any]:
@@ -133,6 +143,9 @@ def run_metrics(
         out["log"] = dict(log.metadata)
     if result.association is not None:
         out["association"] = result.association
+    gating = _known_gating(result)
+    if gating is not None:
+        out["known_map_rejections"] = gating.as_dict()
     if result.smoothed is not None:
         out["estimate"] = which
     f = result.filtered

@@ -142,6 +142,10 @@ class GraphBuilder(OwnAssociation):
                     "association 'ekf' needs decisions (the EKF's AssociationDecisions on this log)"
                 )
             lm, kn = _check_assoc_arrays(log, decisions.arrays, self._known_row)
+            unfused = sorted(decisions.unfused_known_ids)
+            if unfused:
+                # The EKF stopped fusing these known features: no tie, a plain landmark.
+                kn = np.where(np.isin(kn, unfused), -1, kn)
             self._mode = "fixed"
             self._plan(lm, kn)
         elif opts.association == "truth":

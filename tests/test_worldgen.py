@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -86,3 +87,47 @@ def test_cli_world_generate_writes_a_file_the_loader_reads(tmp_path: Path) -> No
 
 def test_every_shape_is_listed() -> None:
     assert SHAPES == ("loop", "figure8", "corridor")
+
+
+def test_changes_option_moves_removes_and_adds_the_asked_share_of_the_known_map() -> None:
+    p = dict(loop_length_m=150.0, known_fraction=1.0, **SMALL)
+    plain = generate_scenario(WorldParams(seed=4, **p))
+    sc = generate_scenario(WorldParams(seed=4, changes=0.25, **p))
+    n = len(plain.known_map.world_ids)  # 16 features, all known
+    km = sc.known_map
+    # round(0.25 · 16) = 4 changes: 2 moved, 1 removed, 1 added.
+    assert (len(km.moved), len(km.removed), len(km.added)) == (2, 1, 1)
+    assert len(km.world_ids) == n - 2  # removed and added ones are no longer held
+    removed = km.removed[0].id
+    world_ids = {s.id for s in sc.world.segments} | {c.id for c in sc.world.circles}
+    assert removed not in world_ids
+    assert km.added[0] in world_ids
+    assert {m.id for m in km.moved} <= set(km.world_ids)
+    for m in km.moved:
+        assert 0.3 <= math.hypot(m.dx, m.dy) <= 5.0
+    # The layout is drawn before, and apart from, the changes.
+    assert [c.centre for c in sc.world.circles] == [
+        c.centre for c in plain.world.circles if c.id != removed
+    ]
+    assert world_toml(WorldParams(seed=4, changes=0.25, **p)) == world_toml(
+        WorldParams(seed=4, changes=0.25, **p)
+    )
+
+
+def test_changes_fraction_outside_zero_one_is_refused() -> None:
+    with pytest.raises(ValueError, match="changes must be in"):
+        WorldParams(seed=0, changes=1.5)
+
+
+def test_world_generate_cli_writes_the_changes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "w.toml"
+    args = ["world", "generate", "--seed", "1", "--walls", "4", "--trees", "12"]
+    args += ["--loop-length", "150", "--known-fraction", "1", "--changes", "0.5"]
+    assert main([*args, "--out", str(out)]) == 0
+    text = out.read_text()
+    for key in ("moved = [", "added = [", "[known_map.removed]"):
+        assert key in text
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["moved"], summary["removed"], summary["added"]) == (4, 2, 2)

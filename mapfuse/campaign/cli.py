@@ -169,6 +169,7 @@ def _cmd_world_generate(args: argparse.Namespace) -> int:
         loop_length_m=args.loop_length,
         shape=args.shape,
         known_fraction=args.known_fraction,
+        changes=args.changes,
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -181,6 +182,9 @@ def _cmd_world_generate(args: argparse.Namespace) -> int:
         "walls": len(sc.world.segments),
         "trees": len(sc.world.circles),
         "known_features": len(sc.known_map.world_ids),
+        "moved": len(sc.known_map.moved),
+        "removed": len(sc.known_map.removed),
+        "added": len(sc.known_map.added),
     }
     print(json.dumps(summary, indent=2))
     return 0
@@ -226,6 +230,13 @@ def add_world(sub: Any) -> None:
         type=float,
         default=d.known_fraction,
         help="fraction of the features in the known map",
+    )
+    gen.add_argument(
+        "--changes",
+        type=float,
+        default=d.changes,
+        help="fraction of the known map changed since it was made: half moved, a "
+        "quarter removed, a quarter added (seeded by --seed)",
     )
     gen.add_argument(
         "--base", default="loop600", help="scenario whose vehicle, laser and map noise to use"

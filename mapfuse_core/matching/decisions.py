@@ -16,7 +16,13 @@ import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["ASSOCIATIONS_FORMAT", "AnchorDecision", "AssociationDecisions", "load_associations"]
+__all__ = [
+    "ASSOCIATIONS_FORMAT",
+    "AnchorDecision",
+    "AssociationDecisions",
+    "KnownMapGating",
+    "load_associations",
+]
 
 #: ``format_name`` stored in an associations file.
 ASSOCIATIONS_FORMAT = "mapfuse.associations"
@@ -40,6 +46,53 @@ class AnchorDecision:
 
 
 @dataclass(frozen=True, eq=False)
+class KnownMapGating:
+    """What the known-map gate of a run refused: every rejection counted, and the known
+    features it stopped fusing (a consumer adds no tie for those)."""
+
+    level: float
+    """χ² level of the gate's consistency tests."""
+    rejected: dict[int, int]
+    """Known-map id → steps at which a pairing with it was refused: nothing was paired
+    with it, and an observation or a landmark inside its pre-gate was not (it failed
+    its individual χ² test, or fitted an estimated landmark better)."""
+    accepted: dict[int, int]
+    """Known-map id → pairings with it the gate let through."""
+    unfused: dict[int, int]
+    """Known-map id → step from which it is no longer fused (treated as unknown)."""
+    anchor_pairings_unfused: int = 0
+    """How many of the accepted match's pairings have a known feature later un-fused."""
+    anchor_pairings: int = 0
+    """Pairings of the accepted match (0 without one)."""
+
+    @property
+    def anchor_refuted(self) -> bool:
+        """More than half of the match's pairings were later found inconsistent: the
+        match itself is in doubt (reported, the anchor is kept)."""
+        return self.anchor_pairings > 0 and 2 * self.anchor_pairings_unfused > self.anchor_pairings
+
+    def as_dict(self) -> dict[str, object]:
+        """The ``known_map_rejections`` block of ``metrics.json``."""
+        return {
+            "level": self.level,
+            "known_rejected": int(sum(self.rejected.values())),
+            "known_unfused": len(self.unfused),
+            "known_accepted": int(sum(self.accepted.values())),
+            "anchor_pairings": self.anchor_pairings,
+            "anchor_pairings_unfused": self.anchor_pairings_unfused,
+            "anchor_refuted": self.anchor_refuted,
+            "per_feature": {
+                str(k): {
+                    "rejected": self.rejected.get(k, 0),
+                    "accepted": self.accepted.get(k, 0),
+                    "unfused_at_step": self.unfused.get(k, -1),
+                }
+                for k in sorted({*self.rejected, *self.accepted, *self.unfused})
+            },
+        }
+
+
+@dataclass(frozen=True, eq=False)
 class AssociationDecisions:
     """Which landmark, and which known feature, every logged observation belongs to."""
 
@@ -49,6 +102,13 @@ class AssociationDecisions:
     """(M,) int64 known-map id the observation's landmark is merged with, −1 otherwise."""
     anchor: AnchorDecision | None = None
     """The accepted map match, or ``None`` (no fusion, or no match accepted)."""
+    known_gating: KnownMapGating | None = None
+    """The known-map gate's rejections and un-fused features, or ``None`` (no gate)."""
+
+    @property
+    def unfused_known_ids(self) -> frozenset[int]:
+        """Known-map ids the run stopped fusing: no tie is added for them."""
+        return frozenset() if self.known_gating is None else frozenset(self.known_gating.unfused)
 
     def __post_init__(self) -> None:
         lm, kn = np.asarray(self.obs_landmark), np.asarray(self.obs_known_id)
@@ -82,6 +142,12 @@ class AssociationDecisions:
         if self.anchor is not None:
             arrays["anchor_x_Wknown_Wglobal"] = np.asarray(self.anchor.x_Wknown_Wglobal, float)
             arrays["anchor_accepted_at_step"] = np.array(self.anchor.accepted_at_step)
+        if self.known_gating is not None:
+            kg = self.known_gating
+            arrays["unfused_known_ids"] = np.array(sorted(kg.unfused), dtype=np.int64)
+            arrays["unfused_at_step"] = np.array(
+                [kg.unfused[k] for k in sorted(kg.unfused)], dtype=np.int64
+            )
         np.savez(path, allow_pickle=False, **arrays)
         return path
 
@@ -100,6 +166,17 @@ def load_associations(path: str | Path, n_obs: int) -> AssociationDecisions:
                 np.asarray(z["anchor_x_Wknown_Wglobal"], dtype=float),
                 int(z["anchor_accepted_at_step"]),
             )
+        gating = None
+        if "unfused_known_ids" in z:
+            # Only the un-fuse decisions travel with the associations; the counts stay
+            # in the run's metrics.json.
+            ids, at = z["unfused_known_ids"], z["unfused_at_step"]
+            gating = KnownMapGating(
+                level=float("nan"),
+                rejected={},
+                accepted={},
+                unfused={int(i): int(s) for i, s in zip(ids, at, strict=True)},
+            )
     if lm.shape != (n_obs,) or kn.shape != (n_obs,):
         raise ValueError(f"{path}: holds {lm.shape[0]} decisions, the log has {n_obs} observations")
-    return AssociationDecisions(lm.astype(np.int64), kn.astype(np.int64), anchor)
+    return AssociationDecisions(lm.astype(np.int64), kn.astype(np.int64), anchor, gating)

@@ -18,6 +18,14 @@ Placement: every tree is at least ``3.6 m + its radius`` from the path and 1.5 m
 other trees; every wall at least 4 m from the path and 1 m from other walls and
 trees.  The known map holds every feature within 40 m of the start (so a match can
 be made early), then random others up to ``known_fraction`` of all features.
+
+Changes (``changes``, a fraction of the known map, drawn from a stream of its own so
+the layout does not depend on it): half of them moved by 0.3–5 m in a random
+direction (walls also turned by 0.05–0.3 rad about their midpoint), a quarter
+removed from the world (the map keeps them, ``[known_map.removed]``), the rest added
+since the map was made (in the world, ``[known_map] added``), as
+:func:`mapfuse_core.evaluation.changes.generate.with_changes` draws them.  They are
+drawn from the whole known map, the features near the start included.
 """
 
 from __future__ import annotations
@@ -60,6 +68,8 @@ class WorldParams:
     """One of :data:`SHAPES`."""
     known_fraction: float = 0.5
     """Fraction of the features in the known map (at least those near the start)."""
+    changes: float = 0.0
+    """Fraction of the known map changed since it was made (moved, removed, added)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
@@ -78,6 +88,8 @@ class WorldParams:
             raise ValueError(f"shape must be one of {', '.join(SHAPES)}, got {self.shape!r}")
         if not 0.0 <= self.known_fraction <= 1.0:
             raise ValueError(f"known_fraction must be in [0, 1], got {self.known_fraction}")
+        if not (math.isfinite(self.changes) and 0.0 <= self.changes <= 1.0):
+            raise ValueError(f"changes must be in [0, 1], got {self.changes}")
         if self.shape == "corridor" and self.loop_length_m <= 2 * math.pi * _CORRIDOR_RADIUS_M:
             raise ValueError(
                 f"a corridor needs loop_length_m > {2 * math.pi * _CORRIDOR_RADIUS_M:.0f} m "
@@ -239,6 +251,72 @@ def _known_ids(
     return sorted([*near, *(int(x) for x in chosen)])
 
 
+@dataclass(frozen=True)
+class _Changes:
+    """The known-map changes drawn for a world."""
+
+    moved: dict[int, tuple[float, float, float]]
+    """Feature id → ``(dx, dy, dθ)`` (m, m, rad; ``dθ`` 0 for trees)."""
+    removed: tuple[int, ...]
+    """Ids taken out of the world (the map keeps them)."""
+    added: tuple[int, ...]
+    """Ids in the world the map does not hold."""
+
+
+def _draw_changes(params: WorldParams, known: list[int], tree_ids: set[int]) -> _Changes:
+    """Half moved, a quarter removed, the rest added, of ``changes × len(known)``."""
+    rng = np.random.default_rng(np.random.SeedSequence([params.seed, 0x6D617066, 1]))
+    n = min(len(known), round(params.changes * len(known)))
+    order = [int(i) for i in rng.permutation(known)[:n]]
+    n_mv = (n + 1) // 2
+    n_rm = (n - n_mv) // 2
+    moved = {}
+    for fid in order[:n_mv]:
+        d = float(rng.uniform(0.3, 5.0))
+        a = float(rng.uniform(-math.pi, math.pi))
+        dth = 0.0 if fid in tree_ids else float(rng.choice([-1.0, 1.0]) * rng.uniform(0.05, 0.3))
+        moved[fid] = (d * math.cos(a), d * math.sin(a), dth)
+    return _Changes(
+        moved=moved,
+        removed=tuple(sorted(order[n_mv : n_mv + n_rm])),
+        added=tuple(sorted(order[n_mv + n_rm :])),
+    )
+
+
+def _change_lines(
+    ch: _Changes,
+    walls: dict[int, tuple[FloatArray, FloatArray]],
+    trees: dict[int, tuple[FloatArray, float]],
+) -> list[str]:
+    """``[known_map]`` keys (``moved``, ``added``) and ``[known_map.removed]`` of ``ch``."""
+    out = []
+    if ch.moved:
+        out.append("moved = [")
+        for fid, (dx, dy, dth) in sorted(ch.moved.items()):
+            turn = f", dtheta = {dth:.6f}" if fid in walls else ""
+            out.append(f"    {{ id = {fid}, dx = {_fmt(dx)}, dy = {_fmt(dy)}{turn} }},")
+        out.append("]")
+    if ch.added:
+        out.append(f"added = [{', '.join(str(i) for i in ch.added)}]")
+    if ch.removed:
+        out += ["", "[known_map.removed]", "segments = ["]
+        out += [
+            f"    {{ id = {i}, p1 = [{_fmt(walls[i][0][0])}, {_fmt(walls[i][0][1])}], "
+            f"p2 = [{_fmt(walls[i][1][0])}, {_fmt(walls[i][1][1])}] }},"
+            for i in ch.removed
+            if i in walls
+        ]
+        out += ["]", "circles = ["]
+        out += [
+            f"    {{ id = {i}, centre = [{_fmt(trees[i][0][0])}, {_fmt(trees[i][0][1])}], "
+            f"radius = {trees[i][1]:.3f} }},"
+            for i in ch.removed
+            if i in trees
+        ]
+        out.append("]")
+    return out
+
+
 def _fmt(x: float) -> str:
     return f"{x:.3f}"
 
@@ -265,6 +343,11 @@ def world_toml(params: WorldParams, base: Scenario | None = None) -> str:
         (i, _segment_points(p1, p2)) for i, (p1, p2) in zip(wall_ids, walls, strict=True)
     ] + [(i, c[None]) for i, (c, _) in zip(tree_ids, trees, strict=True)]
     known = _known_ids(params, rng, path[0], feats)
+    ch = _draw_changes(params, known, set(tree_ids))
+    wall_of = dict(zip(wall_ids, walls, strict=True))
+    tree_of = dict(zip(tree_ids, trees, strict=True))
+    gone = set(ch.removed)
+    held = [i for i in known if i not in gone and i not in set(ch.added)]
     vehicle_lines = [f"{f.name} = {_value(getattr(veh, f.name))}" for f in fields(veh) if f.init]
     laser_values = {f.name: getattr(las, f.name) for f in fields(las) if f.init}
     laser_values["max_range_m"] = params.laser_range_m
@@ -298,7 +381,8 @@ def world_toml(params: WorldParams, base: Scenario | None = None) -> str:
         f"sigma_xy_m = {km.sigma_xy_m!r}",
         f"sigma_r_m = {km.sigma_r_m!r}",
         f"sigma_theta_rad = {km.sigma_theta_rad!r}",
-        f"ids = [{', '.join(str(i) for i in known)}]",
+        f"ids = [{', '.join(str(i) for i in held)}]",
+        *_change_lines(ch, wall_of, tree_of),
         "",
         "[world]",
         "segments = [",
@@ -306,12 +390,14 @@ def world_toml(params: WorldParams, base: Scenario | None = None) -> str:
             f"    {{ id = {i}, p1 = [{_fmt(p1[0])}, {_fmt(p1[1])}], "
             f"p2 = [{_fmt(p2[0])}, {_fmt(p2[1])}] }},"
             for i, (p1, p2) in zip(wall_ids, walls, strict=True)
+            if i not in gone
         ),
         "]",
         "circles = [",
         *(
             f"    {{ id = {i}, centre = [{_fmt(c[0])}, {_fmt(c[1])}], radius = {r:.3f} }},"
             for i, (c, r) in zip(tree_ids, trees, strict=True)
+            if i not in gone
         ),
         "]",
         "",

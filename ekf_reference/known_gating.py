@@ -1,0 +1,192 @@
+"""The known-map gate: a known feature that keeps failing its tests is no longer fused.
+
+Every pairing with a known feature (an observation, or a local landmark at a step or a
+join, with the feature seen through the anchor) already passes the association's
+individual χ² gate (``AssociationConfig.gate_prob``).  A feature moved by less than
+the gate width passes it too, and is then fused as if right.  The gate here watches
+each known feature over time and takes it out of the fusion once it is found
+inconsistent (``docs/changes.md`` says why this mechanism):
+
+* **Running test of the accepted pairings.**  Under the hypothesis "the feature is
+  where the map says", the Mahalanobis distances ``d²`` of its accepted pairings are
+  χ²-distributed with ``m`` dof (2 for a line, 3 for a circle).  The sum of the last
+  ``window`` of them is tested against ``χ²_{n·m}(level)`` once ``n ≥ min_pairings``.
+  A feature moved by a fraction of the gate biases every pairing the same way, so the
+  sum grows linearly with ``n`` and the test fires after a few scans.
+* **Rejections.**  At a step where a known feature received no pairing but an
+  observation or landmark of its kind lay inside the association's pre-gate of it
+  and was not paired with it (it failed its χ² test, or the search paired it with an
+  estimated landmark), the feature is *rejected* at that step (counted once per
+  step).  When, among its last ``window`` outcomes, there are at least
+  ``max_rejections`` rejections and more rejections than acceptances, it is un-fused.
+
+An un-fused feature is removed from every target list from then on: its later
+observations build an ordinary landmark (and a new feature in the map); what it had
+already contributed stays in the estimate.  The un-fused ids travel with the run's
+:class:`~mapfuse_core.matching.decisions.AssociationDecisions`, so a graph backend
+consuming them adds no tie for those features.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections import deque
+from dataclasses import dataclass
+
+from ekf_reference.association import Candidate, Query
+from ekf_reference.state import ElementKind, GaussianMap, Role
+from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
+from mapfuse_core.matching.decisions import KnownMapGating
+
+__all__ = ["KnownGate", "KnownGatingParams"]
+
+Targets = dict[ElementKind, tuple[list[int], FloatArray]]
+
+
+@dataclass(frozen=True)
+class KnownGatingParams:
+    """Settings of the known-map gate (:class:`KnownGate`)."""
+
+    level: float = 0.99999
+    """*(choice)* χ² level of the running test of a known feature's accepted pairings.
+    The test is repeated at every pairing of every known feature, and the d² of one
+    feature's consecutive pairings are correlated through the vehicle's error, so a
+    false alarm rate of 10⁻⁵ per test (rather than the association's 10⁻³) keeps the
+    features of an unchanged map fused."""
+    window: int = 20
+    """*(choice)* Outcomes (accepted pairings and rejected steps) of one known feature
+    the tests look back on: long enough to accumulate a small bias, short enough that
+    the feature's own correction by its first pairings does not hide it."""
+    min_pairings: int = 5
+    """Accepted pairings needed before the running test is made (one pairing is the
+    association's own gate already)."""
+    max_rejections: int = 3
+    """Rejected steps within the window (and more than the acceptances) that un-fuse a
+    known feature."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.level, numbers.Real) and 0.0 < self.level < 1.0):
+            raise ValueError(f"known gating level must be in (0, 1), got {self.level!r}")
+        for name in ("window", "min_pairings", "max_rejections"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"known gating {name} must be an int >= 1, got {v!r}")
+
+
+class KnownGate:
+    """Per-known-feature bookkeeping of one EKF run (see the module docstring)."""
+
+    def __init__(self, params: KnownGatingParams, association: AssociationConfig) -> None:
+        self.params = params
+        self.association = association
+        self.history: dict[int, deque[float]] = {}
+        """Known id → last outcomes: an accepted pairing's d², or NaN for a rejection."""
+        self.rejected: dict[int, int] = {}
+        self.accepted: dict[int, int] = {}
+        self.unfused: dict[int, int] = {}
+        self.anchor_known: list[int] = []
+        self._dofs: dict[int, int] = {}
+        self._step = -1
+        self._touched: set[int] = set()
+        self._rejected_now: set[int] = set()
+
+    # ------------------------------------------------------------------ targets
+
+    def filter(self, state: GaussianMap, targets: Targets) -> Targets:
+        """``targets`` without the known features already un-fused."""
+        if not self.unfused:
+            return targets
+        out: Targets = {}
+        for kind, (idx, preds) in targets.items():
+            keep = [
+                r
+                for r, t in enumerate(idx)
+                if not (
+                    state.elements[t].role == Role.KNOWN
+                    and state.elements[t].true_id in self.unfused
+                )
+            ]
+            out[kind] = ([idx[r] for r in keep], preds[keep])
+        return out
+
+    # ------------------------------------------------------------------ outcomes
+
+    def record(
+        self,
+        step: int,
+        state: GaussianMap,
+        queries: list[Query],
+        chosen: list[Candidate | None],
+        targets: Targets,
+    ) -> None:
+        """Record the outcome of one association against ``targets`` (already filtered)
+        at ``step``, before its pairings are applied, and un-fuse what fails."""
+        if step != self._step:
+            self._step, self._touched, self._rejected_now = step, set(), set()
+        els = state.elements
+        for c in chosen:
+            if c is not None and els[c.target].role == Role.KNOWN:
+                kid = els[c.target].true_id
+                self._dofs[kid] = c.residual.size
+                self._touched.add(kid)
+                self._push(kid, c.d2)
+                self.accepted[kid] = self.accepted.get(kid, 0) + 1
+        for q, c in zip(queries, chosen, strict=True):
+            if c is not None and els[c.target].role == Role.KNOWN:
+                continue
+            idx, preds = targets[q.kind]
+            known_rows = [r for r, t in enumerate(idx) if els[t].role == Role.KNOWN]
+            if not known_rows:
+                continue
+            known_t = [idx[r] for r in known_rows]
+            near = pregate(
+                q.kind.feature_kind(),
+                q.params,
+                q.extent,
+                preds[known_rows],
+                lambda r, ts=known_t: els[ts[r]].extent,  # type: ignore[misc]
+                self.association,
+            )
+            for r in near:
+                kid = els[known_t[r]].true_id
+                if kid in self._touched or kid in self._rejected_now:
+                    continue
+                self._rejected_now.add(kid)
+                self.rejected[kid] = self.rejected.get(kid, 0) + 1
+                self._push(kid, math.nan)
+        for kid in self._touched | self._rejected_now:
+            if kid not in self.unfused and self._fails(kid):
+                self.unfused[kid] = step
+
+    def _push(self, kid: int, value: float) -> None:
+        h = self.history.get(kid)
+        if h is None:
+            h = self.history[kid] = deque(maxlen=self.params.window)
+        h.append(value)
+
+    def _fails(self, kid: int) -> bool:
+        h = self.history.get(kid, ())
+        d2 = [v for v in h if not math.isnan(v)]
+        n_rej = len(h) - len(d2)
+        p = self.params
+        if n_rej >= p.max_rejections and n_rej > len(d2):
+            return True
+        if len(d2) < p.min_pairings:
+            return False
+        return sum(d2) > chi2_gate(p.level, len(d2) * self._dofs[kid])
+
+    # ------------------------------------------------------------------ report
+
+    def report(self) -> KnownMapGating:
+        """The frozen summary handed to the run's decisions."""
+        bad = sum(1 for k in self.anchor_known if k in self.unfused)
+        return KnownMapGating(
+            level=self.params.level,
+            rejected=dict(self.rejected),
+            accepted=dict(self.accepted),
+            unfused=dict(self.unfused),
+            anchor_pairings_unfused=bad,
+            anchor_pairings=len(self.anchor_known),
+        )
