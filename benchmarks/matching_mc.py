@@ -499,6 +499,34 @@ def summarise(case: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def markdown(report: dict[str, Any]) -> str:
+    """The summaries of a report (this script's JSON) as a markdown table."""
+    head = (
+        "| case | estimator | seeds | runs: right / wrong / none (last refusal) | "
+        "wrong pairings | wrong known obs (coincident) | CCDA calls by outcome | "
+        "max call s | max call work | total work | hypotheses |"
+    )
+    lines = [head, "|" + "---|" * 11]
+    for case, summ in report["cases"].items():
+        for est in ("ekf", "graph_own"):
+            if est not in summ:
+                continue
+            e = summ[est]
+            runs = e["runs"]
+            none = {k.split(":", 1)[1]: v for k, v in runs.items() if k.startswith("none")}
+            none_txt = ", ".join(f"{v} {k}" for k, v in sorted(none.items())) or "0"
+            errors = f", {e['errors']} errors" if e.get("errors") else ""
+            calls = ", ".join(f"{v} {k}" for k, v in sorted(e["calls"].items()))
+            lines.append(
+                f"| {case} | {est} | {summ['seeds']} | {runs.get('right', 0)} / "
+                f"{runs.get('wrong', 0)} / {none_txt}{errors} | {e['wrong_pairings_accepted']} | "
+                f"{e['wrong_known_obs']} ({e.get('coincident_known_obs', 0)}) | {calls} | "
+                f"{e['max_call_s']} | {e['max_call_work']:,} | {e['search_work']:,} | "
+                f"{e['n_hypotheses']} |"
+            )
+    return "\n".join(lines)
+
+
 def _parse_seeds(text: str) -> list[int]:
     """``20`` (seeds 0–19), ``5-9`` or ``0,3,7``."""
     if text.strip().isdigit() and "," not in text:
@@ -520,7 +548,15 @@ def main(argv: list[str] | None = None, echo: Callable[[str], None] | None = Non
     ap.add_argument("--case", default=",".join(CASES), help="comma-separated (default: all)")
     ap.add_argument("--steps", type=int, help="steps per run (default: per case, STEPS)")
     ap.add_argument("--detail", action="store_true", help="also print every seed's row")
+    ap.add_argument(
+        "--markdown", nargs="+", metavar="REPORT", help="print these JSON reports as a table"
+    )
     args = ap.parse_args(argv)
+    if args.markdown:
+        for path in args.markdown:
+            with open(path) as f:
+                print(markdown(json.load(f)))
+        return
     cases = [c.strip() for c in args.case.split(",") if c.strip()]
     bad = [c for c in cases if c not in CASES]
     if bad or not cases:
