@@ -487,7 +487,7 @@ def summarise(case: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
             out[key] = max(r[key] for r in rows)
         errors: Counter[str] = Counter()
         for r in rows:
-            errors.update(r["errors"])
+            errors.update(r["errors"].keys())
         out["ekf_errors_by_shift"] = dict(errors)
         worst: dict[str, list[float]] = {}
         for r in rows:
@@ -548,6 +548,7 @@ def main(argv: list[str] | None = None, echo: Callable[[str], None] | None = Non
     ap.add_argument("--case", default=",".join(CASES), help="comma-separated (default: all)")
     ap.add_argument("--steps", type=int, help="steps per run (default: per case, STEPS)")
     ap.add_argument("--detail", action="store_true", help="also print every seed's row")
+    ap.add_argument("--rows", help="append every seed's row to this file (JSON lines)")
     ap.add_argument(
         "--markdown", nargs="+", metavar="REPORT", help="print these JSON reports as a table"
     )
@@ -572,6 +573,9 @@ def main(argv: list[str] | None = None, echo: Callable[[str], None] | None = Non
         for seed in args.seeds:
             t0 = time.perf_counter()
             rows.append(run_case(case, seed, args.steps))
+            if args.rows:
+                with open(args.rows, "a") as f:
+                    f.write(json.dumps({"case": case, **rows[-1]}) + "\n")
             say(f"{case} seed {seed}: {time.perf_counter() - t0:.1f} s")
         report["cases"][case] = summarise(case, rows)
         if args.detail:
