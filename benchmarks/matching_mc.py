@@ -559,9 +559,11 @@ def main(argv: list[str] | None = None, echo: Callable[[str], None] | None = Non
     )
     args = ap.parse_args(argv)
     if args.markdown:
+        merged: dict[str, Any] = {"cases": {}}
         for path in args.markdown:
             with open(path) as f:
-                print(markdown(json.load(f)))
+                merged["cases"].update(json.load(f)["cases"])
+        print(markdown(merged))
         return
     cases = [c.strip() for c in args.case.split(",") if c.strip()]
     bad = [c for c in cases if c not in CASES]
