@@ -70,7 +70,7 @@ def test_ccda_decides_the_same_wherever_the_world_is(shifts: dict[str, Any]) -> 
 @pytest.mark.xfail(
     strict=True,
     reason="the EKF's fused update is not origin invariant: with the world 1e3 m away "
-    "its anchor moves by up to 4e-5 relative, at 1e6 m the update raises LinAlgError or "
+    "its anchor moves by up to 1e-4 relative, at 1e6 m the update raises LinAlgError or "
     "turns the anchor by 1.9 rad, at 1e7 m it raises (docs/ccda.md; CCDA's own "
     "transform is invariant, see the test above)",
 )
@@ -87,5 +87,5 @@ def test_recording_restores_the_estimators_ccda(mc: ModuleType) -> None:
 
     calls: list[Any] = []
     with mc.recording(calls):
-        assert ekf_reference.pipeline.ccda_match is not ccda.ccda_match
-    assert ekf_reference.pipeline.ccda_match is ccda.ccda_match
+        assert getattr(ekf_reference.pipeline, "ccda_match") is not ccda.ccda_match  # noqa: B009
+    assert getattr(ekf_reference.pipeline, "ccda_match") is ccda.ccda_match  # noqa: B009

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.sim.clutter import ClutterParams
 from mapfuse_core.sim.scenario import load_scenario
@@ -17,14 +18,16 @@ STEPS = 40
 
 
 @pytest.fixture(scope="module")
-def logs() -> tuple[object, object]:
+def logs() -> tuple[MeasurementLog, MeasurementLog]:
     sc = dataclasses.replace(load_scenario("loop600"), steps=STEPS)
     plain = simulate(sc, seed=3, workers=1).log
     clutter = ClutterParams(features_per_scan=5, outlier_fraction=0.1)
     return plain, simulate(sc, seed=3, workers=1, clutter=clutter).log
 
 
-def test_clutter_adds_spurious_features_of_no_world_feature(logs: tuple) -> None:
+def test_clutter_adds_spurious_features_of_no_world_feature(
+    logs: tuple[MeasurementLog, MeasurementLog],
+) -> None:
     plain, hostile = logs
     spurious = hostile.feat_true_id < 0
     # Five per scan, on top of what extraction finds (loop600's extraction labels
@@ -44,7 +47,9 @@ def test_clutter_adds_spurious_features_of_no_world_feature(logs: tuple) -> None
     assert np.all(np.sum(n * -p[:, :2], axis=1) >= 0.0)
 
 
-def test_outliers_move_real_features_by_2_to_10_m(logs: tuple) -> None:
+def test_outliers_move_real_features_by_2_to_10_m(
+    logs: tuple[MeasurementLog, MeasurementLog],
+) -> None:
     plain, hostile = logs
     real = hostile.feat_true_id >= 0
     # The real features come in the same order, unchanged except for the outliers.
@@ -58,7 +63,9 @@ def test_outliers_move_real_features_by_2_to_10_m(logs: tuple) -> None:
     np.testing.assert_array_equal(hostile.feat_cov[real], plain.feat_cov)
 
 
-def test_the_rest_of_the_log_is_that_of_the_same_seed(logs: tuple) -> None:
+def test_the_rest_of_the_log_is_that_of_the_same_seed(
+    logs: tuple[MeasurementLog, MeasurementLog],
+) -> None:
     plain, hostile = logs
     np.testing.assert_array_equal(hostile.odometry, plain.odometry)
     np.testing.assert_array_equal(hostile.true_poses, plain.true_poses)
