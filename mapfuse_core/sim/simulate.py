@@ -40,6 +40,7 @@ from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog, Measuremen
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction import ExtractionParams, ExtractionResult, extract_features
+from mapfuse_core.sim.clutter import ClutterParams, add_clutter
 from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
 from mapfuse_core.sim.limits import check_seed, check_steps
 from mapfuse_core.sim.scenario import (
@@ -210,6 +211,7 @@ def simulate(
     extraction: ExtractionParams | None = None,
     progress: Callable[[int, int], None] | None = None,
     workers: int | None = None,
+    clutter: ClutterParams | None = None,
 ) -> SimulationResult:
     """Simulate ``scenario`` with ``seed`` (default: the scenario's own seed).
 
@@ -219,7 +221,10 @@ def simulate(
     ``progress(k, n)`` is called after each step when given (with workers, in step
     order as the extracted scans come back).  ``workers`` processes extract the
     features (see :func:`extraction_workers`; ``workers=1`` keeps everything in this
-    process); the result is the same bit for bit whatever their number.
+    process); the result is the same bit for bit whatever their number.  ``clutter``
+    adds spurious features and gross outliers to the extracted features
+    (:mod:`mapfuse_core.sim.clutter`, from a stream of their own: the rest of the log
+    is that of the same seed without them).
     """
     seed = check_seed(scenario.seed if seed is None else seed)
     check_steps(scenario.steps, scenario.laser.n_beams, f"scenario {scenario.name!r}: steps")
@@ -229,7 +234,9 @@ def simulate(
     scans: list[Scan] = []
     results: list[ExtractionResult] = []
     try:
-        motion_ss, laser_ss, map_ss = np.random.SeedSequence(seed).spawn(3)
+        # Children are numbered: the fourth leaves the first three (and the logs of
+        # runs without clutter) unchanged.
+        motion_ss, laser_ss, map_ss, clutter_ss = np.random.SeedSequence(seed).spawn(4)
         motion = simulate_drive(scenario, np.random.default_rng(motion_ss))
         check_visibility(scenario, motion)
         known = build_known_map(scenario, np.random.default_rng(map_ss))
@@ -269,6 +276,9 @@ def simulate(
             results.append(extract_features(scan, scenario.laser, params))
             if progress is not None:
                 progress(k + 1, n)
+
+    if clutter is not None and clutter.active:
+        results = add_clutter(results, scenario.laser, clutter, np.random.default_rng(clutter_ss))
 
     rejected: Counter[str] = Counter()
     steps: list[int] = []
