@@ -146,7 +146,13 @@ def recording(calls: list[Call]) -> Iterator[None]:
         anchor = None
         if x_a_global is not None and np.all(np.isfinite(x)):
             # x^Wknown_Wglobal = ⊖x^A_Wknown ⊕ x^A_Wglobal
-            anchor = tuple(float(v) for v in compose(inverse(x), x_a_global))
+            est = compose(inverse(x), x_a_global)
+            # The EKF matches the known map in a frame centred on its features
+            # (ekf_reference/known_frame.py): take the pose back to the map's frame.
+            centre = getattr(sys._getframe(1).f_locals.get("self"), "known_centre", None)
+            if centre is not None:
+                est[:2] += np.asarray(centre, dtype=float)
+            anchor = tuple(float(v) for v in est)
         calls.append(
             Call(
                 reason=str(res.reason),

@@ -20,6 +20,7 @@ from ekf_reference.association import (
     predict_all_targets,
 )
 from ekf_reference.config import EKFConfig
+from ekf_reference.known_frame import centred_known_map, uncentred
 from ekf_reference.known_gating import KnownGate, Targets
 from ekf_reference.loops import LoopClosureParams, accepted, register_circles
 from ekf_reference.maps import (
@@ -89,6 +90,7 @@ class _Run:
         self.ccda_reasons: dict[str, int] = {}
         self.tentative = Tentatives(config.tentative_min_sightings, config.tentative_window_steps)
         self.anchor_step = -1
+        self.known, self.known_centre = centred_known_map(log.known_map)
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
         self.gate: KnownGate | None = None
@@ -439,7 +441,7 @@ class _Run:
             if e.role == Role.FEATURE
             and e.n_obs >= self.config.data_association.min_obs_for_matching
         ]
-        known = self.log.known_map
+        known = self.known
         if not feats or len(known) == 0:
             return
         self.ccda_attempts += 1
@@ -525,7 +527,7 @@ def run_ekf(
         if run.local.has(Role.ANCHOR):
             a = run.local.find(Role.ANCHOR)
             x, J = inverse_jacobian(run.local.mean[a])
-            poses_known[k] = x
+            poses_known[k] = uncentred(x, run.known_centre)
             covs_known[k] = J @ run.local.block(a) @ J.T
         if (k + 1) % config.local_map_steps == 0 or k == n - 1:
             run.join(k)
@@ -556,7 +558,7 @@ def _result(
         Jfull = np.hstack([J1 @ Ji, J2])
         P = g.marginal([a, gb])
         anchor = AnchorResult(
-            x_Wknown_Wglobal=est,
+            x_Wknown_Wglobal=uncentred(est, run.known_centre),
             cov=Jfull @ P @ Jfull.T,
             accepted_at_step=int(run.anchor_step),
             pairings=tuple(run.anchor_pairings),

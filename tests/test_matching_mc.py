@@ -67,13 +67,6 @@ def test_ccda_decides_the_same_wherever_the_world_is(shifts: dict[str, Any]) -> 
     assert shifts["max_ccda_rel_diff"] <= 1e-6, shifts
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the EKF's fused update is not origin invariant: with the world 1e3 m away "
-    "its anchor moves by up to 1e-4 relative, at 1e6 m the update raises LinAlgError or "
-    "turns the anchor by 1.9 rad, at 1e7 m it raises (docs/ccda.md; CCDA's own "
-    "transform is invariant, see the test above)",
-)
 def test_the_ekf_anchor_moves_with_the_world(shifts: dict[str, Any]) -> None:
     assert not shifts["errors"], shifts["errors"]
     assert shifts.get("same_anchor_presence", True)

@@ -1,0 +1,38 @@
+"""The known map in a frame centred on its features, and poses taken back to its own."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.geometry.se2 import FloatArray
+
+
+def centred_known_map(known: KnownMapArrays) -> tuple[KnownMapArrays, FloatArray]:
+    """``known`` in the frame ``Wknown'``: ``Wknown`` translated to the centroid ``c`` of
+    the feature positions, and ``c``.
+
+    The anchor joins ``Wknown`` to the vehicle's frames.  A surveyed map comes in
+    UTM-like coordinates (10⁶–10⁷ m): the anchor's translation and the features'
+    positions are then both huge and cancel in every prediction, and the lever arm of
+    the anchor's angle turns its variance into metre-sized position terms that
+    round-off destroys (the innovation covariance stops being positive definite).
+    In ``Wknown'`` both are of the size of the map.  A translation leaves angles,
+    extents and covariances unchanged; results are reported back in ``Wknown``
+    (:func:`uncentred`).
+    """
+    if len(known) == 0:
+        return known, np.zeros(2)
+    c = np.asarray(known.params[:, :2], dtype=np.float64).mean(axis=0)
+    params = np.array(known.params, dtype=np.float64, copy=True)
+    params[:, :2] -= c
+    return replace(known, params=params), c
+
+
+def uncentred(x_known_centred: FloatArray, c: FloatArray) -> FloatArray:
+    """A pose in ``Wknown'`` as a pose in ``Wknown``: ``(c, 0) ⊕ x`` (Jacobian: identity)."""
+    out = np.array(x_known_centred, dtype=np.float64, copy=True)
+    out[:2] += c
+    return out
