@@ -1,4 +1,4 @@
-"""Shared pytest configuration: hypothesis profile and the real-data directory."""
+"""Shared pytest configuration: hypothesis profile, test order and the real-data directory."""
 
 from __future__ import annotations
 
@@ -11,6 +11,17 @@ from hypothesis import settings
 # Deterministic hypothesis runs: a failing example must reproduce on every machine.
 settings.register_profile("mapfuse", derandomize=True, max_examples=200, deadline=None)
 settings.load_profile("mapfuse")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``slow`` first, each part in collection order.
+
+    Under ``pytest -n`` the workers take the tests in this order: the long runs start
+    at once and the short tests fill the end, so no worker waits alone on a long test
+    at the end of the suite.  The sort is stable, so every worker collects the same
+    order (xdist requires it).
+    """
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture(scope="session")
