@@ -13,7 +13,7 @@ from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph import factors as fx
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.solvers import FixedLagOptions, GraphResult, run_graph
-from tests.loop600 import LOOP600_GROUP, loop600_log
+from tests.loop600 import loop600_log
 from tests.synthetic import synthetic_log
 
 INF = math.inf
@@ -56,7 +56,6 @@ def _fixedlag(
 
 
 @pytest.mark.slow
-@LOOP600_GROUP
 def test_infinite_lag_equals_batch_on_loop600() -> None:
     """Lag ∞ marginalises nothing: the final estimate is iSAM2's, which differs from the
     batch optimum only by iSAM2's relinearisation thresholds: bounds 1 mm, 0.1 mrad and
@@ -76,7 +75,6 @@ def test_infinite_lag_equals_batch_on_loop600() -> None:
 
 
 @pytest.mark.slow
-@LOOP600_GROUP
 def test_zero_lag_filter_equals_isam2_filter_on_loop600() -> None:
     """Lag 0 keeps the newest pose and the map: its filtered estimate is iSAM2's except
     that past poses are never relinearised (the EKF's linearisation, where iSAM2 moves

@@ -24,16 +24,9 @@ from mapfuse.testing import assert_no_worse_than_baseline
 from mapfuse_core.evaluation import anchor_truth, known_map_draw_offset
 from mapfuse_core.geometry.se2 import compose, wrap_angle
 from mapfuse_core.sim.scenario import build_known_map, load_scenario
-from tests.loop600 import (
-    LOOP600_GROUP,
-    SEEDS,
-    ekf_metrics,
-    loop600_ekf,
-    loop600_ekf_carry,
-    loop600_log,
-)
+from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_ekf_carry, loop600_log
 
-pytestmark = [pytest.mark.slow, LOOP600_GROUP]
+pytestmark = pytest.mark.slow
 
 
 def _seeds(known_gaps: dict[int, str]) -> list[object]:

@@ -30,10 +30,10 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.features import FeatureKind
-from tests.loop600 import LOOP600_GROUP, SEEDS, ekf_metrics, loop600_ekf, loop600_log
+from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_log
 from tests.synthetic import with_known
 
-pytestmark = [pytest.mark.slow, LOOP600_GROUP]
+pytestmark = pytest.mark.slow
 
 
 #: Every JOINT_STRIDE-th pose gets the smoother's joint covariance (239 of 2,400: the

@@ -19,11 +19,10 @@ from mapfuse_core.sim.laser import LaserParams, simulate_scan
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
 from mapfuse_core.sim.world import World
-from tests.loop600 import LOOP600_GROUP, loop600_log
+from tests.loop600 import loop600_log
 
 
 @pytest.mark.slow
-@LOOP600_GROUP
 def test_cli_simulate_loop600_is_the_papers_loop_and_bit_identical(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
