@@ -1,4 +1,5 @@
-"""Shared pytest configuration: hypothesis profile and the real-data directory."""
+"""Shared pytest configuration: hypothesis profile, test order, the workers' shared directory
+and the real-data directory."""
 
 from __future__ import annotations
 
@@ -11,6 +12,30 @@ from hypothesis import settings
 # Deterministic hypothesis runs: a failing example must reproduce on every machine.
 settings.register_profile("mapfuse", derandomize=True, max_examples=200, deadline=None)
 settings.load_profile("mapfuse")
+
+#: tests/loop600.py's name for the directory (kept here to avoid importing it early).
+SHARED_DIR_ENV = "MAPFUSE_TEST_SHARED_DIR"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under ``pytest -n``, name the directory the workers of this run share.
+
+    It is the parent of the worker's ``basetemp``, the run's own temporary directory
+    (pytest keeps the last three runs'); ``tests/loop600.py`` caches its runs there.
+    """
+    if hasattr(config, "workerinput") and config.option.basetemp:
+        os.environ[SHARED_DIR_ENV] = str(Path(config.option.basetemp).parent / "shared")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``slow`` first, each part in collection order.
+
+    Under ``pytest -n`` the workers take the tests in this order: the long runs start
+    at once and the short tests fill the end, so no worker waits alone on a long test
+    at the end of the suite.  The sort is stable, so every worker collects the same
+    order (xdist requires it).
+    """
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture(scope="session")

@@ -13,6 +13,7 @@ from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph import factors as fx
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.solvers import FixedLagOptions, GraphResult, run_graph
+from tests.loop600 import loop600_log
 from tests.synthetic import synthetic_log
 
 INF = math.inf
@@ -59,8 +60,6 @@ def test_infinite_lag_equals_batch_on_loop600() -> None:
     """Lag ∞ marginalises nothing: the final estimate is iSAM2's, which differs from the
     batch optimum only by iSAM2's relinearisation thresholds: bounds 1 mm, 0.1 mrad and
     2 % of every pose's σ (measured values in ``docs/fixedlag.md``)."""
-    from tests.loop600 import loop600_log
-
     log = loop600_log(0)
     fl = _fixedlag(log, INF, steps=300)
     bat = run_graph(log, "batch", fusion=True, association="truth", steps=300)
@@ -82,8 +81,6 @@ def test_zero_lag_filter_equals_isam2_filter_on_loop600() -> None:
     old poses' linearisation points): bounds 0.25 σ of iSAM2's filtered covariance at
     any step, 0.05 σ on average, covariances within 5 % (``docs/fixedlag.md``).  Each
     pose is final as soon as it is filtered."""
-    from tests.loop600 import loop600_log
-
     log = loop600_log(0)
     fl = _fixedlag(log, 0.0, steps=300)
     inc = run_graph(log, "isam2", fusion=True, association="truth", steps=300)
