@@ -48,8 +48,10 @@ if TYPE_CHECKING:
 __all__ = [
     "DEFAULT_BACKENDS",
     "FIGURE_FILES",
+    "PAPER_REGIME",
     "RUNS_DIR",
     "Comparison",
+    "beside_lines",
     "compare",
     "comparison_figures",
     "report_markdown",
@@ -435,6 +437,39 @@ def results_table(comparison: Comparison) -> list[str]:
     return lines
 
 
+#: The built-in scenario in the paper's regime that a scenario's report names (`--beside`).
+PAPER_REGIME: Mapping[str, str] = {"loop600": "loop600-sparse"}
+
+
+def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
+    """The report section of the comparisons ``beside`` the one of ``main_scenario``:
+    a heading, the log's description and the results table of each; with none, for a
+    scenario of :data:`PAPER_REGIME`, a note naming the option that adds it."""
+    if not beside:
+        other = PAPER_REGIME.get(main_scenario)
+        if other is None:
+            return []
+        return [
+            "",
+            f"The paper's regime, where SLAM without fusion drifts about 0.5 m far from "
+            f"the start, is the sparser `{other}`: `--beside {other}` puts its table here.",
+        ]
+    lines: list[str] = []
+    for b in beside:
+        log = b.log
+        desc = f"{log.n_steps} steps"
+        if log.true_poses is not None:
+            desc += f", true path {path_length(log.true_poses):.1f} m"
+        desc += (
+            f"; {log.n_features} extracted features; known map of {len(log.known_map)} "
+            f"features; {b.wall_time_s:.1f} s wall time."
+        )
+        title = "the paper's regime" if log.scenario in PAPER_REGIME.values() else "beside"
+        lines += ["", f"## {log.scenario}, seed {log.seed} ({title})", "", desc, ""]
+        lines += results_table(b)
+    return lines
+
+
 def report_markdown(
     comparison: Comparison,
     figures: Sequence[str] = (),
@@ -442,7 +477,7 @@ def report_markdown(
     beside: Sequence[Comparison] = (),
 ) -> str:
     """The ``report.md`` text: run description, one table, notes, the comparisons
-    ``beside`` it (:mod:`mapfuse.compare_beside`), figure list."""
+    ``beside`` it (:func:`beside_lines`), figure list."""
     log = comparison.log
     truth = comparison.has_truth
     lines = [f"# Backend comparison: {log.scenario}, seed {log.seed}", ""]
@@ -502,7 +537,6 @@ def report_markdown(
             f"`{log.scenario}`, so they are only a scale reference here."
         )
     from mapfuse.changes import change_report_lines
-    from mapfuse.compare_beside import beside_lines
 
     lines += beside_lines(log.scenario, beside)
     lines += change_report_lines([r.result for r in comparison.runs], log, scenario)

@@ -1,11 +1,11 @@
 """Other scenarios beside a comparison: ``mapfuse compare SCENARIO --beside OTHER``.
 
 The dense ``loop600`` keeps every estimator within a few centimetres of the others;
-the paper's Fig. 7 gap (about 0.5 m without fusion far from the start, under 0.15 m
-with it) shows in the sparser ``loop600-sparse`` (see its TOML).  :func:`compare_beside`
-runs the same backends and fusion settings on each other scenario with the same seed,
-and :func:`beside_lines` puts their tables after the main one in ``report.md``.  A
-``loop600`` report without them says how to add the paper's regime.
+the paper's regime, where SLAM without fusion drifts about 0.5 m far from the start,
+is the sparser ``loop600-sparse`` (see its TOML).  :func:`compare_beside`
+runs the same backends and fusion settings on each other scenario with the same seed;
+:func:`mapfuse.compare.write_comparison` puts their tables after the main one in
+``report.md`` (:func:`mapfuse.compare.beside_lines`).
 """
 
 from __future__ import annotations
@@ -13,14 +13,10 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from mapfuse.compare import Comparison, Progress, compare, results_table
+from mapfuse.compare import Comparison, Progress, compare
 from mapfuse.run import prepare_log
-from mapfuse_core.evaluation import path_length
 
-__all__ = ["PAPER_REGIME", "beside_lines", "compare_beside"]
-
-#: The built-in scenario in the paper's regime, and the one it is beside by default.
-PAPER_REGIME: Mapping[str, str] = {"loop600": "loop600-sparse"}
+__all__ = ["compare_beside"]
 
 
 def compare_beside(
@@ -50,33 +46,3 @@ def _prefixed(progress: Progress, name: str) -> Progress:
         progress(f"{name}: {label}", k, n)
 
     return call
-
-
-def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
-    """The report section of the comparisons ``beside`` the one of ``main_scenario``:
-    a heading, the log's description and the results table of each; with none, for a
-    scenario of :data:`PAPER_REGIME`, a note naming the option that adds it."""
-    if not beside:
-        other = PAPER_REGIME.get(main_scenario)
-        if other is None:
-            return []
-        return [
-            "",
-            f"The paper's regime (about 0.5 m without fusion far from the start, under "
-            f"0.15 m with it) is the sparser `{other}`: `--beside {other}` puts its "
-            "table here.",
-        ]
-    lines: list[str] = []
-    for b in beside:
-        log = b.log
-        desc = f"{log.n_steps} steps"
-        if log.true_poses is not None:
-            desc += f", true path {path_length(log.true_poses):.1f} m"
-        desc += (
-            f"; {log.n_features} extracted features; known map of {len(log.known_map)} "
-            f"features; {b.wall_time_s:.1f} s wall time."
-        )
-        title = "the paper's regime" if log.scenario in PAPER_REGIME.values() else "beside"
-        lines += ["", f"## {log.scenario}, seed {log.seed} ({title})", "", desc, ""]
-        lines += results_table(b)
-    return lines

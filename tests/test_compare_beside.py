@@ -9,8 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from mapfuse.compare import Comparison, compare, report_markdown, write_comparison
-from mapfuse.compare_beside import PAPER_REGIME, beside_lines
+from mapfuse.compare import (
+    PAPER_REGIME,
+    Comparison,
+    beside_lines,
+    compare,
+    report_markdown,
+    write_comparison,
+)
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import list_builtin_scenarios, load_scenario
 from tests.synthetic import synthetic_log
