@@ -266,15 +266,25 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         b: flags for b in backends if flags and getattr(resolve(b), "consumes", None) is not None
     }
     fusions = (True, False) if args.fusion is None else (args.fusion,)
+    beside = list(args.beside or ())
+    for b in beside:
+        if b.endswith(".npz") or _is_dataset(b):
+            raise UsageError(f"--beside {b}: only simulated scenarios, not a log or dataset")
+        load_scenario(b)  # ScenarioError names what is wrong
     out = _check_out(args)
     log = _log_from_args(args, args.scenario, args.seed)
     progress = LabelledProgress(not args.quiet)
     comparison = compare(
         log, progress=progress, backends=backends, fusions=fusions, overrides=overrides
     )
+    others: tuple[Any, ...] = ()
+    if beside:
+        from mapfuse.compare_beside import compare_beside
+
+        others = compare_beside(beside, args.seed, backends, fusions, overrides, progress)
     progress.close()
     scenario = load_scenario(args.scenario) if _simulated(args.scenario) else None
-    paths = write_comparison(comparison, out, scenario=scenario)
+    paths = write_comparison(comparison, out, scenario=scenario, beside=others)
     _warn_runs(comparison.runs, label=True)
     _emit({"outputs": paths})
     if not args.quiet:
@@ -486,6 +496,13 @@ def _parser() -> argparse.ArgumentParser:
     _add_fusion(cmp_, None, "compare")
     _add_graph_flags(cmp_)
     _add_known_map(cmp_)
+    cmp_.add_argument(
+        "--beside",
+        action="append",
+        metavar="SCENARIO",
+        help="also compare the same backends on this simulated scenario, same seed, and "
+        "put its table in the report (repeatable; e.g. loop600-sparse, the paper's regime)",
+    )
     _add_common(cmp_)
     cmp_.set_defaults(func=_cmd_compare)
 

@@ -48,11 +48,14 @@ if TYPE_CHECKING:
 __all__ = [
     "DEFAULT_BACKENDS",
     "FIGURE_FILES",
+    "PAPER_REGIME",
     "RUNS_DIR",
     "Comparison",
+    "beside_lines",
     "compare",
     "comparison_figures",
     "report_markdown",
+    "results_table",
     "run_folder_name",
     "write_comparison",
 ]
@@ -410,15 +413,79 @@ def _paper_row(fusion: bool) -> list[str]:
     ]
 
 
+def results_table(comparison: Comparison) -> list[str]:
+    """The markdown table of a comparison with truth: one row per run (and per
+    filtered estimate), the fused runs first, each group followed by the paper's row."""
+    truth = comparison.has_truth
+    metrics = comparison.metrics
+    header = [
+        "run",
+        "position RMSE [m]",
+        "position max [m]",
+        "heading RMSE [mrad]",
+        "NEES mean",
+        f"NEES ≤ {CHI2_3_95:.3f} (fraction)",
+        "anchor error [m, mrad]",
+        "map features (matched known)",
+        "run time [s] (median per step [ms])",
+    ]
+    lines = [_row(header), _row(["---"] * len(header))]
+    for fusion in (True, False):
+        sel = [m for m in metrics if bool(m["fusion"]) is fusion]
+        if not sel:
+            continue
+        for m in sel:
+            lines.append(_row(_metric_row(m, truth)))
+            filtered = _filtered_row(m)
+            if filtered is not None and truth:
+                lines.append(_row(filtered))
+        lines.append(_row(_paper_row(fusion)))
+    return lines
+
+
+#: The built-in scenario in the paper's regime that a scenario's report names (`--beside`).
+PAPER_REGIME: Mapping[str, str] = {"loop600": "loop600-sparse"}
+
+
+def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
+    """The report section of the comparisons ``beside`` the one of ``main_scenario``:
+    a heading, the log's description and the results table of each; with none, for a
+    scenario of :data:`PAPER_REGIME`, a note naming the option that adds it."""
+    if not beside:
+        other = PAPER_REGIME.get(main_scenario)
+        if other is None:
+            return []
+        return [
+            "",
+            f"The paper's regime, where SLAM without fusion drifts about 0.5 m far from "
+            f"the start, is the sparser `{other}`: `--beside {other}` puts its table here.",
+        ]
+    lines: list[str] = []
+    for b in beside:
+        log = b.log
+        desc = f"{log.n_steps} steps"
+        if log.true_poses is not None:
+            desc += f", true path {path_length(log.true_poses):.1f} m"
+        desc += (
+            f"; {log.n_features} extracted features; known map of {len(log.known_map)} "
+            f"features; {b.wall_time_s:.1f} s wall time."
+        )
+        title = "the paper's regime" if log.scenario in PAPER_REGIME.values() else "beside"
+        lines += ["", f"## {log.scenario}, seed {log.seed} ({title})", "", desc, ""]
+        lines += results_table(b)
+    return lines
+
+
 def report_markdown(
     comparison: Comparison,
     figures: Sequence[str] = (),
     scenario: Scenario | None = None,
+    beside: Sequence[Comparison] = (),
 ) -> str:
-    """The ``report.md`` text: run description, one table, notes, figure list."""
+    """The ``report.md`` text: run description, one table, notes, the comparisons
+    ``beside`` it (:func:`beside_lines`), figure list."""
     log = comparison.log
     truth = comparison.has_truth
-    metrics = comparison.metrics
     lines = [f"# Backend comparison: {log.scenario}, seed {log.seed}", ""]
     desc = f"{log.n_steps} steps over {log.timestamps[-1] - log.timestamps[0]:.1f} s"
     if log.true_poses is not None:
@@ -443,7 +510,7 @@ def report_markdown(
 
         lines += _gps_table(comparison)
         lines += change_report_lines([r.result for r in comparison.runs], log, None)
-        lines += _warning_lines(metrics)
+        lines += _warning_lines(comparison.metrics)
         lines += _figure_list(figures)
         return "\n".join(lines) + "\n"
     if not truth:
@@ -453,28 +520,7 @@ def report_markdown(
             "figures that need truth (Figs. 6 and 7, NEES) are not written.",
             "",
         ]
-    header = [
-        "run",
-        "position RMSE [m]",
-        "position max [m]",
-        "heading RMSE [mrad]",
-        "NEES mean",
-        f"NEES ≤ {CHI2_3_95:.3f} (fraction)",
-        "anchor error [m, mrad]",
-        "map features (matched known)",
-        "run time [s] (median per step [ms])",
-    ]
-    lines += [_row(header), _row(["---"] * len(header))]
-    for fusion in (True, False):
-        sel = [m for m in metrics if bool(m["fusion"]) is fusion]
-        if not sel:
-            continue
-        for m in sel:
-            lines.append(_row(_metric_row(m, truth)))
-            filtered = _filtered_row(m)
-            if filtered is not None and truth:
-                lines.append(_row(filtered))
-        lines.append(_row(_paper_row(fusion)))
+    lines += results_table(comparison)
     lines += [
         "",
         "Notes:",
@@ -502,14 +548,18 @@ def report_markdown(
         )
     from mapfuse.changes import change_report_lines
 
+    lines += beside_lines(log.scenario, beside)
     lines += change_report_lines([r.result for r in comparison.runs], log, scenario)
-    lines += _warning_lines(metrics)
+    lines += _warning_lines(comparison.metrics)
     lines += _figure_list(figures)
     return "\n".join(lines) + "\n"
 
 
 def write_comparison(
-    comparison: Comparison, out_dir: str | Path, scenario: Scenario | None = None
+    comparison: Comparison,
+    out_dir: str | Path,
+    scenario: Scenario | None = None,
+    beside: Sequence[Comparison] = (),
 ) -> dict[str, str]:
     """Write ``comparison.json``, ``report.md`` and the figures into ``out_dir``, and
     each run's own files (:func:`mapfuse.outputs.write_outputs` without figures: its
@@ -517,7 +567,9 @@ def write_comparison(
     (:func:`run_folder_name`).
 
     ``scenario`` (optional) adds its description to the report and draws the true
-    world's walls in Fig. 10.  Returns ``{name: path}`` of everything written (figure
+    world's walls in Fig. 10.  ``beside``: comparisons of other scenarios the report
+    shows after its own table, their metrics in ``beside.json``
+    (``{scenario: [metrics, ...]}``).  Returns ``{name: path}`` of everything written (figure
     entries keyed by file name without ``.png``, a run's files by
     ``runs/<folder>/<name>``).
     """
@@ -530,8 +582,13 @@ def write_comparison(
         p = out / name
         fig.savefig(p, dpi=110)
         paths[name.removesuffix(".png")] = p
+    if beside:
+        paths["beside"] = out / "beside.json"
+        paths["beside"].write_text(
+            json.dumps({b.log.scenario: b.metrics for b in beside}, indent=2) + "\n"
+        )
     paths["report"] = out / "report.md"
-    paths["report"].write_text(report_markdown(comparison, tuple(figures), scenario))
+    paths["report"].write_text(report_markdown(comparison, tuple(figures), scenario, beside))
     result = {k: str(v) for k, v in paths.items()}
     for r in comparison.runs:
         name = run_folder_name(r)

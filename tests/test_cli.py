@@ -115,6 +115,9 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
         (["compare", "{npz}", "--backends", "ekf,nope"], "unknown estimator 'nope'"),
         (["compare", "{npz}", "--backends", "ekf,ekf"], "distinct names"),
         (["compare", "{npz}", "--seed", "1"], "--seed does not apply"),
+        (["compare", "loop600", "--beside", "carpark"], "--beside carpark: only simulated"),
+        (["compare", "loop600", "--beside", "{npz}"], "only simulated scenarios"),
+        (["compare", "loop600", "--beside", "no-such-scenario"], "no-such-scenario"),
         (["simulate", "loop600", "--plot-step", "-1"], "--plot-step must be >= 0"),
     ],
 )
