@@ -319,7 +319,7 @@ def judge(calls: list[Call], log: MeasurementLog, result: EstimatorResult | str)
     assert log.true_poses is not None
     truth = anchor_truth(log.true_poses, log.known_frame)
     by: Counter[str] = Counter()
-    wrong_pairings = 0
+    suspects: list[int] = []  # known ids paired with a landmark of another first id
     outcome = "none:no call"
     for c in calls:
         key = c.reason
@@ -328,7 +328,7 @@ def judge(calls: list[Call], log: MeasurementLog, result: EstimatorResult | str)
             if c.x_Wknown_Wglobal is not None:
                 e_xy, e_th = _anchor_error(c.x_Wknown_Wglobal, truth)
                 key = "wrong" if e_xy > WRONG_XY_M or e_th > WRONG_THETA_RAD else "right"
-            wrong_pairings += sum(t != k for t, k in c.pairings)
+            suspects.extend(k for t, k in c.pairings if t != k)
             outcome = key if outcome.startswith("none") else outcome
         elif outcome.startswith("none"):
             outcome = f"none:{c.reason}"
@@ -344,12 +344,24 @@ def judge(calls: list[Call], log: MeasurementLog, result: EstimatorResult | str)
         coincident = int(sum(near))
         wrong_obs = len(near) - coincident
         anchor = None if result.anchor is None else result.anchor.x_Wknown_Wglobal
+    # A landmark is labelled by its first observation, which clutter can supply (a
+    # spurious detection where a real feature is): a pairing with known feature k is
+    # wrong unless most observations merged with k are truly of k.
+    wrong_pairings = 0
+    for k in suspects:
+        if isinstance(result, str) or result.decisions is None:
+            wrong_pairings += 1
+            continue
+        kn = np.asarray(result.decisions.obs_known_id, dtype=np.int64)
+        ids = np.asarray(log.feat_true_id[: kn.size], dtype=np.int64)[kn == k]
+        wrong_pairings += int(ids.size == 0 or np.count_nonzero(ids == k) * 2 <= ids.size)
     return {
         "outcome": "error" if error else outcome,
         "error": error,
         "calls": len(calls),
         "by_reason": dict(by),
         "wrong_pairings": wrong_pairings,
+        "first_observation_mismatches": len(suspects) - wrong_pairings,
         "wrong_known_obs": wrong_obs,
         "coincident_known_obs": coincident,
         "max_call_s": max((c.seconds for c in calls), default=0.0),
