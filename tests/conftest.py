@@ -4,6 +4,7 @@ and the real-data directory."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -36,6 +37,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     order (xdist requires it).
     """
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+@pytest.fixture
+def jacobian_checks() -> Iterator[None]:
+    """The graph factors' Jacobian shape guard on for one test, restored after it
+    (``pytestmark = pytest.mark.usefixtures("jacobian_checks")`` in a module)."""
+    from mapfuse_graph import factors as fx
+
+    before = fx.jacobian_checks_enabled()
+    fx.set_jacobian_checks(True)
+    yield
+    fx.set_jacobian_checks(before)
 
 
 @pytest.fixture(scope="session")

@@ -29,13 +29,7 @@ ErrorOut = tuple[np.ndarray, Sequence[np.ndarray]]
 X, L, A, K = 1, 2, 3, 4
 
 
-@pytest.fixture(autouse=True)
-def _guard_on() -> object:
-    """Every test here runs with the Jacobian shape guard on."""
-    before = fx.jacobian_checks_enabled()
-    fx.set_jacobian_checks(True)
-    yield
-    fx.set_jacobian_checks(before)
+pytestmark = pytest.mark.usefixtures("jacobian_checks")
 
 
 rho_alpha = st.builds(

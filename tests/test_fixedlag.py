@@ -10,7 +10,6 @@ import pytest
 
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.se2 import wrap_angle
-from mapfuse_graph import factors as fx
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.solvers import FixedLagOptions, GraphResult, run_graph
 from tests.loop600 import loop600_log
@@ -19,12 +18,7 @@ from tests.synthetic import synthetic_log
 INF = math.inf
 
 
-@pytest.fixture(autouse=True)
-def _guard_on() -> object:
-    before = fx.jacobian_checks_enabled()
-    fx.set_jacobian_checks(True)
-    yield
-    fx.set_jacobian_checks(before)
+pytestmark = pytest.mark.usefixtures("jacobian_checks")
 
 
 def _abs_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:

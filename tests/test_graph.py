@@ -41,12 +41,7 @@ from tests.synthetic import synthetic_log
 SIGMA_ODO = np.array([0.01, 0.005, 0.002])
 
 
-@pytest.fixture(autouse=True)
-def _guard_on() -> object:
-    before = fx.jacobian_checks_enabled()
-    fx.set_jacobian_checks(True)
-    yield
-    fx.set_jacobian_checks(before)
+pytestmark = pytest.mark.usefixtures("jacobian_checks")
 
 
 def _scaled_log(steps: int, seed: int, scale: float) -> MeasurementLog:

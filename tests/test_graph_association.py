@@ -16,18 +16,11 @@ from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAParams
-from mapfuse_graph import factors as fx
 from mapfuse_graph.graph import GraphBuilder, GraphOptions
 from mapfuse_graph.solvers import GraphResult, ISAM2Options, run_graph
 from tests.synthetic import synthetic_log
 
-
-@pytest.fixture(autouse=True)
-def _guard_on() -> object:
-    before = fx.jacobian_checks_enabled()
-    fx.set_jacobian_checks(True)
-    yield
-    fx.set_jacobian_checks(before)
+pytestmark = pytest.mark.usefixtures("jacobian_checks")
 
 
 # --------------------------------------------------------------------------- association
