@@ -447,6 +447,14 @@ def results_table(comparison: Comparison) -> list[str]:
 PAPER_REGIME: Mapping[str, str] = {"loop600": "loop600-sparse"}
 
 
+def _log_summary(log: MeasurementLog, span: str) -> str:
+    """``span``, the true path length when known, the features and the known map."""
+    out = span
+    if log.true_poses is not None:
+        out += f", true path {path_length(log.true_poses):.1f} m"
+    return f"{out}; {log.n_features} extracted features; known map of {len(log.known_map)} features"
+
+
 def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
     """The report section of the comparisons ``beside`` the one of ``main_scenario``:
     a heading, the log's description and the results table of each; with none, for a
@@ -463,13 +471,7 @@ def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
     lines: list[str] = []
     for b in beside:
         log = b.log
-        desc = f"{log.n_steps} steps"
-        if log.true_poses is not None:
-            desc += f", true path {path_length(log.true_poses):.1f} m"
-        desc += (
-            f"; {log.n_features} extracted features; known map of {len(log.known_map)} "
-            f"features; {b.wall_time_s:.1f} s wall time."
-        )
+        desc = f"{_log_summary(log, f'{log.n_steps} steps')}; {b.wall_time_s:.1f} s wall time."
         title = "the paper's regime" if log.scenario in PAPER_REGIME.values() else "beside"
         lines += ["", f"## {log.scenario}, seed {log.seed} ({title})", "", desc, ""]
         lines += results_table(b)
@@ -487,13 +489,8 @@ def report_markdown(
     log = comparison.log
     truth = comparison.has_truth
     lines = [f"# Backend comparison: {log.scenario}, seed {log.seed}", ""]
-    desc = f"{log.n_steps} steps over {log.timestamps[-1] - log.timestamps[0]:.1f} s"
-    if log.true_poses is not None:
-        desc += f", true path {path_length(log.true_poses):.1f} m"
-    desc += (
-        f"; {log.n_features} extracted features; known map of {len(log.known_map)} features. "
-        f"Whole comparison: {comparison.wall_time_s:.1f} s wall time."
-    )
+    span = f"{log.n_steps} steps over {log.timestamps[-1] - log.timestamps[0]:.1f} s"
+    desc = f"{_log_summary(log, span)}. Whole comparison: {comparison.wall_time_s:.1f} s wall time."
     if scenario is not None and scenario.description:
         lines += [f"Scenario: {scenario.description}.", ""]
     lines += [desc, ""]
