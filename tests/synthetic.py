@@ -14,6 +14,8 @@ import numpy as np
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind, canonical_line, express_in
 from mapfuse_core.geometry.se2 import compose, relative, wrap_angle
+from mapfuse_core.sim.clutter import ClutterParams, spurious_feature
+from mapfuse_core.sim.laser import LaserParams
 
 
 def ring_world(
@@ -169,26 +171,19 @@ def with_known(log: MeasurementLog, keep: list[int]) -> MeasurementLog:
 
 
 def with_clutter(log: MeasurementLog, per_step: int, seed: int = 0) -> MeasurementLog:
-    """``log`` with ``per_step`` spurious detections added to every scan, half trunks
-    and half short walls, uniform in front of the sensor (true id −1)."""
+    """``log`` with ``per_step`` spurious detections added to every scan, drawn by the
+    simulator's clutter model (``mapfuse_core.sim.clutter``; true id −1)."""
     rng = np.random.default_rng(seed)
-    steps, kinds, params, covs, exts = [], [], [], [], []
+    laser, clutter = LaserParams(), ClutterParams(features_per_scan=per_step)
+    steps, kinds, params, covs, exts, npts = [], [], [], [], [], []
     for k in range(log.n_steps):
         for _ in range(per_step):
-            x, y = rng.uniform(1.0, 20.0), rng.uniform(-15.0, 15.0)
-            if rng.random() < 0.5:
-                kinds.append(int(FeatureKind.CIRCLE))
-                params.append([x, y, rng.uniform(0.1, 0.6)])
-                covs.append(np.diag([0.03**2, 0.03**2, 0.015**2]))
-                exts.append([math.nan, math.nan])
-            else:
-                z = canonical_line(np.array([x, y, rng.uniform(-math.pi, math.pi)]))
-                c, s = math.cos(z[2]), math.sin(z[2])
-                Rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-                kinds.append(int(FeatureKind.LINE))
-                params.append(z)
-                covs.append(Rot @ np.diag([4.0, 0.02**2, 0.005**2]) @ Rot.T)
-                exts.append([-1.0, 1.0])
+            f = spurious_feature(rng, laser, clutter)
+            kinds.append(int(f.kind))
+            params.append(f.params)
+            covs.append(f.cov)
+            exts.append(f.extent)
+            npts.append(f.n_points)
             steps.append(k)
     n = len(steps)
     step = np.concatenate([log.feat_step, np.array(steps, dtype=np.int64)])
@@ -204,6 +199,6 @@ def with_clutter(log: MeasurementLog, per_step: int, seed: int = 0) -> Measureme
         feat_params=cat(log.feat_params, params, float),
         feat_cov=cat(log.feat_cov, covs, float),
         feat_true_id=cat(log.feat_true_id, np.full(n, -1), np.int64),
-        feat_n_points=cat(log.feat_n_points, np.full(n, 10), np.int64),
+        feat_n_points=cat(log.feat_n_points, npts, np.int64),
         feat_extent=cat(log.feat_extent, exts, float),
     )

@@ -83,7 +83,12 @@ class ClutterParams:
         return self.features_per_scan > 0 or self.outlier_fraction > 0.0
 
 
-def _spurious(rng: np.random.Generator, laser: LaserParams, p: ClutterParams) -> ExtractedFeature:
+def spurious_feature(
+    rng: np.random.Generator, laser: LaserParams, p: ClutterParams
+) -> ExtractedFeature:
+    """One spurious detection in the sensor frame (true id −1): a circle with
+    probability ``p.circle_fraction``, else a wall segment facing the sensor, uniform
+    in bearing over the field of view and in range up to ``p.max_range_m``."""
     half_fov = 0.5 * laser.fov_rad
     b = rng.uniform(-half_fov, half_fov)
     r = rng.uniform(1.0, min(p.max_range_m, laser.max_range_m))
@@ -140,6 +145,6 @@ def add_clutter(
             if params.outlier_fraction > 0.0 and rng.random() < params.outlier_fraction:
                 f = _displaced(rng, f, params)
             feats.append(f)
-        feats.extend(_spurious(rng, laser, params) for _ in range(params.features_per_scan))
+        feats.extend(spurious_feature(rng, laser, params) for _ in range(params.features_per_scan))
         out.append(replace(res, features=tuple(feats)))
     return out
