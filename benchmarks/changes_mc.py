@@ -6,7 +6,9 @@ with ``--moved``/``--removed``/``--added`` of it changed (moves 0.3–5 m, lines
 (``EKFConfig.known_map_gating``) on and off; the gated runs are classified and
 scored, and every run's position RMSE and mean NEES are recorded, with the gate's
 rejections and un-fused features (which ones were truly changed, and whether any
-observation was fused into one after its un-fuse step).  The ungated run is made
+observation was fused into one after its un-fuse step).  ``--map-sigma`` replaces the
+known map's σ (a better survey: a change smaller than the map's own noise cannot be
+told from it).  The ungated run is made
 only when the gate un-fused something: until then the two runs are the same.  One
 JSON line per seed is appended to ``--out``.
 
@@ -33,8 +35,18 @@ from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 
 
-def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
+def _base(args: argparse.Namespace) -> Scenario:
+    """The scenario cut to ``--steps``, with the known map's σ of ``--map-sigma``."""
     base = dataclasses.replace(load_scenario(args.scenario), steps=args.steps)
+    if args.map_sigma is None:
+        return base
+    xy, r, theta = (float(v) for v in args.map_sigma.split(","))
+    km = dataclasses.replace(base.known_map, sigma_xy_m=xy, sigma_r_m=r, sigma_theta_rad=theta)
+    return dataclasses.replace(base, known_map=km)
+
+
+def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
+    base = _base(args)
     changed = with_changes(
         base,
         np.random.default_rng(1000 + seed),
@@ -42,7 +54,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         removed=args.removed,
         added=args.added,
     )
-    params = ChangeParams(level=args.level)
+    params = ChangeParams(level=args.level).with_sensor(base.laser)
     row: dict[str, object] = {"seed": seed}
     for name, sc in (("unchanged", base), ("changed", changed)):
         log = simulate(sc, seed=seed, workers=1).log
@@ -134,6 +146,11 @@ def main() -> None:
     p.add_argument("--removed", type=float, default=0.05)
     p.add_argument("--added", type=float, default=0.0)
     p.add_argument("--level", type=float, default=0.999)
+    p.add_argument(
+        "--map-sigma",
+        default=None,
+        help="known map's σ 'xy,r,θ' (m, m, rad) instead of the scenario's",
+    )
     p.add_argument("--out", required=True)
     args = p.parse_args()
     for seed in range(*args.seeds):

@@ -75,7 +75,10 @@ def change_report_lines(
     """The change section of ``report.md``: per fused run with an anchor, the class
     counts and, when the scenario (hence the truth) is known, precision / recall."""
     params = ChangeParams()
-    truth = change_truth(scenario, log, params) if scenario is not None else None
+    truth = None
+    if scenario is not None:
+        params = params.with_sensor(scenario.laser)
+        truth = change_truth(scenario, log, params)
     rows = []
     for res in results:
         if not res.fusion or res.anchor is None or res.decisions is None:

@@ -87,6 +87,7 @@ def _cmd_changes(args: argparse.Namespace) -> int:
                 shift=shift,
             )
         log = simulate(scenario, seed=args.seed).log
+        params = params.with_sensor(scenario.laser)
         truth = change_truth(scenario, log, params)
     else:
         log = prepare_log(args.scenario, seed=args.seed, data_dir=args.data)

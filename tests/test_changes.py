@@ -110,6 +110,36 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     assert kid not in {n.true_id for n in rep.new}
 
 
+def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_landmark():
+    """A line surveyed 0.42 rad off (max_turn_rad 0.35 plus under 3 of the map's
+    σθ = 0.05 rad) and not associated by the estimator is that line, moved."""
+    log = _log()
+    line = int(np.nonzero(log.known_map.kinds == FeatureKind.LINE)[0][0])
+    kid = int(log.known_map.ids[line])
+    assert math.sqrt(log.known_map.covs[line, 2, 2]) == pytest.approx(0.05)
+    p = log.known_map.params.copy()
+    p[line, 2] += 0.42
+    moved = _replace_known(log, params=p)
+    known = set(moved.known_map.ids.tolist()) - {kid}
+    lm = moved.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start = moved.true_poses[0]
+    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    c = rep.known[line]
+    assert c.status == ChangeStatus.MOVED
+    assert not c.associated
+    assert c.displacement[2] == pytest.approx(-0.42, abs=0.05)
+    assert kid not in {n.true_id for n in rep.new}
+    # Without the widening (a map that claims exact angles) the search gives up.
+    exact = moved.known_map.covs.copy()
+    exact[line, 2, 2] = 1e-12
+    rep2 = classify_changes(_replace_known(moved, covs=exact), lm, kn, poses, covs, start, PARAMS)
+    assert rep2.known[line].status in (ChangeStatus.MISSING, ChangeStatus.UNOBSERVED)
+    assert kid in {n.true_id for n in rep2.new}
+
+
 def test_removed_feature_in_view_is_missing_and_one_out_of_view_unobserved():
     log = _log()
     k = log.known_map

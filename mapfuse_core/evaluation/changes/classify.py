@@ -58,19 +58,31 @@ def _test(
 
 
 def _near(
-    obs: ObservationSet, known: FloatArray, extent: FloatArray | None, params: ChangeParams
+    obs: ObservationSet,
+    known: FloatArray,
+    known_cov: FloatArray,
+    extent: FloatArray | None,
+    params: ChangeParams,
 ) -> float:
     """Size of the move that takes ``known`` onto ``obs`` (m), ``inf`` beyond the limits.
 
-    A line must also overlap the known wall along its length (its surveyed extent
-    widened by ``max_move_m``; without one, within ``max_move_m`` of its reference point).
+    The limits are ``max_move_m`` and ``max_turn_rad`` widened by three of the known
+    feature's own σ (its position, or its angle for a line): the surveyed value itself
+    is that far from where the feature stood, so a feature turned by the largest turn
+    looked for, in a map whose angles have σθ = 0.05 rad, can appear turned by 0.15 rad
+    more.  A line must also overlap the known wall along its length (its surveyed
+    extent widened by ``max_move_m``; without one, within ``max_move_m`` of its
+    reference point).
     """
+    sig_xy = math.sqrt(max(0.0, 0.5 * float(known_cov[0, 0] + known_cov[1, 1])))
+    max_move = params.max_move_m + 3.0 * sig_xy
     mean = obs.features.mean(axis=0)
     if obs.kind == FeatureKind.CIRCLE:
         d = float(np.hypot(*(mean[:2] - known[:2])))
-        return d if d <= params.max_move_m else math.inf
+        return d if d <= max_move else math.inf
+    max_turn = params.max_turn_rad + 3.0 * math.sqrt(max(0.0, float(known_cov[2, 2])))
     r = np.array([feature_residual(obs.kind, known, f)[0] for f in obs.features]).mean(axis=0)
-    if abs(r[1]) > params.max_turn_rad or abs(r[0]) > params.max_move_m:
+    if abs(r[1]) > max_turn or abs(r[0]) > max_move:
         return math.inf
     u_k = np.array([math.cos(known[2]), math.sin(known[2])])
     along = []
@@ -135,7 +147,7 @@ def classify_changes(
         kind = FeatureKind(int(known.kinds[r]))
         for i, s in enumerate(free):
             if s.kind == kind:
-                d = _near(s, known.params[r], _extent(known, r), params)
+                d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
                 if math.isfinite(d):
                     pairs.append((d, r, i))
     used: set[int] = set()
@@ -238,7 +250,7 @@ def _duplicate(
         if row.kind != s.kind or row.n_obs == 0:
             continue
         kp = known.params[r]
-        if not math.isfinite(_near(s, kp, _extent(known, r), params)):
+        if not math.isfinite(_near(s, kp, known.covs[r], _extent(known, r), params)):
             continue
         if row.status == ChangeStatus.MOVED:
             # A second landmark of a moved feature (a wall seen in pieces).

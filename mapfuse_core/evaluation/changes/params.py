@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 from scipy.stats import chi2
+
+from mapfuse_core.perception.extraction import ExtractionParams
+from mapfuse_core.sim.laser import LaserParams
 
 __all__ = ["ChangeParams"]
 
@@ -24,6 +28,17 @@ class ChangeParams:
     it is called missing (counted at every :attr:`view_stride`-th step, times the stride)."""
     view_stride: int = 4
     """Every this many steps the view is predicted (ray casting costs)."""
+    laser: LaserParams | None = None
+    """The scanner the log was recorded with.  Given, a feature is in view in a scan when
+    the extractor (:attr:`extraction`) returns it from the noise-free scan that this
+    laser would record of the map from the estimated pose: the extractor's own rules
+    (points, length, incidence, a circle's predicted signal-to-noise) decide, at the
+    laser's range, and the beam-count rule below is not used.  ``None``: the beam-count
+    rule with :attr:`fov_rad`, :attr:`n_beams` and :attr:`max_range_m` (for logs whose
+    features come from another detector, e.g. the car park's beacon poles)."""
+    extraction: ExtractionParams | None = None
+    """The extractor's settings for :attr:`laser` (default ``ExtractionParams()``, the
+    simulator's)."""
     min_beams_line: int = 12
     """Beams that must hit a wall, at an incidence below :attr:`max_incidence_rad`,
     for the wall to count as in view in a scan (the extractor's least line support)."""
@@ -37,11 +52,16 @@ class ChangeParams:
     n_beams: int = 361
     """Beams over the field of view in the predicted view."""
     max_range_m: float = 30.0
-    """Range within which a feature counts as in view (extraction range)."""
+    """Range within which a feature counts as in view, under either rule.  Beyond it,
+    features the map does not hold (trees too far to be extracted, so never mapped)
+    may hide the feature or split it into pieces the extractor rejects, so not seeing
+    it there says little."""
     max_move_m: float = 6.0
-    """Farthest a known feature is looked for when no landmark is associated with it."""
+    """Farthest a known feature is looked for when no landmark is associated with it
+    (widened by three of the feature's own position σ)."""
     max_turn_rad: float = 0.35
-    """Largest turn of a line considered a move of that line."""
+    """Largest turn of a line considered a move of that line (widened by three of the
+    line's own angle σ)."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
@@ -65,6 +85,21 @@ class ChangeParams:
                 raise ValueError(f"ChangeParams.{name} must be a finite number > 0, got {v!r}")
         if self.fov_rad > 2.0 * math.pi:
             raise ValueError(f"ChangeParams.fov_rad must be <= 2π, got {self.fov_rad}")
+        if self.laser is not None and not isinstance(self.laser, LaserParams):
+            raise ValueError(
+                f"ChangeParams.laser must be a LaserParams or None, got {type(self.laser).__name__}"
+            )
+        if self.extraction is not None and not isinstance(self.extraction, ExtractionParams):
+            raise ValueError(
+                "ChangeParams.extraction must be an ExtractionParams or None, got "
+                f"{type(self.extraction).__name__}"
+            )
+
+    def with_sensor(
+        self, laser: LaserParams, extraction: ExtractionParams | None = None
+    ) -> ChangeParams:
+        """These settings with the view predicted by ``laser`` and its extractor."""
+        return dataclasses.replace(self, laser=laser, extraction=extraction)
 
     def threshold(self, dof: int) -> float:
         """χ² threshold of the test with ``dof`` degrees of freedom."""

@@ -2,11 +2,24 @@
 
 The known map itself is the occlusion model: its walls (from their surveyed extents)
 and circles are ray cast from the estimated poses, so a feature hidden behind
-another known feature is not expected.  A feature counts as in view in a scan when
-enough beams hit it (:attr:`ChangeParams.min_beams_line`, ``min_beams_circle``),
-within the extraction range, and, for a wall, at an incidence the extractor can use.
-A known line without a surveyed extent is never predicted in view (its length is
-unknown), so it can be classified unobserved but not missing.
+another known feature is not expected.  A known line without a surveyed extent is
+never predicted in view (its length is unknown), so it can be classified unobserved
+but not missing.  Whether a feature the rays hit counts as in view in that scan:
+
+* with the log's laser (:attr:`ChangeParams.laser`), when the extractor returns it
+  from the noise-free scan the laser would record there, cut at
+  :attr:`ChangeParams.max_range_m`.  Being hit by many beams is
+  not enough: a small trunk at 15 m is hit by a dozen beams and still fails the
+  extractor's predicted signal-to-noise rule, and a feature predicted in view but
+  beyond what the extractor can use would be called missing though it stands where
+  the map says.  The extractor's rules depend on the geometry, not on the noise, so
+  the noise-free scan is the one that decides.  The range cut is there because what
+  the map does not hold occludes too: a tree too far to be extracted (hence never
+  mapped) still splits a wall behind it into pieces too short to extract, so a far
+  feature's absence from the scans is weak evidence;
+* without it, when enough beams hit it (:attr:`ChangeParams.min_beams_line`,
+  ``min_beams_circle``) within :attr:`ChangeParams.max_range_m` and, for a wall, at
+  an incidence the extractor can use.
 """
 
 from __future__ import annotations
@@ -19,7 +32,8 @@ from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.sim.laser import cast_rays
+from mapfuse_core.perception.extraction import ExtractionParams, extract_features
+from mapfuse_core.sim.laser import Scan, cast_rays
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 __all__ = ["map_world", "scans_in_view", "world_as_map"]
@@ -100,6 +114,10 @@ def scans_in_view(
     world = map_world(both)
     if world is None:
         return counts
+    P = np.asarray(poses, dtype=float)
+    if params.laser is not None:
+        _extractor_views(world, P, params, counts)
+        return counts
     half = 0.5 * params.fov_rad
     bearings = np.linspace(-half, half, params.n_beams)
     seg_normal = {
@@ -107,7 +125,6 @@ def scans_in_view(
         for s in world.segments
     }
     circle_ids = set(world.circ_ids.tolist())
-    P = np.asarray(poses, dtype=float)
     for k in range(0, P.shape[0], params.view_stride):
         x = P[k]
         if not np.all(np.isfinite(x)):
@@ -127,3 +144,26 @@ def scans_in_view(
             if ok:
                 counts[fid] += params.view_stride
     return counts
+
+
+def _extractor_views(
+    world: World, poses: FloatArray, params: ChangeParams, counts: dict[int, int]
+) -> None:
+    """Add to ``counts`` the scans in which the extractor returns each feature from the
+    noise-free scan of ``world`` that ``params.laser`` records at the pose."""
+    laser = params.laser
+    assert laser is not None
+    extraction = params.extraction if params.extraction is not None else ExtractionParams()
+    bearings = laser.bearings()
+    reach = min(laser.max_range_m, params.max_range_m)
+    for k in range(0, poses.shape[0], params.view_stride):
+        x = poses[k]
+        if not np.all(np.isfinite(x)):
+            continue
+        ranges, hit = cast_rays(world, x, x[2] + bearings, reach)
+        if not np.any(hit >= 0):
+            continue
+        found = extract_features(Scan(bearings, ranges, hit), laser, extraction).features
+        for fid in {int(f.true_id) for f in found}:
+            if fid in counts:
+                counts[fid] += params.view_stride
