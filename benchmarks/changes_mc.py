@@ -28,6 +28,7 @@ from mapfuse.changes import detect_changes
 from mapfuse.result import EstimatorResult
 from mapfuse.run import run
 from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
@@ -62,6 +63,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         m = r.metrics
         row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
         row[f"{name}_nees_mean"] = m["nees"]["mean"]
+        row[f"{name}_nees"] = _nees(r.result, log)
         kg = m.get("known_map_rejections")
         changed_ids = _changed_ids(sc)
         if kg is not None:
@@ -71,6 +73,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             ungated = run(log, "ekf", fusion=True, known_map_gating=False)
         row[f"{name}_off_rmse_m"] = ungated.metrics["position_error_m"]["rmse"]
         row[f"{name}_off_nees_mean"] = ungated.metrics["nees"]["mean"]
+        row[f"{name}_off_nees"] = _nees(ungated.result, log)
         if r.result.anchor is None:
             row[f"{name}_anchor"] = False
             continue
@@ -106,6 +109,14 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             if c.status.value == "missing" or c.known_id in truth.removed
         ]
     return row
+
+
+def _nees(result: EstimatorResult, log: MeasurementLog) -> list[float | None]:
+    """The run's vehicle NEES per step (None where undefined), for the ANEES over seeds."""
+    assert log.true_poses is not None
+    err = pose_errors(result.poses, truth_in_global(log.true_poses[: result.n_steps]))
+    nees = nees_series(err.dx, result.covs)
+    return [None if not np.isfinite(v) else round(float(v), 4) for v in nees]
 
 
 def _changed_ids(sc: Scenario) -> set[int]:
