@@ -54,6 +54,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         moved=args.moved,
         removed=args.removed,
         added=args.added,
+        move_m=_range(args.move_m),
     )
     params = ChangeParams(level=args.level).with_sensor(base.laser)
     row: dict[str, object] = {"seed": seed}
@@ -111,6 +112,11 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
     return row
 
 
+def _range(text: str) -> tuple[float, float]:
+    lo, hi = (float(v) for v in text.split(","))
+    return lo, hi
+
+
 def _nees(result: EstimatorResult, log: MeasurementLog) -> list[float | None]:
     """The run's vehicle NEES per step (None where undefined), for the ANEES over seeds."""
     assert log.true_poses is not None
@@ -157,6 +163,7 @@ def main() -> None:
     p.add_argument("--removed", type=float, default=0.05)
     p.add_argument("--added", type=float, default=0.0)
     p.add_argument("--level", type=float, default=0.999)
+    p.add_argument("--move-m", default="0.3,5.0", help="range of the moves 'low,high' (m)")
     p.add_argument(
         "--map-sigma",
         default=None,

@@ -35,6 +35,7 @@ def main() -> None:
     ap.add_argument("--removed", type=float, default=0.05)
     ap.add_argument("--added", type=float, default=0.05)
     ap.add_argument("--min-scans", type=int, default=None, help="re-score missing with this K")
+    ap.add_argument("--move-m", default="0.3,5.0", help="the benchmark's --move-m")
     a = ap.parse_args()
     with open(a.jsonl) as f:
         rows = [json.loads(line) for line in f]
@@ -51,6 +52,7 @@ def main() -> None:
             moved=a.moved,
             removed=a.removed,
             added=a.added,
+            move_m=tuple(float(v) for v in a.move_m.split(",")),  # type: ignore[arg-type]
         )
         for pre in ("unchanged", "changed"):
             if f"{pre}_score" not in r:
