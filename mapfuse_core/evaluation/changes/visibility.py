@@ -8,9 +8,9 @@ but not missing.  Whether a feature the rays hit counts as in view in that scan:
 
 * with the log's laser (:attr:`ChangeParams.laser`), when the extractor returns it
   from the noise-free scan the laser would record there, cut at
-  :attr:`ChangeParams.max_range_m`.  Being hit by many beams is
-  not enough: a small trunk at 15 m is hit by a dozen beams and still fails the
-  extractor's predicted signal-to-noise rule, and a feature predicted in view but
+  :attr:`ChangeParams.max_range_m`.  Being hit by many beams is not enough: a
+  trunk of 0.46 m radius at 8 m is hit by a dozen beams 0.5° apart and still fails
+  the extractor's predicted signal-to-noise rule, and a feature predicted in view but
   beyond what the extractor can use would be called missing though it stands where
   the map says.  The extractor's rules depend on the geometry, not on the noise, so
   the noise-free scan is the one that decides.  The range cut is there because what
