@@ -88,9 +88,16 @@ def test_moved_circle_and_turned_line_are_moved_with_their_displacement():
     assert all(k.status != ChangeStatus.MOVED for k in others)
 
 
+def _most_in_view(log: MeasurementLog, kind: FeatureKind) -> int:
+    """Index of the known feature of ``kind`` predicted in view the most scans."""
+    rep = _classify(log)
+    rows = [i for i, c in enumerate(rep.known) if c.kind == kind]
+    return max(rows, key=lambda i: rep.known[i].scans_in_view)
+
+
 def test_move_beyond_the_gate_links_the_unassociated_landmark():
     log = _log()
-    circ = int(np.nonzero(log.known_map.kinds == FeatureKind.CIRCLE)[0][0])
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
     kid = int(log.known_map.ids[circ])
     p = log.known_map.params.copy()
     p[circ, :2] += (3.0, 0.0)
@@ -104,17 +111,44 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
     rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
     c = rep.known[circ]
+    # Predicted in view where the map has it, not seen there: the landmark is its move.
+    assert c.scans_in_view >= PARAMS.min_scans
     assert c.status == ChangeStatus.MOVED
     assert not c.associated
     assert c.displacement[0] == pytest.approx(-3.0, abs=0.3)
     assert kid not in {n.true_id for n in rep.new}
 
 
+def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
+    """A known tree never predicted in view, and an unassociated tree 3 m from it: the
+    landmark may be a tree the map lacks, so it is new and the known one unobserved."""
+    log = _log()
+    rep0 = _classify(log)
+    circ = min(
+        (i for i, c in enumerate(rep0.known) if c.kind == FeatureKind.CIRCLE),
+        key=lambda i: rep0.known[i].scans_in_view,
+    )
+    assert rep0.known[circ].scans_in_view < PARAMS.min_scans
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
+    known = set(moved.known_map.ids.tolist()) - {kid}
+    lm = moved.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start = moved.true_poses[0]
+    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    assert rep.known[circ].status == ChangeStatus.UNOBSERVED
+    assert kid in {n.true_id for n in rep.new}
+
+
 def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_landmark():
     """A line surveyed 0.42 rad off (max_turn_rad 0.35 plus under 3 of the map's
     σθ = 0.05 rad) and not associated by the estimator is that line, moved."""
     log = _log()
-    line = int(np.nonzero(log.known_map.kinds == FeatureKind.LINE)[0][0])
+    line = _most_in_view(log, FeatureKind.LINE)
     kid = int(log.known_map.ids[line])
     assert math.sqrt(log.known_map.covs[line, 2, 2]) == pytest.approx(0.05)
     p = log.known_map.params.copy()

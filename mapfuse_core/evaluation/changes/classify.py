@@ -6,10 +6,11 @@
 2. A known feature with an associated landmark is tested against that landmark's
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
-3. A known feature without one is compared with the unassociated landmarks of its
-   kind within ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the
-   feature after a move beyond the association gate, and is tested the same way (a
-   consistent one is a landmark the estimator did not merge: the feature is confirmed).
+3. A known feature without one, predicted in view at its surveyed place for at least
+   ``K`` scans, is compared with the unassociated landmarks of its kind within
+   ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the feature
+   after a move beyond the association gate, and is tested the same way (a consistent
+   one is a landmark the estimator did not merge: the feature is confirmed).
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), else unobserved.
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
@@ -144,6 +145,11 @@ def classify_changes(
     # Moves beyond the association gate: nearest unassociated landmark, one to one.
     pairs = []
     for r in unassociated:
+        if in_view[int(known.ids[r])] < params.min_scans:
+            # Not seen where the map has it, but never expected there either: nothing
+            # says it moved, and a landmark near it is as likely a feature the map
+            # lacks (another tree a few metres away) as this one moved.
+            continue
         kind = FeatureKind(int(known.kinds[r]))
         for i, s in enumerate(free):
             if s.kind == kind:
