@@ -195,11 +195,45 @@ def test_parallel_lines_only_are_degenerate() -> None:
     assert np.linalg.eigvalsh(res.cov[:2, :2]).max() > 1e6
 
 
-def test_parallel_lines_and_one_circle_are_fixed() -> None:
+def test_parallel_lines_and_one_circle_are_unverifiable() -> None:
+    """The circle alone fixes the position along the lines: no other pairing checks it."""
     lines = np.array([[0, 0, 0], [5, 3, 0], [-4, 7, math.pi], [2, 12, 0]], float)
     params = np.vstack([lines, [[3.0, 5.0, 0.4]]])
     covs = [line_cov(f[2], 0.05, 0.01) for f in lines] + [circle_cov(0.05, 0.05)]
     B = make_map([LINE] * 4 + [CIRCLE], params, covs)
+    res = ccda_match(moved_copy(B, T_SYM), B)
+    assert not res.accepted
+    assert res.reason == "unverifiable"
+    # Without the rule the same pairings are accepted, with the right transform.
+    loose = ccda_match(moved_copy(B, T_SYM), B, CCDAParams(redundant_pairings=False))
+    assert loose.accepted, loose.reason
+    np.testing.assert_allclose(transform_error(loose.x_A_B, T_SYM), 0.0, atol=1e-9)
+
+
+def test_one_wrong_circle_beside_parallel_lines_would_slide_the_match() -> None:
+    """The tree seen is another one, 3 m along the walls from the surveyed tree: the
+    walls cannot tell, so the match would slide by 3 m; it is refused instead."""
+    lines = np.array([[0, 0, 0], [5, 3, 0], [-4, 7, math.pi], [2, 12, 0]], float)
+    params = np.vstack([lines, [[3.0, 5.0, 0.4]]])
+    covs = [line_cov(f[2], 0.05, 0.01) for f in lines] + [circle_cov(0.05, 0.05)]
+    B = make_map([LINE] * 4 + [CIRCLE], params, covs)
+    seen = B.params.copy()
+    seen[4, 0] += 3.0  # along the lines (angle 0)
+    A = moved_copy(make_map([LINE] * 4 + [CIRCLE], seen, covs), T_SYM)
+    loose = ccda_match(A, B, CCDAParams(redundant_pairings=False))
+    assert loose.accepted
+    err = transform_error(loose.x_A_B, T_SYM)
+    assert math.hypot(err[0], err[1]) == pytest.approx(3.0, abs=0.05)
+    res = ccda_match(A, B)
+    assert not res.accepted
+    assert res.reason == "unverifiable"
+
+
+def test_parallel_lines_and_two_circles_are_fixed() -> None:
+    lines = np.array([[0, 0, 0], [5, 3, 0], [-4, 7, math.pi], [2, 12, 0]], float)
+    params = np.vstack([lines, [[3.0, 5.0, 0.4], [-6.0, 4.0, 0.3]]])
+    covs = [line_cov(f[2], 0.05, 0.01) for f in lines] + [circle_cov(0.05, 0.05)] * 2
+    B = make_map([LINE] * 4 + [CIRCLE] * 2, params, covs)
     res = ccda_match(moved_copy(B, T_SYM), B)
     assert res.accepted, res.reason
     np.testing.assert_allclose(transform_error(res.x_A_B, T_SYM), 0.0, atol=1e-9)

@@ -49,7 +49,9 @@ The method, step by step:
    whose edge to one member failed its gate by chance.
 5. **Acceptance.**  The match is accepted only with at least ``min_pairings``
    pairings (the paper: "more than three"), a covariance showing that the
-   pairings fix the transform, and no competing hypothesis: the nodes that agree
+   pairings fix the transform, and fix it without any one of them (a pairing
+   that alone fixes a direction cannot be checked by the others), and no
+   competing hypothesis: the nodes that agree
    with the transform are removed, the next maximum clique is searched and
    fitted, and so on while a clique large enough to compete remains; if a
    hypothesis whose transform is incompatible with the best one has comparable

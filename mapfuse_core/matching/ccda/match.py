@@ -12,6 +12,8 @@ from mapfuse_core.matching.ccda.clique import _CliqueGraph, _SearchBudget, _Sear
 from mapfuse_core.matching.ccda.graph import _build_graph, _GraphTooLargeError, _k_core
 from mapfuse_core.matching.ccda.params import CCDAParams, CCDAResult, _check_params, _Gates
 from mapfuse_core.matching.ccda.prepare import _centred, _Prep, _prepare
+from mapfuse_core.matching.ccda.residuals import _residuals
+from mapfuse_core.matching.ccda.transform import _cov_of
 from mapfuse_core.matching.ccda.verification import _compatible, _Hypothesis, _hypothesis
 
 _DEFAULT_PARAMS = CCDAParams()
@@ -35,22 +37,44 @@ def _uncentre(
     return x, 0.5 * (cov + cov.T)
 
 
-def _overlap_std(B: _Prep, h: _Hypothesis) -> tuple[float, float]:
+def _overlap_std(B: _Prep, h: _Hypothesis, cov: FloatArray | None = None) -> tuple[float, float]:
     """Largest standard deviation (worst direction) of the position, in ``A``, of the
-    centroid of ``h``'s paired ``B`` features, and that of the angle.
+    centroid of ``h``'s paired ``B`` features, and that of the angle (under ``cov``,
+    default the hypothesis's own covariance).
 
     The position of the frame origin is as uncertain as the lever arm of the angle
     from the pairings to wherever that origin happens to be; the centroid of the
     pairings is where the match is judged, whatever the maps' origins.
     """
+    P = h.cov if cov is None else cov
     c = B.p[h.jj].mean(axis=0) if h.jj.size else np.zeros(2)
     th = float(h.T[2])
     dR = np.array([[-math.sin(th), -math.cos(th)], [math.cos(th), -math.sin(th)]])
     J = np.zeros((2, 3))
     J[:, :2] = np.eye(2)
     J[:, 2] = dR @ c
-    w = np.linalg.eigvalsh(J @ h.cov @ J.T)
-    return math.sqrt(max(float(w.max()), 0.0)), math.sqrt(max(float(h.cov[2, 2]), 0.0))
+    w = np.linalg.eigvalsh(J @ P @ J.T)
+    return math.sqrt(max(float(w.max()), 0.0)), math.sqrt(max(float(P[2, 2]), 0.0))
+
+
+def _fixed_without_each(A: _Prep, B: _Prep, h: _Hypothesis, params: CCDAParams) -> bool:
+    """Whether the transform stays fixed (:attr:`CCDAParams.max_transform_std_xy_m`,
+    ``max_transform_std_theta_rad``) without any one of ``h``'s pairings.
+
+    A pairing that alone fixes a direction of the transform (the one tree beside a
+    row of parallel walls, which fixes the position along them) cannot be checked by
+    the others: its leave-one-out test has nothing to test it against and passes
+    whatever it is, and if it is wrong the whole match slides with it.
+    """
+    _, J, S, _ = _residuals(A, B, h.T, h.ii, h.jj)
+    Jt = J.transpose(0, 2, 1)
+    Hk = Jt @ np.linalg.solve(S, J)
+    H = Hk.sum(axis=0)
+    for k in range(h.ii.size):
+        std_xy, std_th = _overlap_std(B, h, _cov_of(H - Hk[k]))
+        if std_xy > params.max_transform_std_xy_m or std_th > params.max_transform_std_theta_rad:
+            return False
+    return True
 
 
 def _result(
@@ -195,6 +219,8 @@ def ccda_match(
     std_xy, std_th = _overlap_std(B, best)
     if std_xy > params.max_transform_std_xy_m or std_th > params.max_transform_std_theta_rad:
         return out(False, "degenerate geometry")
+    if params.redundant_pairings and not _fixed_without_each(A, B, best, params):
+        return out(False, "unverifiable")
     if _ambiguous(hyps, params, gates):
         return out(False, "ambiguous")
     if not complete:

@@ -30,6 +30,12 @@ class CCDAParams:
     the pairings to count as fixing it; larger means degenerate geometry."""
     max_transform_std_theta_rad: float = 0.05
     """Largest standard deviation of the transform's angle for it to count as fixed."""
+    redundant_pairings: bool = True
+    """*(choice)* Accept only a match whose transform stays fixed (by the two limits
+    above) without any one of its pairings, so that every pairing is checked by the
+    others.  Otherwise the match is refused as ``"unverifiable"``: one wrong pairing
+    that alone fixes a direction (a tree beside parallel walls) would slide the whole
+    match along that direction, and its leave-one-out test cannot see it."""
     parallel_tol_rad: float = 0.1
     """Two lines are parallel (their distance becomes an invariant too) when the angle
     between them is at most this in both maps.  Should exceed a few σ of the angle
@@ -97,6 +103,7 @@ REASONS = (
     "too few features",
     "too few pairings",
     "degenerate geometry",
+    "unverifiable",
     "ambiguous",
     "graph too large",
     "search_limit",
@@ -113,6 +120,8 @@ class CCDAResult:
     """One of :data:`REASONS`: ``"accepted"``; ``"empty map"``, ``"too few features"``
     (inputs); ``"too few pairings"`` (best hypothesis below ``min_pairings``);
     ``"degenerate geometry"`` (its pairings do not fix the transform);
+    ``"unverifiable"`` (they do, but not without one of them:
+    :attr:`CCDAParams.redundant_pairings`);
     ``"ambiguous"`` (an incompatible rival has comparable support, see
     :attr:`CCDAParams.rival_fraction`); ``"graph too large"`` (``max_edges``);
     ``"search_limit"`` (the clique search exhausted ``max_clique_work``, or
