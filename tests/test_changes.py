@@ -31,9 +31,17 @@ def _log() -> MeasurementLog:
     return synthetic_log(steps=300, seed=3, known_fraction=0.7)
 
 
-def _classify(log: MeasurementLog, params: ChangeParams = PARAMS, anchor_offset=None):
-    """Classify with the true decisions and the true trajectory (tiny pose covariance)."""
-    known = set(log.known_map.ids.tolist())
+def _classify(
+    log: MeasurementLog,
+    params: ChangeParams = PARAMS,
+    anchor_offset=None,
+    unassociated: int | None = None,
+):
+    """Classify with the true decisions and the true trajectory (tiny pose covariance).
+
+    ``unassociated``: a known id the estimator never associated, so that its
+    observations form an unlinked landmark."""
+    known = set(log.known_map.ids.tolist()) - {unassociated}
     lm = log.feat_true_id.copy()
     kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
     start = log.true_poses[0]
@@ -103,13 +111,7 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     p[circ, :2] += (3.0, 0.0)
     moved = _replace_known(log, params=p)
     # The estimator did not associate it: its observations stay unlinked.
-    known = set(moved.known_map.ids.tolist()) - {kid}
-    lm = moved.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
-    start = moved.true_poses[0]
-    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
-    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    rep = _classify(moved, unassociated=kid)
     c = rep.known[circ]
     # Predicted in view where the map has it, not seen there: the landmark is its move.
     assert c.scans_in_view >= PARAMS.min_scans
@@ -133,13 +135,7 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     p = log.known_map.params.copy()
     p[circ, :2] += (3.0, 0.0)
     moved = _replace_known(log, params=p)
-    known = set(moved.known_map.ids.tolist()) - {kid}
-    lm = moved.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
-    start = moved.true_poses[0]
-    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
-    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    rep = _classify(moved, unassociated=kid)
     assert rep.known[circ].status == ChangeStatus.UNOBSERVED
     assert kid in {n.true_id for n in rep.new}
 
@@ -154,13 +150,7 @@ def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_land
     p = log.known_map.params.copy()
     p[line, 2] += 0.42
     moved = _replace_known(log, params=p)
-    known = set(moved.known_map.ids.tolist()) - {kid}
-    lm = moved.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
-    start = moved.true_poses[0]
-    poses = np.array([relative(start, x)[0] for x in moved.true_poses])
-    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    rep = classify_changes(moved, lm, kn, poses, covs, start, PARAMS)
+    rep = _classify(moved, unassociated=kid)
     c = rep.known[line]
     assert c.status == ChangeStatus.MOVED
     assert not c.associated
@@ -169,7 +159,7 @@ def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_land
     # Without the widening (a map that claims exact angles) the search gives up.
     exact = moved.known_map.covs.copy()
     exact[line, 2, 2] = 1e-12
-    rep2 = classify_changes(_replace_known(moved, covs=exact), lm, kn, poses, covs, start, PARAMS)
+    rep2 = _classify(_replace_known(moved, covs=exact), unassociated=kid)
     assert rep2.known[line].status in (ChangeStatus.MISSING, ChangeStatus.UNOBSERVED)
     assert kid in {n.true_id for n in rep2.new}
 
