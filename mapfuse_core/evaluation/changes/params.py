@@ -32,8 +32,8 @@ class ChangeParams:
     """The scanner the log was recorded with.  Given, a feature is in view in a scan when
     the extractor (:attr:`extraction`) returns it from the noise-free scan that this
     laser would record of the map from the estimated pose: the extractor's own rules
-    (points, length, incidence, a circle's predicted signal-to-noise) decide, at the
-    laser's range, and the beam-count rule below is not used.  ``None``: the beam-count
+    (points, length, incidence, a circle's predicted signal-to-noise) decide, within
+    :attr:`max_range_m`, and the beam-count rule below is not used.  ``None``: the beam-count
     rule with :attr:`fov_rad`, :attr:`n_beams` and :attr:`max_range_m` (for logs whose
     features come from another detector, e.g. the car park's beacon poles)."""
     extraction: ExtractionParams | None = None

@@ -13,8 +13,12 @@ from mapfuse_core.matching.ccda.graph import _build_graph, _GraphTooLargeError, 
 from mapfuse_core.matching.ccda.params import CCDAParams, CCDAResult, _check_params, _Gates
 from mapfuse_core.matching.ccda.prepare import _centred, _Prep, _prepare
 from mapfuse_core.matching.ccda.residuals import _residuals
-from mapfuse_core.matching.ccda.transform import _cov_of
-from mapfuse_core.matching.ccda.verification import _compatible, _Hypothesis, _hypothesis
+from mapfuse_core.matching.ccda.verification import (
+    _compatible,
+    _deleted_covs,
+    _Hypothesis,
+    _hypothesis,
+)
 
 _DEFAULT_PARAMS = CCDAParams()
 """The default tuning (a frozen dataclass, shared safely as a default argument)."""
@@ -67,11 +71,8 @@ def _fixed_without_each(A: _Prep, B: _Prep, h: _Hypothesis, params: CCDAParams) 
     whatever it is, and if it is wrong the whole match slides with it.
     """
     _, J, S, _ = _residuals(A, B, h.T, h.ii, h.jj)
-    Jt = J.transpose(0, 2, 1)
-    Hk = Jt @ np.linalg.solve(S, J)
-    H = Hk.sum(axis=0)
-    for k in range(h.ii.size):
-        std_xy, std_th = _overlap_std(B, h, _cov_of(H - Hk[k]))
+    for P in _deleted_covs(J, np.linalg.inv(S)):
+        std_xy, std_th = _overlap_std(B, h, P)
         if std_xy > params.max_transform_std_xy_m or std_th > params.max_transform_std_theta_rad:
             return False
     return True

@@ -57,6 +57,18 @@ def _gate_ratio(
     return ratio
 
 
+def _deleted_covs(J: FloatArray, W: np.ndarray) -> FloatArray:
+    """(m, 3, 3) covariance of the transform fitted without each pairing in turn:
+    ``(H − H_k)⁻¹`` with ``H_k = J_kᵀ W_k J_k``, free directions given variance
+    ``1 / _INFO_FLOOR``."""
+    Jt = J.transpose(0, 2, 1)
+    Hk = Jt @ W @ J
+    Hm = Hk.sum(axis=0)[None] - Hk
+    w, V = np.linalg.eigh(0.5 * (Hm + Hm.transpose(0, 2, 1)))
+    P: FloatArray = (V / np.maximum(w, _INFO_FLOOR)[:, None, :]) @ V.transpose(0, 2, 1)
+    return P
+
+
 def _deleted_ratio(
     A: _Prep, B: _Prep, T: FloatArray, ii: IntArray, jj: IntArray, gates: _Gates
 ) -> FloatArray:
@@ -74,11 +86,8 @@ def _deleted_ratio(
     r, J, S, dof = _residuals(A, B, T, ii, jj)
     W = np.linalg.inv(S)
     Jt = J.transpose(0, 2, 1)
-    Hk = Jt @ W @ J
     gk = (Jt @ W @ r[:, :, None])[:, :, 0]
-    Hm = Hk.sum(axis=0)[None] - Hk
-    w, V = np.linalg.eigh(0.5 * (Hm + Hm.transpose(0, 2, 1)))
-    Pm = (V / np.maximum(w, _INFO_FLOOR)[:, None, :]) @ V.transpose(0, 2, 1)
+    Pm = _deleted_covs(J, W)
     delta = (Pm @ gk[:, :, None])[:, :, 0]
     rt = r + (J @ delta[:, :, None])[:, :, 0]
     St = S + J @ Pm @ Jt
