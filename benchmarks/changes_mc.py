@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 
 from mapfuse.changes import detect_changes
+from mapfuse.figures import run_errors
 from mapfuse.result import EstimatorResult
-from mapfuse.run import run
+from mapfuse.run import Run, run
 from mapfuse_core.data.measlog import MeasurementLog
-from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
@@ -64,7 +64,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         m = r.metrics
         row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
         row[f"{name}_nees_mean"] = m["nees"]["mean"]
-        row[f"{name}_nees"] = _nees(r.result, log)
+        row[f"{name}_nees"] = _nees(r)
         kg = m.get("known_map_rejections")
         changed_ids = _changed_ids(sc)
         if kg is not None:
@@ -74,7 +74,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             ungated = run(log, "ekf", fusion=True, known_map_gating=False)
         row[f"{name}_off_rmse_m"] = ungated.metrics["position_error_m"]["rmse"]
         row[f"{name}_off_nees_mean"] = ungated.metrics["nees"]["mean"]
-        row[f"{name}_off_nees"] = _nees(ungated.result, log)
+        row[f"{name}_off_nees"] = _nees(ungated)
         if r.result.anchor is None:
             row[f"{name}_anchor"] = False
             continue
@@ -117,12 +117,9 @@ def _range(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _nees(result: EstimatorResult, log: MeasurementLog) -> list[float | None]:
+def _nees(r: Run) -> list[float | None]:
     """The run's vehicle NEES per step (None where undefined), for the ANEES over seeds."""
-    assert log.true_poses is not None
-    err = pose_errors(result.poses, truth_in_global(log.true_poses[: result.n_steps]))
-    nees = nees_series(err.dx, result.covs)
-    return [None if not np.isfinite(v) else round(float(v), 4) for v in nees]
+    return [None if not np.isfinite(v) else round(float(v), 4) for v in run_errors(r)[1]]
 
 
 def _changed_ids(sc: Scenario) -> set[int]:

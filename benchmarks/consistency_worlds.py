@@ -33,9 +33,10 @@ import numpy as np
 
 from mapfuse.campaign.cli import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
+from mapfuse.figures import run_errors
 from mapfuse.run import run
 from mapfuse_core.data.measlog import MeasurementLog
-from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors, truth_in_global
+from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse
 from mapfuse_core.sim.scenario import load_scenario
@@ -83,9 +84,7 @@ def _rows(log: MeasurementLog, seed: int, version: str, estimators: list[str]) -
             if name == "ekf":
                 upstream = r.result
             res = r.result
-            n = res.n_steps
-            err = pose_errors(res.poses, truth_in_global(log.true_poses[:n]))
-            nees = nees_series(err.dx, res.covs)
+            dx, nees = run_errors(r)
             anchor_nees = None
             if res.anchor is not None:
                 d = pose_errors(
@@ -101,7 +100,7 @@ def _rows(log: MeasurementLog, seed: int, version: str, estimators: list[str]) -
                     "nees": nees.tolist(),
                     "nees_mean": float(np.nanmean(nees)),
                     "anchor_nees": anchor_nees,
-                    "rmse_m": float(np.sqrt(np.mean(err.position**2))),
+                    "rmse_m": float(np.sqrt(np.mean(np.sum(dx[:, :2] ** 2, axis=1)))),
                     "wall_s": time.perf_counter() - t0,
                 }
             )
