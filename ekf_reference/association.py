@@ -34,6 +34,7 @@ from mapfuse_core.matching import nearest_neighbour as nn_search
 
 __all__ = [
     "Candidate",
+    "IteratedUpdate",
     "Query",
     "apply",
     "apply_iterated",
@@ -322,13 +323,30 @@ def apply(state: GaussianMap, chosen: list[Candidate]) -> None:
     del idx
 
 
+@dataclass(frozen=True)
+class IteratedUpdate:
+    """Outcome of :func:`apply_iterated`."""
+
+    iterations: int
+    """Linearisations done (0 without pairings)."""
+    converged: bool
+    """Whether the last step moved no mean by more than the tolerance."""
+    nis: float
+    """Normalised innovation squared ``νᵀ S⁻¹ ν`` of the pairings at the last
+    linearisation, against the prior: ``ν = r(x) + H (x0 − x)``, ``S = H P0 Hᵀ + R``.
+    At the solution of a nearly linear problem it is the minimum of the Gauss–Newton
+    cost, χ² with :attr:`dims` degrees of freedom less any the prior leaves free."""
+    dims: int
+    """Dimension of the stacked pairing residual."""
+
+
 def apply_iterated(
     state: GaussianMap,
     pairings: Callable[[GaussianMap], list[Candidate]],
     max_iterations: int = 10,
     tol: float = 1e-9,
-) -> tuple[int, bool]:
-    """Iterated EKF update (Gauss–Newton on prior and pairings): (iterations, converged).
+) -> IteratedUpdate:
+    """Iterated EKF update (Gauss–Newton on prior and pairings).
 
     ``pairings(state)`` evaluates the same pairings at ``state.mean``.  Each iteration
     relinearises them at the last estimate ``x`` and updates the prior ``(x0, P0)`` with
@@ -342,9 +360,10 @@ def apply_iterated(
     """
     chosen = pairings(state)
     if not chosen:
-        return 0, True
+        return IteratedUpdate(0, True, 0.0, 0)
     x0, P0 = state.mean.copy(), state.cov.copy()
     angles = state.kinds_roles()[0] != int(ElementKind.CIRCLE)
+    nis = 0.0
     for it in range(1, max_iterations + 1):
         x = state.mean.copy()
         if it > 1:
@@ -354,9 +373,9 @@ def apply_iterated(
         dx[angles, 2] = wrap_angle(dx[angles, 2])
         elems = sorted({i for c in chosen for i in c.indices})
         state.mean, state.cov = x0.copy(), P0.copy()
-        state.update(elems, r + H @ dx.reshape(-1)[idx], H, R)
+        nis = state.update(elems, r + H @ dx.reshape(-1)[idx], H, R)
         step = state.mean - x
         step[angles, 2] = wrap_angle(step[angles, 2])
         if float(np.abs(step).max()) <= tol:
-            return it, True
-    return max_iterations, False
+            return IteratedUpdate(it, True, nis, int(r.size))
+    return IteratedUpdate(max_iterations, False, nis, int(r.size))

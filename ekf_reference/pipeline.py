@@ -47,6 +47,10 @@ from mapfuse_core.matching.ccda import ccda_match
 
 __all__ = ["run_ekf"]
 
+JOINTLY_INCONSISTENT = "jointly inconsistent"
+"""``EKFResult.ccda_reasons`` key of CCDA matches the joint test refused
+(:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
+
 
 class _Tracks:
     """Union-find over feature tracks, so every observation ends with one landmark."""
@@ -88,6 +92,7 @@ class _Run:
         self.anchor: AnchorResult | None = None
         self.ccda_attempts = 0
         self.ccda_reasons: dict[str, int] = {}
+        self.ccda_refused: list[tuple[int, float, int]] = []
         self.tentative = Tentatives(config.tentative_min_sightings, config.tentative_window_steps)
         self.anchor_step = -1
         self.known, self.known_centre = centred_known_map(log.known_map)
@@ -452,13 +457,16 @@ class _Run:
             covs=np.stack([g.block(i) for i in feats]),
             extents=np.array([g.elements[i].extent for i in feats], dtype=np.float64),
         )
-        res = ccda_match(map_a, known, self.config.data_association.ccda)
-        self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
+        assoc = self.config.data_association
+        res = ccda_match(map_a, known, assoc.ccda)
         if not res.accepted:
+            self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
             return
+        # Fused on a copy first: a match the joint test refuses leaves the map untouched.
+        trial = g.copy()
         # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
-        sig = np.array(self.config.data_association.anchor_prior_sigma)
-        g.add(
+        sig = np.array(assoc.anchor_prior_sigma)
+        trial.add(
             Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1),
             res.x_A_B,
             np.diag(sig**2),
@@ -466,31 +474,48 @@ class _Run:
         known_index: dict[int, int] = {}
         for j in range(len(known)):
             kind = ElementKind.of_feature(int(known.kinds[j]))
-            kid = int(known.ids[j])
             cov = known.covs[j]
             if kind == ElementKind.LINE:
                 cov = bind_line_cov(known.params[j], cov)
             extent = (math.nan, math.nan)
             if known.extents is not None and kind == ElementKind.LINE:
                 extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
-            track = self.tracks.new()
-            self.tracks.mark_known(track, kid)
-            known_index[j] = g.add(
-                Element(kind, Role.KNOWN, moving=False, track=track, extent=extent, true_id=kid),
+            known_index[j] = trial.add(
+                Element(
+                    kind,
+                    Role.KNOWN,
+                    moving=False,
+                    track=-1,
+                    extent=extent,
+                    true_id=int(known.ids[j]),
+                ),
                 known.params[j],
                 cov,
             )
         pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
         # The anchor's prior is flat: iterate, or the anchor depends on where the
         # pairings happened to be linearised (CCDA's estimate).
-        its, converged = apply_iterated(g, lambda state: element_pairings(state, pairs))
-        if not converged:
+        upd = apply_iterated(trial, lambda state: element_pairings(state, pairs))
+        dof = upd.dims - 3
+        if assoc.match_joint_test and dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
+            self.ccda_reasons[JOINTLY_INCONSISTENT] = (
+                self.ccda_reasons.get(JOINTLY_INCONSISTENT, 0) + 1
+            )
+            self.ccda_refused.append((k, upd.nis, dof))
+            return
+        self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
+        if not upd.converged:
             warnings.warn(
                 f"step {k}: the update with CCDA's {len(pairs)} pairings did not converge in "
-                f"{its} iterations; the anchor is its last iterate",
+                f"{upd.iterations} iterations; the anchor is its last iterate",
                 RuntimeWarning,
                 stacklevel=2,
             )
+        for j, i in known_index.items():
+            track = self.tracks.new()
+            self.tracks.mark_known(track, int(known.ids[j]))
+            trial.elements[i].track = track
+        g.mean, g.cov, g.elements = trial.mean, trial.cov, trial.elements
         pairings = []
         for ia, jb in res.pairings:
             e = g.elements[feats[ia]]
@@ -613,6 +638,7 @@ def _result(
         obs_known_id=obs_known,
         ccda_attempts=run.ccda_attempts,
         ccda_reasons=dict(run.ccda_reasons),
+        ccda_refused=tuple(run.ccda_refused),
         tentative_promoted=run.tentative.promoted,
         tentative_dropped=run.tentative.dropped,
         loop_closures=tuple(run.loop_closures),

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from ekf_reference.association import (
     Candidate,
+    IteratedUpdate,
     Query,
     _prefilter,
     apply,
@@ -303,9 +304,9 @@ def test_iterated_update_does_not_depend_on_the_flat_priors_mean() -> None:
         apply(m, _pairings(pairs)(m))
         once.append((m.mean[0].copy(), m.block(0).copy()))
         m, pairs = _anchor_map(guess)
-        its, converged = apply_iterated(m, _pairings(pairs))
-        assert converged
-        assert 1 < its < 10
+        upd = apply_iterated(m, _pairings(pairs))
+        assert upd.converged
+        assert 1 < upd.iterations < 10
         iterated.append((m.mean[0].copy(), m.block(0).copy()))
         # The pairings hold at the solution: every residual is (numerically) zero.
         for c in _pairings(pairs)(m):
@@ -330,9 +331,9 @@ def test_iterated_update_is_the_same_across_the_angle_wrap() -> None:
     out = []
     for turned in (False, True):
         m, pairs = _anchor_map(guess, truth, prior, turned)
-        its, converged = apply_iterated(m, _pairings(pairs))
-        assert converged
-        out.append((m.mean[0].copy(), m.block(0).copy(), its))
+        upd = apply_iterated(m, _pairings(pairs))
+        assert upd.converged
+        out.append((m.mean[0].copy(), m.block(0).copy(), upd.iterations))
     (x, P, _), (x_t, P_t, _) = out
     assert x_t[2] < -math.pi + 0.01  # crossed from +π to −π on the way
     np.testing.assert_allclose(compose(x, HALF_TURN), x_t, atol=1e-9)
@@ -341,13 +342,13 @@ def test_iterated_update_is_the_same_across_the_angle_wrap() -> None:
 
 def test_iterated_update_reports_when_it_did_not_converge() -> None:
     m, pairs = _anchor_map(np.array([3.3, -2.3, 0.45]))
-    its, converged = apply_iterated(m, _pairings(pairs), max_iterations=1)
-    assert (its, converged) == (1, False)
+    upd = apply_iterated(m, _pairings(pairs), max_iterations=1)
+    assert (upd.iterations, upd.converged) == (1, False)
 
 
 def test_iterated_update_without_pairings_changes_nothing() -> None:
     m, _ = _anchor_map(np.zeros(3))
     mean, cov = m.mean.copy(), m.cov.copy()
-    assert apply_iterated(m, lambda state: []) == (0, True)
+    assert apply_iterated(m, lambda state: []) == IteratedUpdate(0, True, 0.0, 0)
     np.testing.assert_array_equal(m.mean, mean)
     np.testing.assert_array_equal(m.cov, cov)

@@ -80,6 +80,14 @@ class AssociationConfig:
     at the value CCDA accepts.  The pairings with the known features then fix the
     anchor, so the information of the matched features is counted once (CCDA's own
     covariance, inserted as the paper does, would count it twice)."""
+    match_joint_test: bool = True
+    """Test the pairings of an accepted CCDA match jointly, with the estimator's joint
+    covariance of the matched features, before they are fused; refuse the match when
+    their χ² (dimension less the anchor's 3) exceeds the :attr:`gate_prob` quantile.
+    CCDA tests each pairing with marginal covariances and so cannot see that features
+    drifted together: after metres of unfused drift its gates are loose enough for a
+    wrong pairing among correct ones (``docs/ccda.md``).  Used by the EKF; its
+    decisions carry the outcome to the factor graph."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gate_prob, numbers.Real) and 0.0 < self.gate_prob < 1.0):
@@ -94,7 +102,7 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-        for name in ("one_observation_per_circle", "one_observation_per_line"):
+        for name in ("one_observation_per_circle", "one_observation_per_line", "match_joint_test"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
         if not isinstance(self.ccda, CCDAParams):
