@@ -19,8 +19,10 @@ Which estimate is which, at step ``k`` (time ``t_k``):
   (steps ``0..k−1``, the pose of ``k − lag`` at a constant step time), recorded with its
   marginal covariance just before GTSAM marginalises it;
 * **smoothed window**: the poses still in the window at the end (after
-  ``final_updates`` extra updates), with the smoothed marginals of the window's linear
-  system (:func:`~mapfuse_graph.marginals.tree_marginals`).
+  ``final_updates`` extra updates and, with :attr:`ISAM2Options.final_gauss_newton`, one
+  Gauss–Newton step on the window's graph), with the smoothed marginals of the window's
+  linear system, linearised as :attr:`ISAM2Options.final_marginals` says
+  (:func:`~mapfuse_graph.marginals.bayes_tree_marginals`).
 
 With ``lag_s = inf`` nothing leaves: it is iSAM2 (hence batch, within iSAM2's
 tolerance).  With ``lag_s = 0`` each pose leaves one update after it enters: the final
@@ -58,7 +60,7 @@ from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.isam2 import _DIMS, ISAM2Options, _newest_pose_marginal, isam2_params
 from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
-from mapfuse_graph.marginals import _key_dims, body_to_abs_cov, tree_marginals
+from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import _anchor, _landmarks, _pose_covs, _Solved
 
 __all__ = ["LANDMARK_POLICIES", "FixedLagOptions", "split_by_lag"]
@@ -262,12 +264,20 @@ def _run_fixedlag(
     for _ in range(opts.final_updates * opts.relinearize_skip):
         smoother.update()
     window = isam.calculateBestEstimate()
+    window_graph = smoother.getFactors()
+    tree_at_window = None
+    if opts.final_gauss_newton:
+        # The window's graph holds the marginal factors of what left it: one Gauss–Newton
+        # step on it is the one of :attr:`ISAM2Options.final_gauss_newton`.
+        tree_at_window = window_graph.linearize(window).eliminateMultifrontal()
+        window = window.retract(tree_at_window.optimize())
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     window_covs: dict[int, FloatArray] = {}
     if marginals:
-        lin = smoother.getFactors().linearize(linearization_point)
-        window_covs = tree_marginals(lin, dict(_key_dims(linearization_point)))
+        if tree_at_window is None or opts.final_marginals == "isam2":
+            tree_at_window = window_graph.linearize(linearization_point).eliminateMultifrontal()
+        window_covs = bayes_tree_marginals(tree_at_window, dict(_key_dims(linearization_point)))
     values = gtsam.Values()
     values.insert(window)
     for s, xs in est.gone_poses.items():

@@ -3,9 +3,11 @@
 It holds a reference to ``isam.getLinearizationPoint()`` for the whole run (callbacks
 then get that object instead of a copy).  Each update orders the newest pose last, so
 that its *filtered* estimate and covariance (comparable with the EKF's) are the last
-rows of the root clique (:func:`_newest_pose_marginal`); at the end a few extra updates
-finish relinearisation and all smoothed marginals are read in one pass
-(:func:`~mapfuse_graph.marginals.tree_marginals`).
+rows of the root clique (:func:`_newest_pose_marginal`).  At the end a few extra updates
+finish relinearisation, one Gauss–Newton step on the whole graph removes the lag its
+thresholds leave (:attr:`ISAM2Options.final_gauss_newton`), and all smoothed marginals
+are read in one pass down the same elimination
+(:func:`~mapfuse_graph.marginals.bayes_tree_marginals`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.keys import anchor_key, pose_key
-from mapfuse_graph.marginals import _key_dims, body_to_abs_cov, tree_marginals
+from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import (
     _anchor,
     _landmarks,
@@ -37,13 +39,16 @@ __all__ = ["ISAM2Options", "isam2_params"]
 _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
 
 
-# Angles 5 mrad; positions, line distances and radii 10 cm.  Every residual of the graph is
-# affine in the position-like entries once the angles are fixed (observation, odometry,
+# Angles 10 mrad; positions, line distances and radii 25 cm.  Every residual of the graph
+# is affine in the position-like entries once the angles are fixed (observation, odometry,
 # tie and prior factors alike), so a position-only change moves a factor's linearisation
-# only through position × angle cross terms: 10 cm × 5 mrad = 0.5 mm, below the
-# angle-only term (5 mrad)² × a 50 m lever arm.
-_POS_M = 0.1
-_ANG_RAD = 0.005
+# only through position × angle cross terms: 25 cm × 10 mrad = 2.5 mm, and the angle-only
+# term is ½ (10 mrad)² × a 50 m lever arm = 2.5 mm, both a fraction of the observation
+# noise.  The lag they leave in the final estimate is removed by the final Gauss–Newton
+# step (``ISAM2Options.final_gauss_newton``); ``docs/performance.md`` gives the measured
+# cost and accuracy of these values against tighter ones.
+_POS_M = 0.25
+_ANG_RAD = 0.01
 _DEFAULT_THRESHOLDS: dict[str, tuple[float, ...]] = {
     "x": (_POS_M, _POS_M, _ANG_RAD),
     "l": (_POS_M, _ANG_RAD),
@@ -64,9 +69,10 @@ class ISAM2Options:
     """Relinearise a variable when any entry of its linear delta exceeds this: one float
     for all, or per symbol character (``x`` poses, ``l``/``c`` line/circle landmarks,
     ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
-    dimension.  The defaults (10 cm for positions, line distances and radii, 5 mrad for
-    angles) keep the final estimate close to the batch optimum while relinearising far
-    fewer variables than 0.01 for all (``docs/performance.md``): a line landmark seen
+    dimension.  The defaults (25 cm for positions, line distances and radii, 10 mrad for
+    angles) keep the filtered estimates within a few hundredths of a σ of much tighter
+    thresholds while relinearising far fewer variables (``docs/performance.md``): a line
+    landmark seen
     from hundreds of poses costs hundreds of Python callbacks each time it is
     relinearised, and a long, sparsely observed trajectory that a loop closure shifts
     by centimetres would otherwise be relinearised whole at every step.  The residuals
@@ -85,13 +91,22 @@ class ISAM2Options:
     final_updates: int = 5
     """Extra empty updates at the end so the final estimate is fully relinearised; each
     checks for relinearisation whatever :attr:`relinearize_skip`."""
+    final_gauss_newton: bool = True
+    """After the final updates, one Gauss–Newton step on the whole graph linearised at
+    iSAM2's estimate.  iSAM2 keeps each variable's linearisation point until its delta
+    passes the relinearisation threshold, so its estimate stops short of the optimum by a
+    few hundredths of a σ; one step from there, where the problem is nearly linear,
+    lands on the batch optimum.  With ``final_marginals="relinearized"`` the step reuses
+    the marginals' elimination, so it costs one back-substitution.  The filtered
+    (per-step) estimates are iSAM2's alone either way."""
     final_marginals: str = "relinearized"
-    """Smoothed marginals of a fresh linearisation at the final estimate
-    (``"relinearized"``: exact) or of iSAM2's own linear system (``"isam2"``: the graph
+    """Smoothed marginals of a fresh linearisation at iSAM2's final estimate, the point
+    :attr:`final_gauss_newton` steps from (``"relinearized"``; exact there, and the step
+    moves the estimate by hundredths of a σ) or of iSAM2's own linear system (``"isam2"``: the graph
     linearised at iSAM2's linearisation point, whose marginals are those of its Bayes
     tree; close to, not equal to, the exact ones because a variable's linearisation
     point may lag its estimate by up to the relinearisation threshold).  Both linearise
-    the whole graph once and are read by :func:`tree_marginals`, so they cost the
+    the whole graph once and are read by :func:`bayes_tree_marginals`, so they cost the
     same."""
 
     def __post_init__(self) -> None:
@@ -311,7 +326,16 @@ def _run_isam2(
         isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), final_params)
     # Full back-substitution: calculateEstimate() stops propagating changes below the
     # wildfire threshold (1e-3), a millimetre-level difference from the batch optimum.
-    values = isam.calculateBestEstimate()
+    estimate = isam.calculateBestEstimate()
+    values = estimate
+    tree_at_estimate = None
+    step_max = 0.0
+    if opts.final_gauss_newton:
+        tree_at_estimate = graph.linearize(estimate).eliminateMultifrontal()
+        step = tree_at_estimate.optimize()
+        flat = np.asarray(step.vector(), dtype=float)
+        step_max = float(np.abs(flat).max()) if flat.size else 0.0
+        values = estimate.retract(step)
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     cov_of: Callable[[int], FloatArray] | None = None
@@ -319,15 +343,24 @@ def _run_isam2(
         # iSAM2's linear system is the graph linearised at its linearisation point (each
         # cached linear factor was made at the current values of its keys): its
         # marginals are iSAM2's own, read in one pass instead of one query per variable.
-        at = linearization_point if opts.final_marginals == "isam2" else values
-        cov_of = tree_marginals(graph.linearize(at), dict(_key_dims(at))).__getitem__
+        if opts.final_marginals == "isam2":
+            tree = graph.linearize(linearization_point).eliminateMultifrontal()
+        elif tree_at_estimate is not None:
+            tree = tree_at_estimate
+        else:
+            tree = graph.linearize(estimate).eliminateMultifrontal()
+        cov_of = bayes_tree_marginals(tree, dict(_key_dims(estimate))).__getitem__
     poses = _poses_from(values, n)
     covs = _pose_covs(poses, cov_of)
     landmarks = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
     marg = time.perf_counter() - t0
     del linearization_point
-    extra = {"variables_relinearized": relin, "filtered_marginal_shortcuts": shortcuts}
+    extra = {
+        "variables_relinearized": relin,
+        "filtered_marginal_shortcuts": shortcuts,
+        "final_gauss_newton_step_max": step_max,
+    }
     return _Solved(
         graph=graph,
         values=values,

@@ -1,6 +1,6 @@
 """Covariances of the graph's solutions: GTSAM's body-tangent Pose2 covariances in
 absolute ``(x, y, θ)`` (:func:`body_to_abs_cov`) and every marginal of a linear system in
-one pass down its Bayes tree (:func:`tree_marginals`)."""
+one pass down its Bayes tree (:func:`tree_marginals`, :func:`bayes_tree_marginals`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["body_to_abs_cov", "tree_marginals"]
+__all__ = ["bayes_tree_marginals", "body_to_abs_cov", "tree_marginals"]
 
 
 def _body_to_abs(thetas: FloatArray) -> FloatArray:
@@ -49,8 +49,15 @@ def tree_marginals(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict
     where separators reach a few hundred dimensions (Victoria Park;
     ``docs/performance.md``).
     """
+    return bayes_tree_marginals(lin.eliminateMultifrontal(), dims)
+
+
+def bayes_tree_marginals(
+    bt: gtsam.GaussianBayesTree, dims: dict[int, int]
+) -> dict[int, FloatArray]:
+    """:func:`tree_marginals` of a system already eliminated into the Bayes tree ``bt``
+    (a caller that also solves the system eliminates it once)."""
     out: dict[int, FloatArray] = {}
-    bt = lin.eliminateMultifrontal()
     roots = bt.roots()
     # (clique, offset of each key in the parent's joint covariance, that covariance)
     stack: list[tuple[Any, dict[int, int], FloatArray]] = [

@@ -26,6 +26,7 @@ from mapfuse_graph.graph import (
     pose_key,
 )
 from mapfuse_graph.solvers import (
+    ISAM2Options,
     _ISAM2Estimate,
     _joint_pose_cov,
     _newest_last,
@@ -108,15 +109,38 @@ def test_isam2_final_equals_batch(association: str) -> None:
     inc = run_graph(log, "isam2", fusion=True, association=association)
     bat = run_graph(log, "batch", fusion=True, association=association)
     np.testing.assert_array_equal(inc.obs_landmark, bat.obs_landmark)
-    assert _rel_diff(inc.poses, bat.poses, bat.covs).max() <= 0.05
+    # With the final Gauss–Newton step both stop at the optimum (measured: 1.6e-4 σ,
+    # variances within 1e-4, error 8e-10 relative): bounds about 30× that.
+    assert _rel_diff(inc.poses, bat.poses, bat.covs).max() <= 0.005
     np.testing.assert_allclose(
-        np.einsum("kii->ki", inc.covs[1:]), np.einsum("kii->ki", bat.covs[1:]), rtol=0.02
+        np.einsum("kii->ki", inc.covs[1:]), np.einsum("kii->ki", bat.covs[1:]), rtol=1e-3
     )
     assert inc.anchor is not None
     assert bat.anchor is not None
     d = inc.anchor.x_Wknown_Wglobal - bat.anchor.x_Wknown_Wglobal
-    assert np.all(np.abs(d) <= 0.05 * np.sqrt(np.diag(bat.anchor.cov)))
-    assert inc.final_error == pytest.approx(bat.final_error, rel=1e-4)
+    assert np.all(np.abs(d) <= 0.005 * np.sqrt(np.diag(bat.anchor.cov)))
+    assert inc.final_error == pytest.approx(bat.final_error, rel=1e-7)
+
+
+def test_final_gauss_newton_step_removes_the_lag_of_the_relinearisation_thresholds() -> None:
+    """Without the step iSAM2 ends where its thresholds left it (measured 0.022 σ and
+    0.6 % above the optimal error on this log); with it, at the batch optimum."""
+    log = synthetic_log(steps=200, seed=1)
+    bat = run_graph(log, "batch", fusion=True, association="truth")
+    out = {}
+    for step in (True, False):
+        inc = run_graph(
+            log,
+            "isam2",
+            fusion=True,
+            association="truth",
+            isam2=ISAM2Options(final_gauss_newton=step),
+        )
+        out[step] = (_rel_diff(inc.poses, bat.poses, bat.covs).max(), inc.final_error)
+        assert (inc.extra["final_gauss_newton_step_max"] > 0.0) == step
+    assert out[False][0] > 0.01
+    assert out[False][1] > bat.final_error * (1.0 + 1e-3)
+    assert out[True][0] < out[False][0] / 20.0
 
 
 def test_filtered_estimate_is_isam2s_own_solve_and_marginal() -> None:
