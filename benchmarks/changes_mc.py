@@ -95,6 +95,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                         "true_rad": float(dth),
                         "status": c.status.value,
                         "observed": c.known_id in truth.observed,
+                        "surveyed_in_view": c.known_id in truth.moved_surveyed_in_view,
                     }
                 )
         row[f"{name}_moves"] = moves

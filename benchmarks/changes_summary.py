@@ -42,6 +42,7 @@ def main() -> None:
     base = dataclasses.replace(load_scenario("loop600"), steps=a.steps)
     size = []  # (significance measure, kind, detected)
     mtp = mfn = 0
+    split = {True: [0, 0], False: [0, 0]}  # surveyed place in view → [detected, missed]
     mfp = {"unchanged": 0, "changed": 0}
     rem = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
     add = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
@@ -87,6 +88,8 @@ def main() -> None:
                 if sig:
                     mtp += det
                     mfn += not det
+                    if "surveyed_in_view" in m:
+                        split[bool(m["surveyed_in_view"])][0 if det else 1] += 1
     print(
         f"seeds: {len(rows)}; changed runs with an anchor: "
         f"{sum(bool(r.get('changed_anchor')) for r in rows)}"
@@ -97,6 +100,10 @@ def main() -> None:
         "| false moves on unchanged maps:",
         mfp["unchanged"],
     )
+    for seen, (tp, fn) in sorted(split.items(), reverse=True):
+        if tp + fn:
+            where = "came into view" if seen else "never came into view"
+            print(f"  significant moves whose surveyed place {where}: {tp} of {tp + fn} detected")
     for pre in ("changed", "unchanged"):
         print(f"removed ({pre}):", _pr(*rem[pre]))
         print(f"added ({pre}):", _pr(*add[pre]))

@@ -375,3 +375,65 @@ def test_a_line_moved_along_itself_is_not_a_significant_move():
     assert not truth.significant_move(1, 0.5, 0.1)
     assert truth.significant_move(2, 0.5, 0.1)
     assert truth.significant_move(3, 0.5, 0.1)
+
+
+def _change(kid: int, status: ChangeStatus) -> object:
+    from mapfuse_core.evaluation.changes.report import FeatureChange
+
+    z = np.zeros(3)
+    return FeatureChange(
+        known_id=kid,
+        kind=FeatureKind.LINE,
+        status=status,
+        displacement=z,
+        residual=z[:2],
+        residual_cov=np.eye(2),
+        statistic=0.0,
+        dof=2,
+        threshold=1.0,
+        n_obs=5,
+        scans_in_view=10,
+        associated=True,
+        landmark=-1,
+    )
+
+
+def test_truth_names_the_moves_whose_surveyed_place_came_into_view():
+    """Two walls in view of the drive: one surveyed 1 m across itself, one 500 m off.
+    Only the first one's surveyed place comes into view; the score counts the moves of
+    each kind apart."""
+    from mapfuse_core.evaluation.changes.report import ChangeReport
+    from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
+    from mapfuse_core.evaluation.changes.visibility import scans_in_view, world_as_map
+    from mapfuse_core.sim.scenario import FeatureMove
+    from mapfuse_core.sim.simulate import simulate
+
+    base = dataclasses.replace(load_scenario("loop600"), steps=300)
+    params = ChangeParams().with_sensor(base.laser)
+    poses = simulate(base, seed=0, workers=1).log.true_poses
+    assert poses is not None
+    counts = scans_in_view(world_as_map(base.world), poses, params)
+    known = set(base.known_map.ids)
+    walls = [w for w in base.world.segments if w.id in known and counts[w.id] >= 60]
+    near, far = walls[:2]
+    theta = near.spmap()[2]
+    normal = (-math.sin(theta), math.cos(theta))
+    moves = (
+        FeatureMove(near.id, normal[0], normal[1], 0.0, 0.0),
+        FeatureMove(far.id, 0.0, 500.0, 0.0, 0.0),
+    )
+    sc = dataclasses.replace(base, known_map=dataclasses.replace(base.known_map, moved=moves))
+    log = simulate(sc, seed=0, workers=1).log
+    truth = change_truth(sc, log, params)
+    assert truth.moved_surveyed_in_view == (near.id,)
+    assert {near.id, far.id} <= set(truth.observed)
+    report = ChangeReport(
+        known=(_change(near.id, ChangeStatus.MOVED), _change(far.id, ChangeStatus.CONFIRMED)),  # type: ignore[arg-type]
+        new=(),
+        duplicates=0,
+        level=0.999,
+        x_Wknown_Wglobal=np.zeros(3),
+    )
+    s = score_changes(report, truth).as_dict()
+    assert (s["moved"]["tp"], s["moved"]["fn"]) == (1, 1)
+    assert s["moved_surveyed_in_view"] == {"tp": 1, "fn": 0, "recall": 1.0}

@@ -19,7 +19,7 @@ from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import ChangeReport, ChangeStatus
 from mapfuse_core.evaluation.changes.visibility import scans_in_view, world_as_map
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.sim.scenario import Scenario
+from mapfuse_core.sim.scenario import FeatureMove, Scenario
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 __all__ = ["ChangeScore", "ChangeTruth", "change_truth", "score_changes"]
@@ -44,6 +44,11 @@ class ChangeTruth:
     """Added ids observed at least ``min_obs`` times in the log."""
     observed: tuple[int, ...]
     """Known ids of world features observed at least ``min_obs`` times."""
+    moved_surveyed_in_view: tuple[int, ...] = ()
+    """Moved ids the true drive would have seen at their surveyed place (the known
+    map's, at least ``min_scans`` scans, with the feature put there instead of where
+    it is).  A move whose surveyed place never came into view cannot be told from a
+    feature removed out of sight plus one added: nothing shows the surveyed place empty."""
 
     def significant_move(self, kid: int, min_move_m: float, min_turn_rad: float) -> bool:
         """Whether known feature ``kid`` moved by at least ``min_move_m`` (circle centre
@@ -76,20 +81,24 @@ def change_truth(
             lateral[m.id] = -math.sin(p[2]) * m.dx + math.cos(p[2]) * m.dy
     removed = tuple(f.id for f in spec.removed)
     in_view = []
-    if removed and log.true_poses is not None:
+    surveyed_in_view = []
+    if log.true_poses is not None:
+        world = scenario.world
         for f in spec.removed:
-            segs = scenario.world.segments
-            circs = scenario.world.circles
-            if f.id in (s.id for s in segs) or f.id in (c.id for c in circs):
+            if f.id in world.ids:
                 continue
-            w = World(
-                segments=segs + ((f,) if isinstance(f, WallSegment) else ()),
-                circles=circs + ((f,) if isinstance(f, CircleObstacle) else ()),
-            )
-            arrays = world_as_map(w)
-            n = scans_in_view(arrays, log.true_poses, params)[f.id]
-            if n >= min_scans:
+            if _scans_with(world, f, log.true_poses, params) >= min_scans:
                 in_view.append(f.id)
+        for m in spec.moved:
+            if m.id not in world.ids:
+                continue
+            others = World(
+                segments=tuple(s for s in world.segments if s.id != m.id),
+                circles=tuple(c for c in world.circles if c.id != m.id),
+            )
+            surveyed = _surveyed(world, m)
+            if _scans_with(others, surveyed, log.true_poses, params) >= min_scans:
+                surveyed_in_view.append(m.id)
     known_ids = set(spec.ids)
     added = tuple(sorted(i for i in scenario.world.ids if i not in known_ids))
     return ChangeTruth(
@@ -97,10 +106,45 @@ def change_truth(
         lateral=lateral,
         removed=removed,
         removed_in_view=tuple(in_view),
+        moved_surveyed_in_view=tuple(surveyed_in_view),
         added=added,
         added_observed=tuple(i for i in added if i in seen),
         observed=tuple(sorted(i for i in spec.world_ids if i in seen)),
     )
+
+
+def _scans_with(
+    world: World, f: WallSegment | CircleObstacle, poses: np.ndarray, params: ChangeParams
+) -> int:
+    """Scans of ``poses`` in which ``f``, added to ``world``, is in view."""
+    w = World(
+        segments=world.segments + ((f,) if isinstance(f, WallSegment) else ()),
+        circles=world.circles + ((f,) if isinstance(f, CircleObstacle) else ()),
+    )
+    return scans_in_view(world_as_map(w), poses, params)[f.id]
+
+
+def _surveyed(world: World, m: FeatureMove) -> WallSegment | CircleObstacle:
+    """World feature ``m.id`` where the known map holds it: a wall moved by ``(dx, dy)``
+    and turned by ``dθ`` about its midpoint, a circle moved and its radius changed."""
+    for s in world.segments:
+        if s.id == m.id:
+            mid = 0.5 * (np.asarray(s.p1) + np.asarray(s.p2))
+            R = np.array(
+                [
+                    [math.cos(m.dtheta), -math.sin(m.dtheta)],
+                    [math.sin(m.dtheta), math.cos(m.dtheta)],
+                ]
+            )
+            p1, p2 = (mid + (m.dx, m.dy) + R @ (np.asarray(p) - mid) for p in (s.p1, s.p2))
+            return WallSegment(
+                id=s.id, p1=(float(p1[0]), float(p1[1])), p2=(float(p2[0]), float(p2[1]))
+            )
+    for ci in world.circles:
+        if ci.id == m.id:
+            centre = (ci.centre[0] + m.dx, ci.centre[1] + m.dy)
+            return CircleObstacle(id=ci.id, centre=centre, radius=max(ci.radius + m.dr, 1e-3))
+    raise KeyError(f"no feature with id {m.id} in the world")
 
 
 def _original(scenario: Scenario, fid: int) -> tuple[FeatureKind, np.ndarray]:
@@ -135,6 +179,11 @@ class ChangeScore:
     """Added features observed and not reported new."""
     added_fp: int
     """New features that are not added world features."""
+    moved_seen_tp: int = 0
+    """Of :attr:`moved_tp`, the moves whose surveyed place came into view
+    (:attr:`ChangeTruth.moved_surveyed_in_view`)."""
+    moved_seen_fn: int = 0
+    """Of :attr:`moved_fn`, the moves whose surveyed place came into view."""
 
     @staticmethod
     def _pr(tp: int, fp: int, fn: int) -> tuple[float, float]:
@@ -155,6 +204,12 @@ class ChangeScore:
                 "precision": None if math.isnan(p) else p,
                 "recall": None if math.isnan(r) else r,
             }
+        tp, fn = self.moved_seen_tp, self.moved_seen_fn
+        out["moved_surveyed_in_view"] = {
+            "tp": tp,
+            "fn": fn,
+            "recall": tp / (tp + fn) if tp + fn else None,
+        }
         return out
 
 
@@ -166,19 +221,22 @@ def score_changes(
 ) -> ChangeScore:
     """Score ``report``: moves at least ``min_move_m``/``min_turn_rad`` must be found; a
     smaller true move classified moved counts neither way."""
-    mtp = mfn = mfp = rtp = rfn = rfp = 0
+    mtp = mfn = mfp = rtp = rfn = rfp = stp = sfn = 0
     removed = set(truth.removed)
     for c in report.known:
         sig = truth.significant_move(c.known_id, min_move_m, min_turn_rad)
         small = c.known_id in truth.moved and not sig
         observed = c.known_id in truth.observed
+        seen = c.known_id in truth.moved_surveyed_in_view
         if c.status == ChangeStatus.MOVED:
             if sig:
                 mtp += 1
+                stp += seen
             elif not small and c.known_id not in removed:
                 mfp += 1
         elif sig and observed:
             mfn += 1
+            sfn += seen
         if c.status == ChangeStatus.MISSING:
             if c.known_id in removed:
                 rtp += 1
@@ -200,4 +258,6 @@ def score_changes(
         added_tp=atp,
         added_fn=len(truth.added_observed) - atp,
         added_fp=afp,
+        moved_seen_tp=stp,
+        moved_seen_fn=sfn,
     )
