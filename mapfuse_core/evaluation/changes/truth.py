@@ -46,9 +46,10 @@ class ChangeTruth:
     """Known ids of world features observed at least ``min_obs`` times."""
     moved_surveyed_in_view: tuple[int, ...] = ()
     """Moved ids the true drive would have seen at their surveyed place (the known
-    map's, at least ``min_scans`` scans, with the feature put there instead of where
-    it is).  A move whose surveyed place never came into view cannot be told from a
-    feature removed out of sight plus one added: nothing shows the surveyed place empty."""
+    map's, at least ``min_scans`` scans, with a copy of the feature put there beside
+    the feature where it is).  A move whose surveyed place never came into view
+    cannot be told from a feature removed out of sight plus one added: nothing shows
+    the surveyed place empty."""
 
     def significant_move(self, kid: int, min_move_m: float, min_turn_rad: float) -> bool:
         """Whether known feature ``kid`` moved by at least ``min_move_m`` (circle centre
@@ -89,15 +90,14 @@ def change_truth(
                 continue
             if _scans_with(world, f, log.true_poses, params) >= min_scans:
                 in_view.append(f.id)
+        spare = max(world.ids, default=0) + 1
         for m in spec.moved:
             if m.id not in world.ids:
                 continue
-            others = World(
-                segments=tuple(s for s in world.segments if s.id != m.id),
-                circles=tuple(c for c in world.circles if c.id != m.id),
-            )
-            surveyed = _surveyed(world, m)
-            if _scans_with(others, surveyed, log.true_poses, params) >= min_scans:
+            # The copy stands beside the feature where it really is, which hides what
+            # lies behind it, as it would hide the surveyed place from the drive.
+            surveyed = _surveyed(world, m, spare)
+            if _scans_with(world, surveyed, log.true_poses, params) >= min_scans:
                 surveyed_in_view.append(m.id)
     known_ids = set(spec.ids)
     added = tuple(sorted(i for i in scenario.world.ids if i not in known_ids))
@@ -124,9 +124,10 @@ def _scans_with(
     return scans_in_view(world_as_map(w), poses, params)[f.id]
 
 
-def _surveyed(world: World, m: FeatureMove) -> WallSegment | CircleObstacle:
-    """World feature ``m.id`` where the known map holds it: a wall moved by ``(dx, dy)``
-    and turned by ``dθ`` about its midpoint, a circle moved and its radius changed."""
+def _surveyed(world: World, m: FeatureMove, new_id: int) -> WallSegment | CircleObstacle:
+    """A copy, with id ``new_id``, of world feature ``m.id`` where the known map holds
+    it: a wall moved by ``(dx, dy)`` and turned by ``dθ`` about its midpoint, a circle
+    moved and its radius changed."""
     for s in world.segments:
         if s.id == m.id:
             mid = 0.5 * (np.asarray(s.p1) + np.asarray(s.p2))
@@ -138,12 +139,12 @@ def _surveyed(world: World, m: FeatureMove) -> WallSegment | CircleObstacle:
             )
             p1, p2 = (mid + (m.dx, m.dy) + R @ (np.asarray(p) - mid) for p in (s.p1, s.p2))
             return WallSegment(
-                id=s.id, p1=(float(p1[0]), float(p1[1])), p2=(float(p2[0]), float(p2[1]))
+                id=new_id, p1=(float(p1[0]), float(p1[1])), p2=(float(p2[0]), float(p2[1]))
             )
     for ci in world.circles:
         if ci.id == m.id:
             centre = (ci.centre[0] + m.dx, ci.centre[1] + m.dy)
-            return CircleObstacle(id=ci.id, centre=centre, radius=max(ci.radius + m.dr, 1e-3))
+            return CircleObstacle(id=new_id, centre=centre, radius=max(ci.radius + m.dr, 1e-3))
     raise KeyError(f"no feature with id {m.id} in the world")
 
 
