@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 from collections.abc import Callable
 
 import numpy as np
 
+from ekf_reference.anchoring import fuse_match
 from ekf_reference.association import (
     Candidate,
     Query,
     apply,
-    apply_iterated,
-    element_pairings,
     evaluate,
     individual_candidates,
     predict_all_targets,
@@ -463,39 +461,8 @@ class _Run:
             self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
             return
         # Fused on a copy first: a match the joint test refuses leaves the map untouched.
-        trial = g.copy()
-        # Anchor: CCDA's value, a loose prior; the pairings below constrain it.
-        sig = np.array(assoc.anchor_prior_sigma)
-        trial.add(
-            Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1),
-            res.x_A_B,
-            np.diag(sig**2),
-        )
-        known_index: dict[int, int] = {}
-        for j in range(len(known)):
-            kind = ElementKind.of_feature(int(known.kinds[j]))
-            cov = known.covs[j]
-            if kind == ElementKind.LINE:
-                cov = bind_line_cov(known.params[j], cov)
-            extent = (math.nan, math.nan)
-            if known.extents is not None and kind == ElementKind.LINE:
-                extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
-            known_index[j] = trial.add(
-                Element(
-                    kind,
-                    Role.KNOWN,
-                    moving=False,
-                    track=-1,
-                    extent=extent,
-                    true_id=int(known.ids[j]),
-                ),
-                known.params[j],
-                cov,
-            )
+        trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
         pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
-        # The anchor's prior is flat: iterate, or the anchor depends on where the
-        # pairings happened to be linearised (CCDA's estimate).
-        upd = apply_iterated(trial, lambda state: element_pairings(state, pairs))
         dof = upd.dims - 3
         if assoc.match_joint_test and dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
             self.ccda_reasons[JOINTLY_INCONSISTENT] = (

@@ -1,0 +1,61 @@
+"""Fusing a CCDA match into a copy of the global map: the anchor and the known map
+enter, and the pairings fix the anchor by an iterated update.
+
+The pipeline fuses on a copy so that a match the joint test refuses
+(:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`) leaves its map as
+it was; the copy's new known features get their tracks only once the match is kept.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ekf_reference.association import IteratedUpdate, apply_iterated, element_pairings
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.matching.ccda import CCDAResult
+
+__all__ = ["fuse_match"]
+
+
+def fuse_match(
+    g: GaussianMap,
+    feats: list[int],
+    known: KnownMapArrays,
+    res: CCDAResult,
+    assoc: AssociationConfig,
+) -> tuple[GaussianMap, dict[int, int], IteratedUpdate]:
+    """A copy of ``g`` with the anchor at CCDA's value under the loose prior
+    ``assoc.anchor_prior_sigma``, every known feature (track −1), and the pairings of
+    ``res`` (indices into ``feats`` and ``known``) applied by :func:`apply_iterated`.
+
+    Returns the copy, the index of each known feature in it, and the update's outcome.
+    """
+    trial = g.copy()
+    sig = np.array(assoc.anchor_prior_sigma)
+    trial.add(
+        Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1),
+        res.x_A_B,
+        np.diag(sig**2),
+    )
+    known_index: dict[int, int] = {}
+    for j in range(len(known)):
+        kind = ElementKind.of_feature(int(known.kinds[j]))
+        cov = known.covs[j]
+        if kind == ElementKind.LINE:
+            cov = bind_line_cov(known.params[j], cov)
+        extent = (math.nan, math.nan)
+        if known.extents is not None and kind == ElementKind.LINE:
+            extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
+        element = Element(
+            kind, Role.KNOWN, moving=False, track=-1, extent=extent, true_id=int(known.ids[j])
+        )
+        known_index[j] = trial.add(element, known.params[j], cov)
+    pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
+    # The anchor's prior is flat: iterate, or the anchor depends on where the pairings
+    # happened to be linearised (CCDA's estimate).
+    upd = apply_iterated(trial, lambda state: element_pairings(state, pairs))
+    return trial, known_index, upd
