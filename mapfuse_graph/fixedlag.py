@@ -58,7 +58,13 @@ from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
-from mapfuse_graph.isam2 import _DIMS, ISAM2Options, _newest_pose_marginal, isam2_params
+from mapfuse_graph.isam2 import (
+    _DIMS,
+    ISAM2Options,
+    _newest_pose_marginal,
+    final_step,
+    isam2_params,
+)
 from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
 from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import _anchor, _landmarks, _pose_covs, _Solved
@@ -263,21 +269,14 @@ def _run_fixedlag(
     # that ``final_updates`` of them check whatever ``relinearize_skip``.
     for _ in range(opts.final_updates * opts.relinearize_skip):
         smoother.update()
-    window = isam.calculateBestEstimate()
-    window_graph = smoother.getFactors()
-    tree_at_window = None
-    if opts.final_gauss_newton:
-        # The window's graph holds the marginal factors of what left it: one Gauss–Newton
-        # step on it is the one of :attr:`ISAM2Options.final_gauss_newton`.
-        tree_at_window = window_graph.linearize(window).eliminateMultifrontal()
-        window = window.retract(tree_at_window.optimize())
+    window, tree_of = final_step(
+        smoother.getFactors(), isam.calculateBestEstimate(), linearization_point, opts
+    )
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     window_covs: dict[int, FloatArray] = {}
     if marginals:
-        if tree_at_window is None or opts.final_marginals == "isam2":
-            tree_at_window = window_graph.linearize(linearization_point).eliminateMultifrontal()
-        window_covs = bayes_tree_marginals(tree_at_window, dict(_key_dims(linearization_point)))
+        window_covs = bayes_tree_marginals(tree_of.tree(), dict(_key_dims(linearization_point)))
     values = gtsam.Values()
     values.insert(window)
     for s, xs in est.gone_poses.items():

@@ -278,6 +278,46 @@ def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
     return params
 
 
+class _FinalTree:
+    """The Bayes tree the final marginals are read from, eliminated at most once."""
+
+    def __init__(
+        self, graph: gtsam.NonlinearFactorGraph, at: gtsam.Values, tree: Any, step_max: float
+    ) -> None:
+        self.graph, self.at, self._tree, self.step_max = graph, at, tree, step_max
+
+    def tree(self) -> Any:
+        if self._tree is None:
+            self._tree = self.graph.linearize(self.at).eliminateMultifrontal()
+        return self._tree
+
+
+def final_step(
+    graph: gtsam.NonlinearFactorGraph,
+    estimate: gtsam.Values,
+    linearization_point: gtsam.Values,
+    opts: ISAM2Options,
+) -> tuple[gtsam.Values, _FinalTree]:
+    """The final estimate (``estimate`` after :attr:`ISAM2Options.final_gauss_newton`'s
+    step on ``graph``) and the tree of its marginals: the graph linearised at
+    ``estimate`` (``final_marginals="relinearized"``, the step's own elimination) or at
+    ``linearization_point`` (``"isam2"``).  Shared by iSAM2 and the fixed-lag smoother
+    (whose ``graph`` is its window's, marginal factors included)."""
+    values, tree, step_max = estimate, None, 0.0
+    if opts.final_gauss_newton:
+        tree = graph.linearize(estimate).eliminateMultifrontal()
+        step = tree.optimize()
+        flat = np.asarray(step.vector(), dtype=float)
+        step_max = float(np.abs(flat).max()) if flat.size else 0.0
+        values = estimate.retract(step)
+    if opts.final_marginals == "isam2":
+        # iSAM2's linear system is the graph linearised at its linearisation point (each
+        # cached linear factor was made at the current values of its keys): its
+        # marginals are iSAM2's own.
+        return values, _FinalTree(graph, linearization_point, None, step_max)
+    return values, _FinalTree(graph, estimate, tree, step_max)
+
+
 def _run_isam2(
     builder: GraphBuilder,
     options: ISAM2Options | None,
@@ -326,30 +366,13 @@ def _run_isam2(
         isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), final_params)
     # Full back-substitution: calculateEstimate() stops propagating changes below the
     # wildfire threshold (1e-3), a millimetre-level difference from the batch optimum.
-    estimate = isam.calculateBestEstimate()
-    values = estimate
-    tree_at_estimate = None
-    step_max = 0.0
-    if opts.final_gauss_newton:
-        tree_at_estimate = graph.linearize(estimate).eliminateMultifrontal()
-        step = tree_at_estimate.optimize()
-        flat = np.asarray(step.vector(), dtype=float)
-        step_max = float(np.abs(flat).max()) if flat.size else 0.0
-        values = estimate.retract(step)
+    values, tree_of = final_step(graph, isam.calculateBestEstimate(), linearization_point, opts)
+    step_max = tree_of.step_max
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     cov_of: Callable[[int], FloatArray] | None = None
     if marginals:
-        # iSAM2's linear system is the graph linearised at its linearisation point (each
-        # cached linear factor was made at the current values of its keys): its
-        # marginals are iSAM2's own, read in one pass instead of one query per variable.
-        if opts.final_marginals == "isam2":
-            tree = graph.linearize(linearization_point).eliminateMultifrontal()
-        elif tree_at_estimate is not None:
-            tree = tree_at_estimate
-        else:
-            tree = graph.linearize(estimate).eliminateMultifrontal()
-        cov_of = bayes_tree_marginals(tree, dict(_key_dims(estimate))).__getitem__
+        cov_of = bayes_tree_marginals(tree_of.tree(), dict(_key_dims(values))).__getitem__
     poses = _poses_from(values, n)
     covs = _pose_covs(poses, cov_of)
     landmarks = _landmarks(builder, values, cov_of, poses)
