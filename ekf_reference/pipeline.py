@@ -462,7 +462,6 @@ class _Run:
             return
         # Fused on a copy first: a match the joint test refuses leaves the map untouched.
         trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
-        pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
         dof = upd.dims - 3
         if assoc.match_joint_test and dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
             self.ccda_reasons[JOINTLY_INCONSISTENT] = (
@@ -473,8 +472,8 @@ class _Run:
         self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
         if not upd.converged:
             warnings.warn(
-                f"step {k}: the update with CCDA's {len(pairs)} pairings did not converge in "
-                f"{upd.iterations} iterations; the anchor is its last iterate",
+                f"step {k}: the update with CCDA's {len(res.pairings)} pairings did not "
+                f"converge in {upd.iterations} iterations; the anchor is its last iterate",
                 RuntimeWarning,
                 stacklevel=2,
             )
