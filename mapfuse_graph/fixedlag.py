@@ -230,7 +230,7 @@ def _run_fixedlag(
         relin += int(smoother.getISAM2Result().getVariablesRelinearized())
         graph.push_back(sg.factors)
         initial.insert(sg.values)
-        x, P, _ = _newest_pose_marginal(isam, linearization_point, xk)
+        x, P = _newest_pose_marginal(isam, linearization_point, xk)
         f_poses[k] = x
         f_covs[k] = body_to_abs_cov(P, x[2])
         est.last_pose = (k, x)

@@ -2,8 +2,8 @@
 
 It holds a reference to ``isam.getLinearizationPoint()`` for the whole run (callbacks
 then get that object instead of a copy).  Each update orders the newest pose last, so
-that its *filtered* estimate and covariance (comparable with the EKF's) are the last
-rows of the root clique (:func:`_newest_pose_marginal`).  At the end a few extra updates
+that its *filtered* estimate and covariance (comparable with the EKF's) come from the
+root clique (:func:`_newest_pose_marginal`).  At the end a few extra updates
 finish relinearisation, one Gauss–Newton step on the whole graph removes the lag its
 thresholds leave (:attr:`ISAM2Options.final_gauss_newton`), and all smoothed marginals
 are read in one pass down the same elimination
@@ -162,10 +162,10 @@ def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
     """iSAM2 ordering constraint of one update: the keys of its new factors last (GTSAM's
     own default) and, among them, the newest pose the very last.
 
-    The newest pose then ends the root clique's conditional, where its marginal is read
-    off the last rows (:class:`_LastVariableMarginal`).  Without it the pose often sits in
-    a child of the root, and GTSAM's marginal through a large root clique (hundreds of
-    dimensions on Victoria Park) dominates the step's cost.  The groups
+    The newest pose then ends the root clique's conditional, so its marginal eliminates
+    only the root's other frontals.  Without it the pose often sits in a child of the
+    root, and GTSAM's marginal through a large root clique (hundreds of dimensions on
+    Victoria Park) dominates the step's cost.  The groups
     must stay below the number of variables re-eliminated (CCOLAMD's bound), which the
     keys of the new factors are part of: two groups need three such keys.
     """
@@ -180,48 +180,11 @@ def _newest_last(observed: list[int], newest: int) -> gtsam.KeyGroupMap | None:
     return groups
 
 
-class _LastVariableMarginal:
-    """Elimination function for ``ISAM2.marginalFactor(key, ·)`` when ``key`` is the last
-    variable of the root clique.
-
-    GTSAM computes the marginal of a root variable by eliminating every other variable
-    of the root's conditional, O(D³) in its dimension D.  For the last variable of an
-    upper-triangular ``[R | d]`` that marginal is just its last rows ``[R_kk | d_k]``, so
-    when GTSAM hands over exactly that case (the root conditional alone, ``key`` last,
-    all other keys to eliminate, unit noise) this returns it directly; anything else goes
-    to ``gtsam.EliminateQR``.  The conditional it returns for the eliminated keys is the
-    root's own: GTSAM's ``marginalMultifrontalBayesNet`` discards that part.
-    """
-
-    def __init__(self, key: int, dim: int) -> None:
-        self.key, self.dim = key, dim
-        self.shortcut = False
-        self.rows: tuple[FloatArray, FloatArray] | None = None
-        """``(R_kk, d_k)`` of the shortcut: the marginal is ``R_kk δ_k = d_k``, unit noise."""
-
-    def __call__(self, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Any:
-        if graph.size() == 1:
-            f = graph.at(0)
-            if isinstance(f, gtsam.GaussianConditional) and f.get_model() is None:
-                keys = f.keys()
-                d = self.dim
-                if keys[-1] == self.key and ordering.size() == len(keys) - 1:
-                    R, rhs = f.R(), f.d()  # views into the conditional
-                    if R.shape[0] == R.shape[1] == rhs.shape[0] and not R[-d:, :-d].any():
-                        self.shortcut = True
-                        self.rows = (np.array(R[-d:, -d:]), np.array(rhs[-d:]))
-                        marginal = gtsam.JacobianFactor(
-                            self.key, *self.rows, gtsam.noiseModel.Unit.Create(d)
-                        )
-                        return f, marginal
-        return gtsam.EliminateQR(graph, ordering)
-
-
 def _newest_pose_marginal(
     isam: gtsam.ISAM2, linearization_point: gtsam.Values, key: int
-) -> tuple[FloatArray, FloatArray, bool]:
+) -> tuple[FloatArray, FloatArray]:
     """Filtered estimate and body-tangent covariance of the pose just added, from one
-    marginal of iSAM2's Bayes tree; also whether the root shortcut applied.
+    marginal of iSAM2's Bayes tree.
 
     The marginal Gaussian ``p(δ_k)`` gives both: its mean is the Gauss–Newton step of
     ``X_k`` and its information the inverse covariance.  Asking instead for
@@ -229,34 +192,15 @@ def _newest_pose_marginal(
     re-eliminated by the update, each step; left alone, the next relinearisation check
     does that once per ``relinearize_skip`` updates.  The mean is the exact linear
     solve, where the wildfire one stops propagating changes below 1e-3 (sub-millimetre
-    differences).
+    differences).  With the newest pose ordered last (:func:`_newest_last`) it is a
+    frontal of the root clique, so GTSAM's marginal (its own C++ elimination, no Python
+    callback) eliminates only the root's other frontals.
     """
-    elim = _LastVariableMarginal(key, 3)
-    m = isam.marginalFactor(key, elim)
-    if elim.rows is not None:
-        # R_kk is upper triangular: δ = R⁻¹ d and P = R⁻¹ R⁻ᵀ without a general inverse.
-        Rinv = _inv_upper3(elim.rows[0])
-        delta = Rinv @ elim.rows[1]
-        P: FloatArray = Rinv @ Rinv.T
-    else:
-        delta = m.solve(gtsam.VectorValues()).at(key)
-        P = np.linalg.inv(np.asarray(m.information(), dtype=float))
+    m = isam.marginalFactor(key)
+    delta = m.solve(gtsam.VectorValues()).at(key)
+    P: FloatArray = np.linalg.inv(np.asarray(m.information(), dtype=float))
     x = pose_of(linearization_point.atPose2(key).retract(delta))
-    return x, P, elim.shortcut
-
-
-def _inv_upper3(R: FloatArray) -> FloatArray:
-    """Inverse of a 3×3 upper-triangular matrix with a non-zero diagonal, in closed form
-    (a general ``inv`` costs more in call overhead than in arithmetic at this size)."""
-    a, b, c = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
-    e, f, i = float(R[1, 1]), float(R[1, 2]), float(R[2, 2])
-    return np.array(
-        [
-            [1.0 / a, -b / (a * e), (b * f - c * e) / (a * e * i)],
-            [0.0, 1.0 / e, -f / (e * i)],
-            [0.0, 0.0, 1.0 / i],
-        ]
-    )
+    return x, P
 
 
 def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
@@ -337,7 +281,6 @@ def _run_isam2(
     times = np.zeros(n)
     cpu = np.zeros(n)
     relin = 0
-    shortcuts = 0
     for k in range(n):
         t0, c0 = time.perf_counter(), time.process_time()
         sg = builder.step(k, est)
@@ -350,8 +293,7 @@ def _run_isam2(
         relin += int(res.getVariablesRelinearized())
         graph.push_back(sg.factors)
         initial.insert(sg.values)
-        x, P, fast = _newest_pose_marginal(isam, linearization_point, xk)
-        shortcuts += fast
+        x, P = _newest_pose_marginal(isam, linearization_point, xk)
         f_poses[k] = x
         f_covs[k] = body_to_abs_cov(P, x[2])
         est.last_pose = (k, x)
@@ -381,7 +323,6 @@ def _run_isam2(
     del linearization_point
     extra = {
         "variables_relinearized": relin,
-        "filtered_marginal_shortcuts": shortcuts,
         "final_gauss_newton_step_max": step_max,
     }
     return _Solved(

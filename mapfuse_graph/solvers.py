@@ -11,8 +11,8 @@ callback; costs in ``docs/performance.md``):
 * **isam2** — one ``ISAM2.update`` per step while holding a reference to
   ``isam.getLinearizationPoint()`` for the whole run (callbacks then get that object
   instead of a copy).  Each update orders the newest pose last, so that its *filtered*
-  estimate and covariance (comparable with the EKF's) are the last rows of the root
-  clique (:func:`_newest_pose_marginal`); at the end a few extra updates finish
+  estimate and covariance (comparable with the EKF's) come from the root clique
+  (:func:`_newest_pose_marginal`); at the end a few extra updates finish
   relinearisation and all smoothed marginals are read in one pass
   (:func:`tree_marginals`).
 
