@@ -37,6 +37,7 @@ from ekf_reference.maps import (
 from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
+from ekf_reference.tracks import Tracks
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
@@ -50,39 +51,11 @@ JOINTLY_INCONSISTENT = "jointly inconsistent"
 (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
 
 
-class _Tracks:
-    """Union-find over feature tracks, so every observation ends with one landmark."""
-
-    def __init__(self) -> None:
-        self.parent: list[int] = []
-        self.known: dict[int, int] = {}
-
-    def new(self) -> int:
-        self.parent.append(len(self.parent))
-        return len(self.parent) - 1
-
-    def root(self, t: int) -> int:
-        while self.parent[t] != t:
-            self.parent[t] = self.parent[self.parent[t]]
-            t = self.parent[t]
-        return t
-
-    def merge(self, child: int, into: int) -> None:
-        a, b = self.root(child), self.root(into)
-        if a != b:
-            self.parent[a] = b
-            if a in self.known and b not in self.known:
-                self.known[b] = self.known[a]
-
-    def mark_known(self, t: int, known_id: int) -> None:
-        self.known[self.root(t)] = known_id
-
-
 class _Run:
     def __init__(self, log: MeasurementLog, config: EKFConfig) -> None:
         self.log = log
         self.config = config
-        self.tracks = _Tracks()
+        self.tracks = Tracks()
         self.obs_track = np.full(log.n_features, -1, dtype=np.int64)
         self.obs_known = np.full(log.n_features, -1, dtype=np.int64)
         self.global_map = new_global_map()
