@@ -164,25 +164,51 @@ def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_land
     assert kid in {n.true_id for n in rep2.new}
 
 
-def test_removed_feature_in_view_is_missing_and_one_out_of_view_unobserved():
+def _with_absent_trees(radius: float, sigma_r: float) -> MeasurementLog:
+    """The test log with two trees of ``radius`` (σ 0.1 m, radius σ ``sigma_r``) in its
+    known map and not in its world: 8 m inside the driven circle (in view for many
+    scans) and 200 m away."""
     log = _log()
     k = log.known_map
-    # A tree 8 m inside the driven circle (seen for many scans) and one 200 m away.
     start = log.true_poses[0]
     near = compose(start, np.array([8.0, 0.0, 0.0]))
-    trees = np.array([[near[0], near[1], 0.8], [start[0] + 200.0, start[1], 0.8]])
-    moved = _replace_known(
+    trees = np.array([[near[0], near[1], radius], [start[0] + 200.0, start[1], radius]])
+    return _replace_known(
         log,
         ids=np.concatenate([k.ids, [9001, 9002]]),
         kinds=np.concatenate([k.kinds, [1, 1]]).astype(np.int8),
         params=np.vstack([k.params, trees]),
-        covs=np.vstack([k.covs, np.tile(np.diag([0.01, 0.01, 0.01]), (2, 1, 1))]),
+        covs=np.vstack([k.covs, np.tile(np.diag([0.01, 0.01, sigma_r**2]), (2, 1, 1))]),
         extents=np.vstack([k.extents, np.full((2, 2), np.nan)]),
     )
-    rep = _classify(moved)
+
+
+def test_removed_feature_in_view_is_missing_and_one_out_of_view_unobserved():
+    rep = _classify(_with_absent_trees(0.8, 0.01))
     assert rep.status_of(9001) == ChangeStatus.MISSING
     assert rep.known[-2].scans_in_view >= PARAMS.min_scans
     assert rep.status_of(9002) == ChangeStatus.UNOBSERVED
+
+
+def test_a_tree_the_map_may_draw_too_thick_to_be_seen_is_not_called_missing():
+    """Mapped 0.8 m with a radius σ of 0.15 m, the tree may really be under 0.4 m,
+    too thin for the extractor at that range: its absence is no evidence at the
+    default margin (3.09 σ at level 0.999), and is with no margin."""
+    log = _with_absent_trees(0.8, 0.15)
+    rep = _classify(log)
+    assert rep.status_of(9001) == ChangeStatus.UNOBSERVED
+    assert rep.known[-2].scans_in_view < PARAMS.min_scans
+    bare = _classify(log, dataclasses.replace(PARAMS, missing_radius_sigmas=0.0))
+    assert bare.status_of(9001) == ChangeStatus.MISSING
+    assert bare.known[-2].scans_in_view >= PARAMS.min_scans
+
+
+def test_missing_radius_margin_follows_the_level_and_rejects_bad_values():
+    assert PARAMS.radius_margin_sigmas() == pytest.approx(3.0902, abs=1e-4)
+    assert ChangeParams(missing_radius_sigmas=1.5).radius_margin_sigmas() == 1.5
+    for bad in (-1.0, math.nan, math.inf, True):
+        with pytest.raises(ValueError, match="missing_radius_sigmas"):
+            ChangeParams(missing_radius_sigmas=bad)
 
 
 def test_shifted_map_is_confirmed_through_the_anchor():

@@ -12,7 +12,9 @@
    after a move beyond the association gate, and is tested the same way (a consistent
    one is a landmark the estimator did not merge: the feature is confirmed).
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
-   scans (:mod:`mapfuse_core.evaluation.changes.visibility`), else unobserved.
+   scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
+   radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), else
+   unobserved.
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
    except duplicates: those consistent with an observed known feature, or within the
    move limits of one classified moved (another piece of it).
@@ -20,6 +22,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -162,13 +165,25 @@ def classify_changes(
             continue
         used.add(i)
         rows[r] = _row(known, r, free[i], False, in_view[int(known.ids[r])], params)
-    for r in unassociated:
-        if r in rows:
-            continue
+    left = [r for r in unassociated if r not in rows]
+    sure = dict(in_view)
+    candidates = [
+        r
+        for r in left
+        if in_view[int(known.ids[r])] >= params.min_scans
+        and int(known.kinds[r]) == int(FeatureKind.CIRCLE)
+    ]
+    if candidates:
+        # One more view, with only the would-be missing circles thinned: the others keep
+        # hiding what they hide.
+        thin = _thinned(known, candidates, params.radius_margin_sigmas())
+        again = scans_in_view(thin, poses_K.reshape(-1, 3), params, _occluders(free, known))
+        for r in candidates:
+            kid = int(known.ids[r])
+            sure[kid] = min(in_view[kid], again[kid])
+    for r in left:
         kid = int(known.ids[r])
-        status = (
-            ChangeStatus.MISSING if in_view[kid] >= params.min_scans else ChangeStatus.UNOBSERVED
-        )
+        status = ChangeStatus.MISSING if sure[kid] >= params.min_scans else ChangeStatus.UNOBSERVED
         kind = FeatureKind(int(known.kinds[r]))
         rows[r] = FeatureChange(
             known_id=kid,
@@ -181,7 +196,7 @@ def classify_changes(
             dof=residual_dof(kind),
             threshold=params.threshold(residual_dof(kind)),
             n_obs=0,
-            scans_in_view=in_view[kid],
+            scans_in_view=sure[kid],
             associated=False,
             landmark=-1,
         )
@@ -282,6 +297,17 @@ def _line_cov3(ref: FloatArray, cov2: FloatArray) -> FloatArray:
     J[:2, 0] = n
     J[2, 1] = 1.0
     return J @ cov2 @ J.T
+
+
+def _thinned(known: KnownMapArrays, rows: list[int], sigmas: float) -> KnownMapArrays:
+    """``known`` with the circles of ``rows`` each ``sigmas`` of its own radius σ
+    thinner (at least a millimetre): the thinnest trunk the map's error allows, for the
+    view that decides "missing"."""
+    params = known.params.copy()
+    idx = np.asarray(rows, dtype=int)
+    sig_r = np.sqrt(np.clip(known.covs[idx, 2, 2], 0.0, None))
+    params[idx, 2] = np.maximum(params[idx, 2] - sigmas * sig_r, 1e-3)
+    return dataclasses.replace(known, params=params)
 
 
 def _occluders(free: list[ObservationSet], known: KnownMapArrays) -> KnownMapArrays:

@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 from mapfuse_core.perception.extraction import ExtractionParams
 from mapfuse_core.sim.laser import LaserParams
@@ -56,6 +56,14 @@ class ChangeParams:
     features the map does not hold (trees too far to be extracted, so never mapped)
     may hide the feature or split it into pieces the extractor rejects, so not seeing
     it there says little."""
+    missing_radius_sigmas: float | None = None
+    """A circle is called missing only when it would have been extracted with its radius
+    this many of the map's own radius σ smaller than mapped (``None``: the one-sided
+    normal quantile of :attr:`level`, 3.09 at 0.999).  A map that draws a trunk too
+    thick predicts it extractable where the real, thinner trunk is not, and its absence
+    from the scans would then be taken for a removal; the margin asks the view to hold
+    for any radius the map's error allows.  Moves and the other classes use the mapped
+    radius."""
     max_move_m: float = 6.0
     """Farthest a known feature is looked for when no landmark is associated with it
     (widened by three of the feature's own position σ)."""
@@ -77,6 +85,14 @@ class ChangeParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
+        m = self.missing_radius_sigmas
+        if m is not None and not (
+            isinstance(m, int | float) and not isinstance(m, bool) and math.isfinite(m) and m >= 0.0
+        ):
+            raise ValueError(
+                "ChangeParams.missing_radius_sigmas must be a finite number >= 0 or None, "
+                f"got {m!r}"
+            )
         if self.n_beams < 2:
             raise ValueError(f"ChangeParams.n_beams must be >= 2, got {self.n_beams}")
         for name in ("max_incidence_rad", "fov_rad", "max_range_m", "max_move_m", "max_turn_rad"):
@@ -100,6 +116,12 @@ class ChangeParams:
     ) -> ChangeParams:
         """These settings with the view predicted by ``laser`` and its extractor."""
         return dataclasses.replace(self, laser=laser, extraction=extraction)
+
+    def radius_margin_sigmas(self) -> float:
+        """:attr:`missing_radius_sigmas`, or its default from :attr:`level`."""
+        if self.missing_radius_sigmas is not None:
+            return float(self.missing_radius_sigmas)
+        return float(norm.ppf(self.level))
 
     def threshold(self, dof: int) -> float:
         """χ² threshold of the test with ``dof`` degrees of freedom."""
