@@ -56,7 +56,9 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         added=args.added,
         move_m=_range(args.move_m),
     )
-    params = ChangeParams(level=args.level).with_sensor(base.laser)
+    params = ChangeParams(
+        level=args.level, missing_radius_sigmas=args.missing_radius_sigmas
+    ).with_sensor(base.laser)
     row: dict[str, object] = {"seed": seed}
     for name, sc in (("unchanged", base), ("changed", changed)):
         log = simulate(sc, seed=seed, workers=1).log
@@ -166,6 +168,12 @@ def main() -> None:
         "--map-sigma",
         default=None,
         help="known map's σ 'xy,r,θ' (m, m, rad) instead of the scenario's",
+    )
+    p.add_argument(
+        "--missing-radius-sigmas",
+        type=float,
+        default=None,
+        help="ChangeParams.missing_radius_sigmas (default: from --level)",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()
