@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from mapfuse.interrupt import catching_sigint
+from mapfuse.interrupt import check as check_interrupt
 from mapfuse_core.data.measlog import MeasurementLog, save_log
 from mapfuse_core.sim.limits import check_seed
 from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
@@ -569,20 +571,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     on stderr), 130 interrupted by Ctrl-C.
     """
     args = _parser().parse_args(argv)
-    try:
-        code: int = args.func(args)
-    except KeyboardInterrupt:
-        from mapfuse.progress import close_all
+    with catching_sigint():
+        try:
+            code: int = args.func(args)
+            # A press whose KeyboardInterrupt was swallowed after the last progress call.
+            check_interrupt()
+        except KeyboardInterrupt:
+            from mapfuse.progress import close_all
 
-        close_all()
-        _note("mapfuse: interrupted")
-        return EXIT_INTERRUPTED
-    except (ScenarioError, ValueError, OSError) as exc:
-        from mapfuse.progress import close_all
+            close_all()
+            _note("mapfuse: interrupted")
+            return EXIT_INTERRUPTED
+        except (ScenarioError, ValueError, OSError) as exc:
+            from mapfuse.progress import close_all
 
-        close_all()
-        _note(f"mapfuse: error: {exc}")
-        return 2
+            close_all()
+            _note(f"mapfuse: error: {exc}")
+            return 2
     return code
 
 

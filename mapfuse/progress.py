@@ -14,6 +14,8 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from mapfuse.interrupt import check as check_interrupt
+
 __all__ = ["LabelledProgress", "ProgressBar", "close_all", "progress_bar"]
 
 _open: set[ProgressBar] = set()
@@ -30,6 +32,8 @@ class ProgressBar:
         self._bar: Any = None
 
     def __call__(self, k: int, n: int) -> None:
+        # A Ctrl-C the command line recorded but Python lost (:mod:`mapfuse.interrupt`).
+        check_interrupt()
         if not self.enabled:
             return
         if self._bar is None:
