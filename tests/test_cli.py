@@ -247,6 +247,10 @@ def test_ctrl_c_is_one_line_and_exit_130(
     assert capsys.readouterr().err == "mapfuse: interrupted\n"
 
 
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 def test_sigint_during_a_simulation(tmp_path: Path) -> None:
     proc = subprocess.Popen(
@@ -254,6 +258,9 @@ def test_sigint_during_a_simulation(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=_env(),
+        # As from a terminal: a test run started in the background of a non-interactive
+        # shell would hand its SIGINT-ignored disposition on.
+        preexec_fn=_sigint_default,
     )
     assert proc.stderr is not None
     # Wait until the simulation runs (its progress bar appears), then press Ctrl-C.

@@ -24,6 +24,15 @@ class _PressesCtrlCWhenFreed:
             pass
 
 
+@pytest.fixture(autouse=True)
+def _python_handles_sigint():
+    """Python's own SIGINT handler, whatever this process inherited: a test run started
+    in the background of a non-interactive shell inherits SIGINT ignored."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def _swallowed(monkeypatch: pytest.MonkeyPatch) -> list[BaseException | None]:
     """Record what Python reports as ignored, instead of printing it."""
     seen: list[BaseException | None] = []
