@@ -135,7 +135,9 @@ def classify_changes(
         elif s.n_obs >= params.min_obs:
             free.append(s)
     poses_K = np.array([compose(anchor, p) for p in np.asarray(poses, dtype=float)])
-    in_view = scans_in_view(known, poses_K.reshape(-1, 3), params, _occluders(free, known))
+    poses_K = poses_K.reshape(-1, 3)
+    occluders = _occluders(free, known)
+    in_view = scans_in_view(known, poses_K, params, occluders)
 
     rows: dict[int, FeatureChange] = {}
     unassociated: list[int] = []
@@ -177,7 +179,7 @@ def classify_changes(
         # One more view, with only the would-be missing circles thinned: the others keep
         # hiding what they hide.
         thin = _thinned(known, candidates, params.radius_margin_sigmas())
-        again = scans_in_view(thin, poses_K.reshape(-1, 3), params, _occluders(free, known))
+        again = scans_in_view(thin, poses_K, params, occluders)
         for r in candidates:
             kid = int(known.ids[r])
             sure[kid] = min(in_view[kid], again[kid])
