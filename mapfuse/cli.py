@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 from mapfuse.interrupt import catching_sigint
-from mapfuse.interrupt import check as check_interrupt
 from mapfuse_core.data.measlog import MeasurementLog, save_log
 from mapfuse_core.sim.limits import check_seed
 from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
@@ -574,8 +573,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     with catching_sigint():
         try:
             code: int = args.func(args)
-            # A press whose KeyboardInterrupt was swallowed after the last progress call.
-            check_interrupt()
         except KeyboardInterrupt:
             from mapfuse.progress import close_all
 

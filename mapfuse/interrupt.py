@@ -5,9 +5,9 @@ runs.  When that bytecode belongs to a finaliser (a ``__del__`` or a weakref cal
 run whenever the garbage collector frees an object, e.g. a progress bar or a worker
 pool), the exception is reported as "ignored" and the command runs on as if the key
 had not been pressed.  So the command line's handler also records the press, and
-:func:`check`, which the progress callbacks call at every step and the command line
-once more when a command returns, raises it again.  One press then always stops the
-command.
+:func:`check`, which the progress callbacks call at every step, raises it again: one
+press stops a command that still has steps to run (one that has finished its work
+finishes normally).
 """
 
 from __future__ import annotations
