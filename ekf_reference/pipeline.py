@@ -39,6 +39,7 @@ from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.tracks import Tracks
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
@@ -455,10 +456,16 @@ class _Run:
             self.tracks.mark_known(track, int(known.ids[j]))
             trial.elements[i].track = track
         g.mean, g.cov, g.elements = trial.mean, trial.cov, trial.elements
+        seen = self.log.feature_slice(k).stop
+        labels = landmark_labels(
+            self.tracks.roots(self.obs_track[:seen]),
+            self.log.feat_true_id[:seen],
+            [self.tracks.root(g.elements[feats[ia]].track) for ia, _ in res.pairings],
+        )
         pairings = []
-        for ia, jb in res.pairings:
+        for (ia, jb), label in zip(res.pairings, labels, strict=True):
             e = g.elements[feats[ia]]
-            pairings.append((e.true_id, int(known.ids[jb])))
+            pairings.append((label, int(known.ids[jb])))
             self.tracks.merge(e.track, g.elements[known_index[jb]].track)
         g.remove([feats[ia] for ia, _ in res.pairings])
         g.bind_lines()
@@ -548,7 +555,7 @@ def _result(
             P = g.marginal([gb, i])
         map_params[r] = val
         map_covs[r] = J @ P @ J.T
-    roots = np.array([run.tracks.root(int(t)) if t >= 0 else -1 for t in run.obs_track])
+    roots = run.tracks.roots(run.obs_track)
     obs_known = np.array(
         [run.tracks.known.get(int(r), -1) if r >= 0 else -1 for r in roots], dtype=np.int64
     )

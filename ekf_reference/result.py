@@ -30,7 +30,9 @@ class AnchorResult:
     accepted_at_step: int
     """Step after whose join CCDA accepted the match."""
     pairings: tuple[tuple[int, int], ...]
-    """CCDA pairings as (true world id of the estimated feature or −1, known-map id)."""
+    """CCDA pairings as (true world id of the estimated feature or −1, known-map id).  The
+    feature's id is the one most of its observations up to the match carry
+    (:func:`~ekf_reference.tracks.track_labels`)."""
 
 
 @dataclass(frozen=True)

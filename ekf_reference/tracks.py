@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 __all__ = ["Tracks"]
 
 
@@ -40,3 +42,9 @@ class Tracks:
     def mark_known(self, t: int, known_id: int) -> None:
         """Record that track ``t`` is known feature ``known_id``."""
         self.known[self.root(t)] = known_id
+
+    def roots(self, obs_track: np.ndarray) -> np.ndarray:
+        """(M,) int64 track every observation of ``obs_track`` belongs to now (−1 stays)."""
+        return np.array(
+            [self.root(int(t)) if t >= 0 else -1 for t in obs_track.tolist()], dtype=np.int64
+        )

@@ -11,6 +11,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import FeatureKind, line_from_normal
 from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
 from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions
@@ -52,7 +53,8 @@ class GraphAnchor:
     """Where its initial value came from: ``"ekf"``, ``"fit"`` (truth pairings), ``"ccda"``,
     ``"given"``."""
     pairings: tuple[tuple[int, int], ...]
-    """(true world id of the landmark's first observation or −1, known-map id) per tie."""
+    """(true world id of the landmark or −1, known-map id) per tie: the id most of the
+    landmark's observations carry (:func:`~mapfuse_core.evaluation.landmark_labels`)."""
 
 
 @dataclass(frozen=True)
@@ -296,9 +298,12 @@ def _anchor(
     )
     x, J = inverse_jacobian(A)
     log = builder.log
+    labels = landmark_labels(
+        builder.obs_landmark, log.feat_true_id, [i for i, _ in builder.pairings]
+    )
     pairings = tuple(
-        (int(log.feat_true_id[builder.landmarks[i].first_obs]), int(builder.known.ids[r]))
-        for i, r in builder.pairings
+        (label, int(builder.known.ids[r]))
+        for (_, r), label in zip(builder.pairings, labels, strict=True)
     )
     return GraphAnchor(
         x_Wknown_Wglobal=x,

@@ -5,6 +5,7 @@ step 0) with a covariance of the absolute ``(x, y, θ)`` perturbation, so one
 function computes every metric from the same truth.
 """
 
+from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.evaluation.metrics import (
     MapDrawOffset,
     PoseErrors,
@@ -51,6 +52,7 @@ __all__ = [
     "interpolate_positions",
     "joint_nees",
     "known_map_draw_offset",
+    "landmark_labels",
     "nees_mean_distribution",
     "nees_mean_interval",
     "nees_series",
