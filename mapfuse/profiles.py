@@ -50,10 +50,17 @@ def _victoria_park_ekf() -> Mapping[str, Any]:
     }
 
 
-def _carmen_ekf() -> Mapping[str, Any]:
+def _carmen_association() -> Mapping[str, Any]:
     from mapfuse_core.data.datasets import carmen_association
 
     return {"data_association": carmen_association()}
+
+
+def _carmen_graph() -> Mapping[str, Any]:
+    from mapfuse_core.data.datasets import carmen_association
+    from mapfuse_graph.options import GraphOptions
+
+    return {"graph": GraphOptions(data_association=carmen_association())}
 
 
 def _victoria_park_graph() -> Mapping[str, Any]:
@@ -76,8 +83,14 @@ PROFILES: Mapping[str, Profile] = {
     CARMEN_PREFIX: Profile(
         dataset=CARMEN_PREFIX,
         summary="CCDA needs 12 pairings to accept a floor-plan match (office walls come in "
-        "parallel families a door or corridor width apart)",
-        overrides={"ekf": _carmen_ekf},
+        "parallel families a door or corridor width apart); collinear line pieces are "
+        "one wall only up to a doorway (1 m) apart",
+        overrides={
+            "ekf": _carmen_association,
+            "batch": _carmen_graph,
+            "isam2": _carmen_graph,
+            "fixedlag": _carmen_graph,
+        },
     ),
 }
 

@@ -91,7 +91,9 @@ class Anchor:
     accepted_at_step: int
     """Step at which the map match was accepted (or entered the estimate)."""
     pairings: tuple[tuple[int, int], ...]
-    """(true world id of the estimated feature or −1, known-map id) per pairing."""
+    """(true world id of the estimated feature or −1, known-map id) per pairing: the id
+    most of the feature's observations carry
+    (:func:`~mapfuse_core.evaluation.landmark_labels`)."""
 
 
 @dataclass(frozen=True)

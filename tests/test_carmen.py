@@ -272,12 +272,8 @@ out lower (``docs/carmen.md``)."""
 @pytest.mark.realdata
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["intel", "csail"])
-def test_real_log_lines_plan_nees_ccda_and_fusion(data_dir: Path, name: str) -> None:
-    from ekf_reference import EKFConfig, run_ekf
-    from mapfuse_core.data.datasets.carmen import carmen_association
+def test_real_log_lines_per_scan_and_line_nees_against_the_plan(data_dir: Path, name: str) -> None:
     from mapfuse_core.data.datasets.floorplan import FloorPlanParams
-    from mapfuse_core.evaluation import anchor_truth, pose_metrics, truth_in_global
-    from mapfuse_core.geometry.se2 import relative
 
     log = load_carmen(_carmen_file(data_dir, name))
     assert log.metadata["odometry"] == "simulated from reference"
@@ -286,23 +282,53 @@ def test_real_log_lines_plan_nees_ccda_and_fusion(data_dir: Path, name: str) -> 
     bare = build_floor_plan(log, FloorPlanParams(survey_sigma_m=1e-6, survey_sigma_rad=1e-8))
     nees = line_nees(log, bare) / 2.0
     assert _NEES_RANGE[0] <= nees.mean() <= _NEES_RANGE[1]
-    plan = build_floor_plan(log)
+
+
+_SEEDS = range(4)
+"""Seeds of the simulated odometry the CCDA and fusion checks run over."""
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["intel", "csail"])
+def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_error(
+    data_dir: Path, name: str
+) -> None:
+    from ekf_reference import EKFConfig, run_ekf
+    from mapfuse_core.data.datasets.carmen import carmen_association
+    from mapfuse_core.evaluation import anchor_truth, pose_metrics, truth_in_global
+    from mapfuse_core.geometry.se2 import relative
+
+    path = _carmen_file(data_dir, name)
     assoc = carmen_association()
-    r_plan = run_ekf(label_with_plan(log, plan), EKFConfig(data_association=assoc))
-    r_none = run_ekf(
-        label_with_plan(log, plan, as_known_map=False),
-        EKFConfig(fusion=False, data_association=assoc),
-    )
-    assert r_plan.anchor is not None
-    judged = [same_wall(plan, a, b) for a, b in r_plan.anchor.pairings if a >= 0]
-    # Seed 0 (docs/carmen.md): Intel 10 of 10 judged pairings correct, CSAIL 7 of 9
-    # (two on a parallel wall), anchor 0.22 m / 0.3° and 0.43 m / 3.0°.  The bounds
-    # leave one more wrong pairing and a third more anchor error than measured.
-    assert sum(judged) >= 0.7 * len(judged)
-    err = relative(anchor_truth(log.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
-    assert math.hypot(err[0], err[1]) < 0.6
-    assert abs(err[2]) < math.radians(4.0)
-    truth = truth_in_global(log.true_poses)
-    e_plan = pose_metrics(r_plan.poses, r_plan.covs, truth)["position_error_m"]["rmse"]
-    e_none = pose_metrics(r_none.poses, r_none.covs, truth)["position_error_m"]["rmse"]
-    assert e_plan < e_none
+    plan = None
+    accepted, anchor_m, anchor_rad, rmse_plan, rmse_none = 0, [], [], [], []
+    for seed in _SEEDS:
+        raw = load_carmen(path, options=CarmenOptions(seed=seed))
+        assert raw.true_poses is not None
+        plan = build_floor_plan(raw) if plan is None else plan
+        log = label_with_plan(raw, plan)
+        truth = truth_in_global(raw.true_poses)
+        r_plan = run_ekf(log, EKFConfig(data_association=assoc))
+        r_none = run_ekf(log, EKFConfig(fusion=False, data_association=assoc))
+        rmse_plan.append(pose_metrics(r_plan.poses, r_plan.covs, truth)["position_error_m"]["rmse"])
+        rmse_none.append(pose_metrics(r_none.poses, r_none.covs, truth)["position_error_m"]["rmse"])
+        if r_plan.anchor is None:
+            continue
+        accepted += 1
+        judged = [same_wall(plan, a, b) for a, b in r_plan.anchor.pairings if a >= 0]
+        assert len(judged) >= 10
+        assert all(judged), f"seed {seed}: {r_plan.anchor.pairings}"
+        err = relative(anchor_truth(raw.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
+        anchor_m.append(math.hypot(err[0], err[1]))
+        anchor_rad.append(abs(err[2]))
+    # Seeds 0-3 (docs/carmen.md): CCDA accepts on 4 (Intel) and 3 (CSAIL, seed 1
+    # refuses every attempt) with every judged pairing correct; anchor errors
+    # 0.17-0.37 m but CSAIL seed 0 (1.28 m, 2.5°, a match made late, at step 319, on a
+    # map 3 m adrift); the median RMSE with the plan is 0.31 against 2.12 m (Intel) and
+    # 1.32 against 1.75 m (CSAIL).  The medians' bounds leave about half as much again.
+    assert accepted >= 3
+    assert float(np.median(anchor_m)) < 0.5
+    assert float(np.median(anchor_rad)) < math.radians(2.0)
+    assert max(anchor_m) < 2.0
+    assert float(np.median(rmse_plan)) < float(np.median(rmse_none))

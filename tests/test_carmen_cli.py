@@ -190,13 +190,18 @@ def test_compare_report_states_the_simulated_odometry_and_the_plan(
 def test_carmen_profile_applies_to_every_carmen_log_and_only_to_them() -> None:
     plain = synthetic_log(5, 0)
     carmen = dataclasses.replace(plain, scenario="carmen:any-name.log")
-    ekf = get("ekf")
     profile = profile_of(carmen)
     assert profile is not None
     assert profile.dataset == "carmen:"
     assert profile_of(plain) is None
+    ekf = get("ekf")
     assert default_options(ekf, carmen).data_association == carmen_association()
     assert default_options(ekf, plain).data_association != carmen_association()
+    for name in ("batch", "isam2", "fixedlag"):
+        est = get(name)
+        assert default_options(est, carmen).graph.data_association == carmen_association()
+        assert default_options(est, plain).graph.data_association != carmen_association()
+    assert carmen_association().line_gap_m == 1.0
 
 
 @pytest.mark.realdata

@@ -320,7 +320,7 @@ def load_carmen(
 def carmen_association() -> AssociationConfig:
     """Association settings for runs of a CARMEN log against its floor plan.
 
-    The defaults but for two settings (``docs/carmen.md``):
+    The defaults but for three settings (``docs/carmen.md``):
 
     * CCDA's ``min_pairings``: 12 instead of 8.  Office walls come in parallel families
       a door width or a corridor apart, and a match of 8 walls seen in the first local
@@ -329,8 +329,15 @@ def carmen_association() -> AssociationConfig:
       joint covariance, and on these logs the EKF is overconfident (its pose NEES is
       far above 3: walls that are not flat, correlated from scan to scan), so the test
       refuses matches whose pairings are all correct.
+    * ``line_gap_m``: 1 m instead of 4 m.  Indoors, two collinear pieces of one wall are
+      a doorway apart (about 1 m); pieces farther apart along the line are as often an
+      alcove, a cupboard front or the next room's wall a few decimetres off the line.
+      Bridging them merges two walls into one landmark, which then pairs with either
+      wall of the plan.
     """
-    return AssociationConfig(ccda=CCDAParams(min_pairings=12), match_joint_test=False)
+    return AssociationConfig(
+        ccda=CCDAParams(min_pairings=12), match_joint_test=False, line_gap_m=1.0
+    )
 
 
 def with_known_map(log: MeasurementLog, known_map: KnownMapArrays) -> MeasurementLog:
