@@ -57,7 +57,9 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         move_m=_range(args.move_m),
     )
     params = ChangeParams(
-        level=args.level, missing_radius_sigmas=args.missing_radius_sigmas
+        level=args.level,
+        missing_radius_sigmas=args.missing_radius_sigmas,
+        link_unviewed_lines=not args.no_link_unviewed_lines,
     ).with_sensor(base.laser)
     row: dict[str, object] = {"seed": seed}
     for name, sc in (("unchanged", base), ("changed", changed)):
@@ -174,6 +176,12 @@ def main() -> None:
         type=float,
         default=None,
         help="ChangeParams.missing_radius_sigmas (default: from --level)",
+    )
+    p.add_argument(
+        "--no-link-unviewed-lines",
+        action="store_true",
+        help="ChangeParams.link_unviewed_lines off: walls are linked to a move only "
+        "from a surveyed place predicted in view",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

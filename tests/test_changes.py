@@ -140,6 +140,30 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     assert kid in {n.true_id for n in rep.new}
 
 
+def test_wall_never_predicted_in_view_is_linked_to_its_unassociated_landmark():
+    """No feature reaches ``min_scans`` here; a wall surveyed 2 m beside where it stands,
+    never associated, is that wall moved (a landmark parallel to it and overlapping it
+    along its length), and with the linking off it is unobserved and its landmark new."""
+    log = _log()
+    blind = dataclasses.replace(PARAMS, min_scans=10**6)
+    line = _most_in_view(log, FeatureKind.LINE)
+    kid = int(log.known_map.ids[line])
+    p = log.known_map.params.copy()
+    th = float(p[line, 2])
+    p[line, :2] += 2.0 * np.array([-math.sin(th), math.cos(th)])
+    moved = _replace_known(log, params=p)
+    rep = _classify(moved, blind, unassociated=kid)
+    c = rep.known[line]
+    assert c.scans_in_view < blind.min_scans
+    assert c.status == ChangeStatus.MOVED
+    assert not c.associated
+    assert math.hypot(*c.displacement[:2]) == pytest.approx(2.0, abs=0.3)
+    assert kid not in {n.true_id for n in rep.new}
+    off = _classify(moved, dataclasses.replace(blind, link_unviewed_lines=False), unassociated=kid)
+    assert off.known[line].status == ChangeStatus.UNOBSERVED
+    assert kid in {n.true_id for n in off.new}
+
+
 def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_landmark():
     """A line surveyed 0.42 rad off (max_turn_rad 0.35 plus under 3 of the map's
     σθ = 0.05 rad) and not associated by the estimator is that line, moved."""
@@ -329,6 +353,8 @@ def test_change_params_reject_bad_values():
         ChangeParams(level=1.0)
     with pytest.raises(ValueError, match="min_scans"):
         ChangeParams(min_scans=0)
+    with pytest.raises(ValueError, match="link_unviewed_lines must be a bool"):
+        ChangeParams(link_unviewed_lines=1)  # type: ignore[arg-type]
 
 
 def test_classify_rejects_decisions_of_another_log():

@@ -7,7 +7,8 @@
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
 3. A known feature without one, predicted in view at its surveyed place for at least
-   ``K`` scans, is compared with the unassociated landmarks of its kind within
+   ``K`` scans (a wall: whether or not, :attr:`ChangeParams.link_unviewed_lines`), is
+   compared with the unassociated landmarks of its kind within
    ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the feature
    after a move beyond the association gate, and is tested the same way (a consistent
    one is a landmark the estimator did not merge: the feature is confirmed).
@@ -150,12 +151,13 @@ def classify_changes(
     # Moves beyond the association gate: nearest unassociated landmark, one to one.
     pairs = []
     for r in unassociated:
-        if in_view[int(known.ids[r])] < params.min_scans:
-            # Not seen where the map has it, but never expected there either: nothing
-            # says it moved, and a landmark near it is as likely a feature the map
-            # lacks (another tree a few metres away) as this one moved.
-            continue
         kind = FeatureKind(int(known.kinds[r]))
+        unviewed = in_view[int(known.ids[r])] < params.min_scans
+        if unviewed and not (kind == FeatureKind.LINE and params.link_unviewed_lines):
+            # Not seen where the map has it, but never expected there either: nothing
+            # says it moved, and a landmark near a tree is as likely a tree the map
+            # lacks as this one moved (ChangeParams.link_unviewed_lines).
+            continue
         for i, s in enumerate(free):
             if s.kind == kind:
                 d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)

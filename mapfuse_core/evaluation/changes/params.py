@@ -70,6 +70,16 @@ class ChangeParams:
     max_turn_rad: float = 0.35
     """Largest turn of a line considered a move of that line (widened by three of the
     line's own angle σ)."""
+    link_unviewed_lines: bool = True
+    """Look for a moved wall even when its surveyed place was never predicted in view.
+    A wall is told apart by its direction and its extent: an unassociated landmark
+    within :attr:`max_move_m` and :attr:`max_turn_rad` of it that also overlaps it along
+    its length is that wall moved far more often than a wall the map lacks.  Circles
+    are linked only from a surveyed place seen empty: an unmapped tree a few metres
+    from one the map has is common, and nothing but distance relates the two.  A wall
+    surveyed where the view model cannot see it (its mapped angle off enough to turn
+    the scanner's view into a grazing one) is otherwise never linked to where it
+    stands."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
@@ -85,6 +95,10 @@ class ChangeParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
+        if not isinstance(self.link_unviewed_lines, bool):
+            raise ValueError(
+                f"ChangeParams.link_unviewed_lines must be a bool, got {self.link_unviewed_lines!r}"
+            )
         m = self.missing_radius_sigmas
         if m is not None and not (
             isinstance(m, int | float) and not isinstance(m, bool) and math.isfinite(m) and m >= 0.0
