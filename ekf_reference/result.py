@@ -32,7 +32,7 @@ class AnchorResult:
     pairings: tuple[tuple[int, int], ...]
     """CCDA pairings as (true world id of the estimated feature or −1, known-map id).  The
     feature's id is the one most of its observations up to the match carry
-    (:func:`~ekf_reference.tracks.track_labels`)."""
+    (:func:`~mapfuse_core.evaluation.landmark_labels`)."""
 
 
 @dataclass(frozen=True)
