@@ -182,3 +182,70 @@ def test_gps_reference_round_trip_and_pairing(tmp_path: Path) -> None:
     np.testing.assert_array_equal(back.gps_xy, log.gps_xy)
     with pytest.raises(MeasurementLogError, match="together"):
         dataclasses.replace(small_log(), gps_times=np.array([0.1]))
+
+
+def _with_scans(log: MeasurementLog, beams: int = 4) -> MeasurementLog:
+    ranges = np.linspace(1.0, 9.0, log.n_steps * beams).reshape(log.n_steps, beams)
+    ranges[1, 2] = np.inf
+    return dataclasses.replace(
+        log,
+        scan_bearings=np.linspace(-1.0, 1.0, beams),
+        scan_ranges=ranges.astype(np.float32),
+    )
+
+
+def test_raw_scans_round_trip_as_float32_and_are_cut_by_head(tmp_path: Path) -> None:
+    log = _with_scans(small_log())
+    back = load_log(save_log(log, tmp_path / "log.npz"))
+    assert back.scan_ranges is not None
+    assert back.scan_bearings is not None
+    assert back.scan_ranges.dtype == np.float32
+    np.testing.assert_array_equal(back.scan_ranges, log.scan_ranges)
+    np.testing.assert_array_equal(back.scan_bearings, log.scan_bearings)
+    assert np.isinf(back.scan_ranges[1, 2])
+    head = log.head(3)
+    assert head.scan_ranges is not None
+    assert head.scan_ranges.shape == (3, 4)
+    # A log without scans keeps none.
+    assert load_log(save_log(small_log(), tmp_path / "bare.npz")).scan_ranges is None
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"scan_bearings": None}, "given together"),
+        ({"scan_ranges": np.ones((5, 3), dtype=np.float32)}, r"shape \(5, 3\)"),
+        ({"scan_ranges": np.ones((4, 4), dtype=np.float32)}, r"shape \(4, 4\)"),
+        ({"scan_ranges": np.ones((5, 4))}, "float32"),
+        ({"scan_bearings": np.array([0.0, 0.5, 0.5, 1.0])}, "increase strictly"),
+        ({"scan_bearings": np.array([0.0, 1.0, 2.0, 4.0])}, "within ±π"),
+        ({"scan_bearings": np.array([0.0, np.nan, 2.0, 3.0])}, "non-finite"),
+    ],
+)
+def test_bad_raw_scans_are_named(change: dict[str, object], message: str) -> None:
+    log = _with_scans(small_log())
+    with pytest.raises(MeasurementLogError, match=message):
+        dataclasses.replace(log, **change)
+
+
+@pytest.mark.parametrize("value", [np.nan, -1.0])
+def test_a_range_that_is_no_range_is_named_with_its_beam(value: float) -> None:
+    log = _with_scans(small_log())
+    assert log.scan_ranges is not None
+    bad = log.scan_ranges.copy()
+    bad[3, 1] = value
+    with pytest.raises(MeasurementLogError, match=r"'scan_ranges'\[3, 1\]"):
+        dataclasses.replace(log, scan_ranges=bad)
+
+
+def test_simulated_logs_keep_their_raw_scans() -> None:
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import simulate
+
+    scenario = dataclasses.replace(load_scenario("loop600"), steps=6)
+    sim = simulate(scenario, seed=0, workers=1)
+    assert sim.log.scan_ranges is not None
+    assert sim.log.scan_bearings is not None
+    assert sim.log.scan_ranges.shape == (6, scenario.laser.n_beams)
+    for k, scan in enumerate(sim.scans):
+        np.testing.assert_allclose(sim.log.scan_ranges[k], scan.ranges, rtol=1e-6)

@@ -111,6 +111,14 @@ class MeasurementLog:
     """(3,) ``x^W_Wknown``, the pose of the known map's frame in the world (simulation),
     for evaluation only; ``None`` (real data, logs written without it) means the
     identity."""
+    scan_bearings: FloatArray | None = None
+    """(B,) bearing of each beam of the raw scans in the sensor frame (rad), increasing;
+    ``None`` when the log keeps no raw scans."""
+    scan_ranges: np.ndarray | None = None
+    """(N, B) float32 range each beam of step ``k``'s scan measured (m), ``inf`` where it
+    returned nothing; given with :attr:`scan_bearings`.  The features are extracted from
+    these; change detection reads them for where the laser saw through a mapped feature
+    (``docs/changes.md``)."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -161,6 +169,7 @@ class MeasurementLog:
             feat_n_points=self.feat_n_points[:m],
             feat_extent=self.feat_extent[:m],
             true_poses=None if self.true_poses is None else self.true_poses[:n],
+            scan_ranges=None if self.scan_ranges is None else self.scan_ranges[:n],
         )
 
     def feature_slice(self, k: int) -> slice:
@@ -349,12 +358,39 @@ def _validate(log: MeasurementLog) -> None:
     if log.gps_times is not None and log.gps_xy is not None:
         _check_array("gps_times", log.gps_times, (None,), limit=None)
         _check_array("gps_xy", log.gps_xy, (log.gps_times.shape[0], 2))
+    _check_scans(log, n)
     for k, v in log.rejected.items():
         if not isinstance(k, str) or not isinstance(v, int) or v < 0:
             raise MeasurementLogError(f"'rejected' entry {k!r}: {v!r} is not a count")
     for key, text in log.metadata.items():
         if not isinstance(key, str) or not isinstance(text, str):
             raise MeasurementLogError(f"'metadata' entry {key!r}: {text!r} is not text")
+
+
+def _check_scans(log: MeasurementLog, n: int) -> None:
+    """Raw scans: bearings and ranges together, one row of ranges per step; bearings
+    finite, increasing and within ±π; ranges non-negative, ``inf`` for no return."""
+    if (log.scan_bearings is None) != (log.scan_ranges is None):
+        raise MeasurementLogError("'scan_bearings' and 'scan_ranges' must be given together")
+    if log.scan_bearings is None or log.scan_ranges is None:
+        return
+    b = log.scan_bearings
+    _check_array("scan_bearings", b, (None,), kinds="f")
+    if b.shape[0] < 1:
+        raise MeasurementLogError("'scan_bearings' is empty")
+    if np.any(np.abs(b) > np.pi + 1e-9) or np.any(np.diff(b) <= 0.0):
+        raise MeasurementLogError("'scan_bearings' must increase strictly within ±π")
+    r = log.scan_ranges
+    _check_array("scan_ranges", r, (n, b.shape[0]), finite=False, kinds="f", limit=None)
+    if r.dtype != np.float32:
+        raise MeasurementLogError(f"'scan_ranges' must be float32, got {r.dtype}")
+    bad = np.argwhere(np.isnan(r) | (r < 0.0))
+    if bad.size:
+        k, j = (int(i) for i in bad[0])
+        raise MeasurementLogError(
+            f"'scan_ranges'[{k}, {j}] = {r[k, j]} is not a range (a range is >= 0, "
+            "inf for no return)"
+        )
 
 
 # --------------------------------------------------------------------------- disk format
@@ -375,6 +411,8 @@ _LOG_ARRAYS = tuple(
         "gps_xy",
         "metadata",
         "known_frame",
+        "scan_bearings",
+        "scan_ranges",
     }
     and not f.name.startswith("_")
 )
@@ -412,7 +450,14 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
                 out[f"{prefix}_{f}"] = np.asarray(getattr(m, f))
             if m.extents is not None:
                 out[f"{prefix}_extents"] = np.asarray(m.extents)
-    for name in ("true_poses", "gps_times", "gps_xy", "known_frame"):
+    for name in (
+        "true_poses",
+        "gps_times",
+        "gps_xy",
+        "known_frame",
+        "scan_bearings",
+        "scan_ranges",
+    ):
         value = getattr(log, name)
         if value is not None:
             out[name] = np.asarray(value)
@@ -479,7 +524,7 @@ def _get(arrays: dict[str, np.ndarray], path: Path, name: str) -> np.ndarray:
         return arr.astype(dtype)
     if arr.dtype.kind not in "fiu":
         raise MeasurementLogError(f"{path}: '{name}' must be numeric, got {arr.dtype}")
-    return arr.astype(np.float64)
+    return arr.astype(np.float32 if name == "scan_ranges" else np.float64)
 
 
 def load_log(path: str | Path) -> MeasurementLog:
@@ -533,6 +578,7 @@ def load_log(path: str | Path) -> MeasurementLog:
             gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
             gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
             known_frame=_get(arrays, path, "known_frame") if "known_frame" in arrays else None,
+            **{s: _get(arrays, path, s) for s in ("scan_bearings", "scan_ranges") if s in arrays},
             rejected={str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
             metadata=metadata,
             **{n: _get(arrays, path, n) for n in _LOG_ARRAYS},

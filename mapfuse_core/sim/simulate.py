@@ -325,6 +325,10 @@ def simulate(
             true_poses=motion.true_poses,
             known_frame=np.array(known.frame, dtype=float),
             rejected={k: int(v) for k, v in sorted(rejected.items())},
+            scan_bearings=scenario.laser.bearings(),
+            scan_ranges=np.array([s.ranges for s in scans], dtype=np.float32).reshape(
+                n, int(scenario.laser.n_beams)
+            ),
         )
     except MeasurementLogError as exc:
         # Extreme but valid parameters (e.g. a control noise that dwarfs the slip) can
