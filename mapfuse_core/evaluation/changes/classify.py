@@ -14,8 +14,10 @@
    one is a landmark the estimator did not merge: the feature is confirmed).
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
-   radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), else
-   unobserved.
+   radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
+   log's raw scans saw a circle's surveyed place empty for at least ``K`` scans
+   (:mod:`mapfuse_core.evaluation.changes.freespace`; such a circle also counts as
+   seen in step 3), else unobserved.
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
    except duplicates: those consistent with an observed known feature, or within the
    move limits of one classified moved (another piece of it).
@@ -30,6 +32,7 @@ import numpy as np
 
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against, observation_sets
+from mapfuse_core.evaluation.changes.freespace import scans_seen_empty
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import (
     ChangeReport,
@@ -148,11 +151,17 @@ def classify_changes(
             rows[r] = _row(known, r, by_known[kid], True, in_view[kid], params)
         else:
             unassociated.append(r)
+    empty = {int(known.ids[r]): 0 for r in unassociated}
+    if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
+        empty = scans_seen_empty(
+            known, unassociated, poses_K, pose_covs, log.scan_bearings, log.scan_ranges, params
+        )
     # Moves beyond the association gate: nearest unassociated landmark, one to one.
     pairs = []
     for r in unassociated:
         kind = FeatureKind(int(known.kinds[r]))
-        unviewed = in_view[int(known.ids[r])] < params.min_scans
+        kid = int(known.ids[r])
+        unviewed = in_view[kid] < params.min_scans and empty[kid] < params.min_scans
         if unviewed and not (kind == FeatureKind.LINE and params.link_unviewed_lines):
             # Not seen where the map has it, but never expected there either: nothing
             # says it moved, and a landmark near a tree is as likely a tree the map
@@ -168,7 +177,9 @@ def classify_changes(
         if r in rows or i in used:
             continue
         used.add(i)
-        rows[r] = _row(known, r, free[i], False, in_view[int(known.ids[r])], params)
+        kid = int(known.ids[r])
+        row = _row(known, r, free[i], False, in_view[kid], params)
+        rows[r] = dataclasses.replace(row, scans_seen_empty=empty[kid])
     left = [r for r in unassociated if r not in rows]
     sure = dict(in_view)
     candidates = [
@@ -187,7 +198,8 @@ def classify_changes(
             sure[kid] = min(in_view[kid], again[kid])
     for r in left:
         kid = int(known.ids[r])
-        status = ChangeStatus.MISSING if sure[kid] >= params.min_scans else ChangeStatus.UNOBSERVED
+        seen = sure[kid] >= params.min_scans or empty[kid] >= params.min_scans
+        status = ChangeStatus.MISSING if seen else ChangeStatus.UNOBSERVED
         kind = FeatureKind(int(known.kinds[r]))
         rows[r] = FeatureChange(
             known_id=kid,
@@ -203,6 +215,7 @@ def classify_changes(
             scans_in_view=sure[kid],
             associated=False,
             landmark=-1,
+            scans_seen_empty=empty[kid],
         )
     # New features: unassociated landmarks no known feature accounts for.
     new: list[NewFeature] = []

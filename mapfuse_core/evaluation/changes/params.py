@@ -81,6 +81,13 @@ class ChangeParams:
     the scanner's view into a grazing one) is otherwise never linked to where it
     stands."""
 
+    free_space: bool = True
+    """Read the log's raw scans, when it has them, for where the laser saw through a
+    known circle's surveyed place (:mod:`mapfuse_core.evaluation.changes.freespace`).
+    A circle seen empty for :attr:`min_scans` scans counts as seen where the map has
+    it: it is linked to a landmark that moved, or else called missing, whatever the
+    extractor's rule predicts.  ``False``: the extractor's (or beam-count) rule alone."""
+
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
             raise ValueError(f"ChangeParams.level must be in (0, 1), got {self.level}")
@@ -95,10 +102,9 @@ class ChangeParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
-        if not isinstance(self.link_unviewed_lines, bool):
-            raise ValueError(
-                f"ChangeParams.link_unviewed_lines must be a bool, got {self.link_unviewed_lines!r}"
-            )
+        for name in ("link_unviewed_lines", "free_space"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ChangeParams.{name} must be a bool, got {getattr(self, name)!r}")
         m = self.missing_radius_sigmas
         if m is not None and not (
             isinstance(m, int | float) and not isinstance(m, bool) and math.isfinite(m) and m >= 0.0

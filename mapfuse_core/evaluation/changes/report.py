@@ -61,6 +61,9 @@ class FeatureChange:
     was found near it afterwards: a move beyond the association gate)."""
     landmark: int
     """Landmark (track) id of the observations tested, −1 if none."""
+    scans_seen_empty: int = 0
+    """Scans whose raw beams went through the feature's surveyed place (circles of a
+    log with raw scans; :mod:`mapfuse_core.evaluation.changes.freespace`), 0 otherwise."""
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -78,6 +81,7 @@ class FeatureChange:
             "scans_in_view": self.scans_in_view,
             "associated": self.associated,
             "landmark": self.landmark,
+            "scans_seen_empty": self.scans_seen_empty,
         }
 
 

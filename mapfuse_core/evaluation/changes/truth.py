@@ -221,7 +221,9 @@ def score_changes(
     min_turn_rad: float = 0.1,
 ) -> ChangeScore:
     """Score ``report``: moves at least ``min_move_m``/``min_turn_rad`` must be found; a
-    smaller true move classified moved counts neither way."""
+    smaller true move classified moved counts neither way, and so does a moved feature
+    never observed where it went that is classified missing (its surveyed place is
+    empty; no observation shows where it went)."""
     mtp = mfn = mfp = rtp = rfn = rfp = stp = sfn = 0
     removed = set(truth.removed)
     for c in report.known:
@@ -241,7 +243,9 @@ def score_changes(
         if c.status == ChangeStatus.MISSING:
             if c.known_id in removed:
                 rtp += 1
-            else:
+            elif c.known_id not in truth.moved or observed:
+                # A feature that moved and was never observed where it went is gone from
+                # where the map has it, and missing is what the classes call that.
                 rfp += 1
         elif c.known_id in truth.removed_in_view:
             rfn += 1

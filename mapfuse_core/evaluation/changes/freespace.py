@@ -1,0 +1,105 @@
+"""Where the laser saw through a mapped circle: :func:`scans_seen_empty`.
+
+:func:`~mapfuse_core.evaluation.changes.visibility.scans_in_view` asks whether the
+extractor *would* have returned a feature; that is indirect evidence of absence, and
+near the extractor's limits (a thin trunk, a far one) the answer turns on a few
+centimetres of the map's radius.  The raw scan gives direct evidence: a trunk that
+stands where the map has it stops every beam aimed through its middle, so a beam aimed
+there that returns from beyond the trunk's far side, or returns nothing, saw the place
+empty.  This needs no extractor and no radius threshold, only the scan.
+
+Which beams count.  The trunk may stand off its mapped centre by the map's position
+error, the pose's position error and the heading error times the range, together a
+lateral σ; its radius may be smaller than mapped by the map's radius σ.  A beam whose
+perpendicular distance from the mapped centre is below ``r − q·σ`` (``σ`` the two
+combined, ``q`` the one-sided normal quantile of the test level) would hit the trunk
+wherever those errors put it.  Only such *core* beams are read:
+
+* a return beyond ``d + r + q·σ`` (``d`` the range to the mapped centre, range noise
+  included in ``σ``), or no return: the beam went through; it *passes*;
+* a return within ``r + q·σ`` of the centre's range: something stands there; it *hits*;
+* a shorter return: something in front hides the place; the beam says nothing.
+
+A scan sees the place empty when at least one core beam passes and none hits.  A trunk
+too thin for any core beam at that range (``r ≤ q·σ``) gives no evidence either way.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import norm
+
+from mapfuse_core.data.measlog import KnownMapArrays
+from mapfuse_core.evaluation.changes.params import ChangeParams
+from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.se2 import FloatArray
+
+__all__ = ["scans_seen_empty"]
+
+
+def scans_seen_empty(
+    features: KnownMapArrays,
+    rows: list[int],
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    bearings: FloatArray,
+    ranges: FloatArray,
+    params: ChangeParams,
+) -> dict[int, int]:
+    """Scans in which the circles of ``features`` at ``rows`` were seen empty (see the
+    module docstring), counted at every ``view_stride``-th step times the stride.
+
+    ``poses``/``pose_covs``: the sensor pose of every step in the map's frame and its
+    covariance (only its largest position variance and its heading variance are used,
+    so the frame it is expressed in does not matter); ``bearings``/``ranges``: the raw
+    scans, (B,) and (N, B).  Lines are not read (``0``).
+    """
+    out = {int(features.ids[r]): 0 for r in rows}
+    circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
+    if not circles:
+        return out
+    P = np.asarray(poses, dtype=float)
+    C = np.asarray(pose_covs, dtype=float)
+    b = np.asarray(bearings, dtype=float)
+    q = float(norm.ppf(params.level))
+    sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
+    centres = features.params[circles, :2]
+    radii = features.params[circles, 2]
+    map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
+    radius_var = np.clip(features.covs[circles, 2, 2], 0.0, None)
+    for k in range(0, P.shape[0], params.view_stride):
+        x = P[k]
+        if not np.all(np.isfinite(x)) or not np.all(np.isfinite(C[k])):
+            continue
+        pos_var = _largest_position_variance(C[k])
+        head_var = max(float(C[k][2, 2]), 0.0)
+        rho = np.asarray(ranges[k], dtype=float)
+        for j, r in enumerate(circles):
+            v = centres[j] - x[:2]
+            d = math.hypot(float(v[0]), float(v[1]))
+            if d > params.max_range_m or d <= radii[j]:
+                continue
+            lateral = map_var[j] + pos_var + d * d * head_var
+            spread = q * math.sqrt(lateral + radius_var[j])
+            core = radii[j] - spread
+            if core <= 0.0:
+                continue
+            rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
+            sel = (np.abs(d * np.sin(rel)) < core) & (np.cos(rel) > 0.0)
+            if not np.any(sel):
+                continue
+            seen = rho[sel]
+            reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
+            passes = seen > d + reach
+            hits = (seen >= d - reach) & ~passes
+            if np.any(passes) and not np.any(hits):
+                out[int(features.ids[r])] += params.view_stride
+    return out
+
+
+def _largest_position_variance(cov: FloatArray) -> float:
+    """Largest eigenvalue of the position block of a 3×3 covariance (≥ 0)."""
+    a, bb, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    return max(0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + bb * bb), 0.0)

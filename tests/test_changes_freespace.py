@@ -1,0 +1,179 @@
+"""Where the raw scans saw through a mapped circle: the free-space evidence of
+``mapfuse_core/evaluation/changes/freespace.py`` and how the classification uses it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.evaluation.changes import ChangeParams, ChangeStatus
+from mapfuse_core.evaluation.changes.freespace import scans_seen_empty
+from mapfuse_core.evaluation.changes.visibility import map_world
+from mapfuse_core.sim.laser import LaserParams, cast_rays
+from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
+from tests.test_changes import PARAMS, _classify, _with_absent_trees
+
+LASER = LaserParams()
+BEARINGS = LASER.bearings()
+ONE = ChangeParams(view_stride=1)
+N = 5
+POSES = np.zeros((N, 3))
+COVS = np.tile(np.eye(3) * 1e-6, (N, 1, 1))
+
+
+def _tree(x: float, r: float, sigma_xy: float = 0.0, sigma_r: float = 0.0) -> KnownMapArrays:
+    return KnownMapArrays(
+        ids=np.array([7], dtype=np.int64),
+        kinds=np.array([1], dtype=np.int8),
+        params=np.array([[x, 0.0, r]]),
+        covs=np.diag([sigma_xy**2, sigma_xy**2, sigma_r**2])[None],
+        extents=np.full((1, 2), np.nan),
+    )
+
+
+def _scans(world: World | None, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """(N, B) ranges the laser records at the origin in ``world`` (nothing: all inf)."""
+    if world is None:
+        return np.full((N, BEARINGS.size), np.inf, dtype=np.float32)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(N):
+        r, _hit = cast_rays(world, np.zeros(3), BEARINGS, LASER.max_range_m)
+        rows.append(r + noise * rng.standard_normal(r.shape))
+    return np.array(rows, dtype=np.float32)
+
+
+BEHIND = WallSegment(50, (20.0, -10.0), (20.0, 10.0))
+
+
+def _empty(known: KnownMapArrays, ranges: np.ndarray, params: ChangeParams = ONE) -> int:
+    return scans_seen_empty(known, [0], POSES, COVS, BEARINGS, ranges, params)[7]
+
+
+def test_beams_through_an_empty_place_see_it_empty_every_scan() -> None:
+    # Nothing returns, or the beams return from a wall behind the surveyed place.
+    assert _empty(_tree(8.0, 0.3), _scans(None)) == N
+    assert _empty(_tree(8.0, 0.3), _scans(World(segments=(BEHIND,), circles=()))) == N
+
+
+def test_a_trunk_where_the_map_has_it_is_never_seen_empty_even_off_by_its_sigmas() -> None:
+    # The trunk stands 0.15 m off its mapped place and is 0.1 m thinner, inside 3 σ of
+    # the map's position (0.05 m) and radius (0.05 m) errors; the ranges carry noise.
+    real = World(segments=(BEHIND,), circles=(CircleObstacle(7, (8.0, 0.15), 0.2),))
+    known = _tree(8.0, 0.3, sigma_xy=0.05, sigma_r=0.05)
+    assert _empty(known, _scans(real, noise=0.05)) == 0
+    # The same trunk where it is mapped.
+    exact = World(segments=(BEHIND,), circles=(CircleObstacle(7, (8.0, 0.0), 0.3),))
+    assert _empty(_tree(8.0, 0.3), _scans(exact, noise=0.05)) == 0
+
+
+def test_a_place_hidden_behind_something_else_says_nothing() -> None:
+    front = World(segments=(BEHIND,), circles=(CircleObstacle(1, (4.0, 0.0), 0.6),))
+    assert _empty(_tree(8.0, 0.3), _scans(front)) == 0
+
+
+def test_a_trunk_thinner_than_its_position_uncertainty_gives_no_evidence() -> None:
+    # r = 0.3 m against a lateral σ of 0.1 m: 3.09 σ leaves no beam sure to hit it.
+    assert _empty(_tree(8.0, 0.3, sigma_xy=0.1), _scans(None)) == 0
+    # The heading error counts too: 0.02 rad at 8 m is 0.16 m.
+    covs = np.tile(np.diag([1e-6, 1e-6, 0.02**2]), (N, 1, 1))
+    got = scans_seen_empty(_tree(8.0, 0.3), [0], POSES, covs, BEARINGS, _scans(None), ONE)
+    assert got[7] == 0
+
+
+def test_only_circles_within_max_range_are_read_and_counts_follow_the_stride() -> None:
+    assert _empty(_tree(35.0, 0.5), _scans(None)) == 0  # max_range_m 30 m
+    assert _empty(_tree(35.0, 0.5), _scans(None), dataclasses.replace(ONE, max_range_m=40.0)) == N
+    # Every 2nd of 5 scans, each counting 2.
+    assert _empty(_tree(8.0, 0.3), _scans(None), ChangeParams(view_stride=2)) == 6
+    wall = KnownMapArrays(
+        ids=np.array([7], dtype=np.int64),
+        kinds=np.array([0], dtype=np.int8),
+        params=np.array([[8.0, 0.0, np.pi / 2]]),
+        covs=np.zeros((1, 3, 3)),
+        extents=np.array([[-2.0, 2.0]]),
+    )
+    assert _empty(wall, _scans(None)) == 0
+
+
+def _with_scans(log: MeasurementLog) -> MeasurementLog:
+    """``log`` with the raw scans its world gives from the true poses, noise-free."""
+    assert log.world is not None
+    assert log.true_poses is not None
+    world = map_world(log.world)
+    assert world is not None
+    ranges = [cast_rays(world, p, p[2] + BEARINGS, LASER.max_range_m)[0] for p in log.true_poses]
+    return dataclasses.replace(
+        log, scan_bearings=BEARINGS, scan_ranges=np.array(ranges, dtype=np.float32)
+    )
+
+
+def test_a_removed_tree_the_extractor_rule_cannot_vouch_for_is_missing_from_the_scans() -> None:
+    """Mapped 0.8 m with a radius σ of 0.15 m, the absent tree is not missing by the
+    extractor's rule (the real one may be too thin to extract); the beams that went
+    through its place say it is missing.  The tree 200 m away stays unobserved."""
+    log = _with_scans(_with_absent_trees(0.8, 0.15))
+    rep = _classify(log)
+    assert rep.status_of(9001) == ChangeStatus.MISSING
+    assert rep.known[-2].scans_in_view < PARAMS.min_scans
+    assert rep.known[-2].scans_seen_empty >= PARAMS.min_scans
+    assert rep.status_of(9002) == ChangeStatus.UNOBSERVED
+    assert rep.known[-1].scans_seen_empty == 0
+    off = _classify(log, dataclasses.replace(PARAMS, free_space=False))
+    assert off.status_of(9001) == ChangeStatus.UNOBSERVED
+    assert off.known[-2].scans_seen_empty == 0
+
+
+def test_no_tree_of_a_noisy_map_that_stands_where_surveyed_is_seen_empty() -> None:
+    """Every known tree of the test log stands in its world, the map drawn with its σ:
+    read from every step of the drive, none is seen empty, while the absent one is."""
+    log = _with_scans(_with_absent_trees(0.8, 0.15))
+    known = log.known_map
+    rows = [r for r in range(len(known)) if int(known.kinds[r]) == 1]
+    assert len(rows) >= 5
+    assert log.true_poses is not None
+    assert log.scan_ranges is not None
+    covs = np.tile(np.eye(3) * 1e-6, (log.n_steps, 1, 1))
+    got = scans_seen_empty(
+        known, rows, log.true_poses, covs, BEARINGS, log.scan_ranges, ChangeParams()
+    )
+    assert got[9001] >= PARAMS.min_scans
+    assert all(got[int(known.ids[r])] == 0 for r in rows if int(known.ids[r]) < 9000)
+
+
+@pytest.mark.parametrize("bad", [1, None, "yes"])
+def test_free_space_switch_must_be_a_bool(bad: object) -> None:
+    with pytest.raises(ValueError, match="free_space"):
+        ChangeParams(free_space=bad)  # type: ignore[arg-type]
+
+
+def test_a_moved_tree_never_seen_where_it_went_counts_neither_way_when_missing() -> None:
+    """Tree 1 moved and was never observed again, tree 2 moved and was observed, tree 3
+    is where the map has it, tree 4 was removed: called missing, 1 counts neither way,
+    2 and 3 are false removals, 4 is found."""
+    from mapfuse_core.evaluation.changes.report import ChangeReport
+    from mapfuse_core.evaluation.changes.truth import ChangeTruth, score_changes
+    from tests.test_changes import _change
+
+    truth = ChangeTruth(
+        moved={1: (2.0, 0.0, 0.0, 0.0), 2: (2.0, 0.0, 0.0, 0.0)},
+        lateral={},
+        removed=(4,),
+        removed_in_view=(4,),
+        added=(),
+        added_observed=(),
+        observed=(2, 3),
+    )
+    report = ChangeReport(
+        known=tuple(_change(k, ChangeStatus.MISSING) for k in (1, 2, 3, 4)),  # type: ignore[misc]
+        new=(),
+        duplicates=0,
+        level=0.999,
+        x_Wknown_Wglobal=np.zeros(3),
+    )
+    s = score_changes(report, truth)
+    assert (s.removed_tp, s.removed_fp, s.removed_fn) == (1, 2, 0)
+    assert (s.moved_tp, s.moved_fn) == (0, 1)
