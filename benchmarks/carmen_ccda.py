@@ -96,6 +96,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs=2, default=(0, 4), metavar=("FIRST", "STOP"))
     ap.add_argument("--line-gap", type=float, default=None, help="line_gap_m (m)")
     args = ap.parse_args()
+    if args.seeds[0] >= args.seeds[1]:
+        ap.error(f"--seeds FIRST STOP needs FIRST < STOP, got {args.seeds[0]} {args.seeds[1]}")
     logs = args.logs or sorted((args.data / "carmen").glob("*-corrected.log*"))
     if not logs:
         raise SystemExit(f"no corrected CARMEN log in {args.data / 'carmen'}")

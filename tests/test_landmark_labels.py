@@ -24,6 +24,8 @@ def test_a_tie_goes_to_the_label_seen_first() -> None:
     obs_landmark = np.array([3, 3, 3, 3])
     labels = np.array([9, 4, 4, 9])
     assert landmark_labels(obs_landmark, labels, [3]) == [9]
+    # The smaller label seen first wins too: the tie is not broken by value.
+    assert landmark_labels(obs_landmark, np.array([4, 9, 9, 4]), [3]) == [4]
 
 
 def test_unassociated_observations_do_not_count() -> None:
