@@ -204,6 +204,30 @@ def test_carmen_profile_applies_to_every_carmen_log_and_only_to_them() -> None:
     assert carmen_association().line_gap_m == 1.0
 
 
+def test_an_override_of_a_nested_option_keeps_the_profiles_other_settings() -> None:
+    from mapfuse.run import make_options
+    from mapfuse_graph.options import GraphOptions
+
+    carmen = dataclasses.replace(synthetic_log(5, 0), scenario="carmen:any-name.log")
+    profile_gap = carmen_association().line_gap_m
+    # A mapping changes only the fields it names, at any depth.
+    merged = make_options("batch", carmen, graph={"ccda_every": 20})
+    assert merged.graph.ccda_every == 20
+    assert merged.graph.data_association == carmen_association()
+    deeper = make_options("isam2", carmen, graph={"data_association": {"gate_prob": 0.99}})
+    assert deeper.graph.data_association.gate_prob == 0.99
+    assert deeper.graph.data_association.line_gap_m == profile_gap
+    ekf = make_options("ekf", carmen, data_association={"line_gap_m": 2.0})
+    assert ekf.data_association.line_gap_m == 2.0
+    assert ekf.data_association.ccda == carmen_association().ccda
+    # A whole dataclass replaces the profile's value, and the warning names what it drops.
+    with pytest.warns(UserWarning, match=r"batch\.graph: .* profile's data_association"):
+        whole = make_options("batch", carmen, graph=GraphOptions(ccda_every=20))
+    assert whole.graph.data_association.line_gap_m != profile_gap
+    with pytest.raises(ValueError, match=r"the batch\.graph options have no field gap"):
+        make_options("batch", carmen, graph={"gap": 1.0})
+
+
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_real_csail_log_runs_end_to_end(
