@@ -344,9 +344,9 @@ def judge(calls: list[Call], log: MeasurementLog, result: EstimatorResult | str)
         coincident = int(sum(near))
         wrong_obs = len(near) - coincident
         anchor = None if result.anchor is None else result.anchor.x_Wknown_Wglobal
-    # A landmark is labelled by its first observation, which clutter can supply (a
-    # spurious detection where a real feature is): a pairing with known feature k is
-    # wrong unless most observations merged with k are truly of k.
+    # A landmark's first observation can be clutter (a spurious detection where a real
+    # feature is): a pairing with known feature k is wrong unless more than half of all
+    # the log's observations associated with k (those of no feature included) are of k.
     wrong_pairings = 0
     for k in suspects:
         if isinstance(result, str) or result.decisions is None:

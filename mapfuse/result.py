@@ -91,9 +91,11 @@ class Anchor:
     accepted_at_step: int
     """Step at which the map match was accepted (or entered the estimate)."""
     pairings: tuple[tuple[int, int], ...]
-    """(true world id of the estimated feature or −1, known-map id) per pairing: the id
-    most of the feature's observations carry
-    (:func:`~mapfuse_core.evaluation.landmark_labels`)."""
+    """(true world id of the estimated feature or −1, known-map id) per pairing, the id
+    being the one most of the feature's observations carry
+    (:func:`~mapfuse_core.evaluation.landmark_labels`).  The EKF gives the match's
+    pairings, labelled by the observations up to the match; a graph backend gives every
+    tie of a landmark to a known feature, labelled by all the landmark's observations."""
 
 
 @dataclass(frozen=True)

@@ -37,3 +37,30 @@ def test_unassociated_observations_do_not_count() -> None:
 def test_mismatched_lengths_are_an_error_naming_both_shapes() -> None:
     with pytest.raises(ValueError, match=r"obs_landmark has shape \(3,\), labels \(2,\)"):
         landmark_labels(np.zeros(3, dtype=int), np.zeros(2, dtype=int), [0])
+
+
+@pytest.mark.slow
+def test_ekf_anchor_pairing_of_a_landmark_started_by_clutter_is_labelled_by_its_majority() -> (
+    None
+):
+    """loop600's first 160 steps with clutter, seed 12: a spurious detection on known
+    tree 31 starts the landmark that 72 observations of tree 31 then join; the EKF's
+    pairing of it must carry 31, not the clutter's −1."""
+    import dataclasses
+
+    from mapfuse.run import run
+    from mapfuse_core.sim.clutter import ClutterParams
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import simulate
+
+    clutter = ClutterParams(features_per_scan=5, circle_fraction=0.5, outlier_fraction=0.1)
+    scenario = dataclasses.replace(load_scenario("loop600"), steps=160)
+    log = simulate(scenario, seed=12, workers=1, clutter=clutter).log
+    result = run(log, "ekf").result
+    assert result.anchor is not None and result.decisions is not None
+    known = np.asarray(result.decisions.obs_known_id)
+    true_ids = np.asarray(log.feat_true_id[: known.size])[known == 31]
+    assert true_ids[0] == -1  # the landmark's first observation is the clutter
+    assert np.count_nonzero(true_ids == 31) > 0.9 * true_ids.size
+    assert (31, 31) in result.anchor.pairings
+    assert all(label == kid for label, kid in result.anchor.pairings)

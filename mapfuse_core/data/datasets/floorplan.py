@@ -289,7 +289,8 @@ def same_wall(
 ) -> bool:
     """Whether walls ``a`` and ``b`` of ``plan`` lie on one line: ``a == b``, or ``(ρ, α)``
     within the plan's tolerances and extents at most ``gap_m`` apart.  How a pairing
-    of a landmark first seen on wall ``a`` with known wall ``b`` is judged: a line
+    of a landmark labelled wall ``a`` (the wall most of its observations lie on,
+    :func:`~mapfuse_core.evaluation.landmark_labels`) with known wall ``b`` is judged: a line
     pairing constrains only the lateral offset and the angle, so a pairing with a
     collinear piece (the wall beyond a door) is as right as one with the piece itself;
     ``gap_m`` defaults to ``AssociationConfig.line_gap_m``'s 4 m."""
