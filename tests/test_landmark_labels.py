@@ -40,9 +40,7 @@ def test_mismatched_lengths_are_an_error_naming_both_shapes() -> None:
 
 
 @pytest.mark.slow
-def test_ekf_anchor_pairing_of_a_landmark_started_by_clutter_is_labelled_by_its_majority() -> (
-    None
-):
+def test_ekf_pairing_of_a_landmark_started_by_clutter_carries_its_majority_label() -> None:
     """loop600's first 160 steps with clutter, seed 12: a spurious detection on known
     tree 31 starts the landmark that 72 observations of tree 31 then join; the EKF's
     pairing of it must carry 31, not the clutter's −1."""
@@ -57,7 +55,8 @@ def test_ekf_anchor_pairing_of_a_landmark_started_by_clutter_is_labelled_by_its_
     scenario = dataclasses.replace(load_scenario("loop600"), steps=160)
     log = simulate(scenario, seed=12, workers=1, clutter=clutter).log
     result = run(log, "ekf").result
-    assert result.anchor is not None and result.decisions is not None
+    assert result.anchor is not None
+    assert result.decisions is not None
     known = np.asarray(result.decisions.obs_known_id)
     true_ids = np.asarray(log.feat_true_id[: known.size])[known == 31]
     assert true_ids[0] == -1  # the landmark's first observation is the clutter
