@@ -1,4 +1,4 @@
-"""Where the raw scans saw through a mapped circle: the free-space evidence of
+"""Where the raw scans saw through a mapped circle or wall: the free-space evidence of
 ``mapfuse_core/evaluation/changes/freespace.py`` and how the classification uses it."""
 
 from __future__ import annotations
@@ -89,14 +89,56 @@ def test_only_circles_within_max_range_are_read_and_counts_follow_the_stride() -
     assert _empty(_tree(35.0, 0.5), _scans(None), dataclasses.replace(ONE, max_range_m=40.0)) == N
     # Every 2nd of 5 scans, each counting 2.
     assert _empty(_tree(8.0, 0.3), _scans(None), ChangeParams(view_stride=2)) == 6
-    wall = KnownMapArrays(
+
+
+def _wall(
+    x: float = 8.0, half: float = 2.0, sigma: float = 0.0, extents: bool = True
+) -> KnownMapArrays:
+    """Known wall 7 across the scanner's view at ``x``, from y = −half to +half."""
+    return KnownMapArrays(
         ids=np.array([7], dtype=np.int64),
         kinds=np.array([0], dtype=np.int8),
-        params=np.array([[8.0, 0.0, np.pi / 2]]),
-        covs=np.zeros((1, 3, 3)),
-        extents=np.array([[-2.0, 2.0]]),
+        params=np.array([[x, 0.0, np.pi / 2]]),
+        covs=np.diag([sigma**2, sigma**2, (sigma / 10.0) ** 2])[None],
+        extents=np.array([[-half, half]]) if extents else np.full((1, 2), np.nan),
     )
-    assert _empty(wall, _scans(None)) == 0
+
+
+def test_beams_through_an_empty_wall_place_see_it_empty() -> None:
+    assert _empty(_wall(), _scans(None)) == N
+    assert _empty(_wall(), _scans(World(segments=(BEHIND,), circles=()))) == N
+    # A wall without extents has no place to look through.
+    assert _empty(_wall(extents=False), _scans(None)) == 0
+
+
+def test_a_wall_where_the_map_has_it_is_never_seen_empty_even_off_by_its_sigmas() -> None:
+    # Standing 0.15 m behind and turned 0.01 rad from its mapped place: inside 3 σ of a
+    # 0.05 m / 5 mrad map; ranges with noise.  Also with a doorway in it.
+    off = WallSegment(7, (8.15 - 0.02, -2.0), (8.15 + 0.02, 2.0))
+    known = _wall(sigma=0.05)
+    assert _empty(known, _scans(World(segments=(off, BEHIND), circles=()), noise=0.05)) == 0
+    door = (WallSegment(7, (8.0, -2.0), (8.0, -0.5)), WallSegment(8, (8.0, 0.5), (8.0, 2.0)))
+    assert _empty(_wall(), _scans(World(segments=(*door, BEHIND), circles=()))) == 0
+
+
+def test_a_wall_seen_through_only_a_narrow_stretch_gives_no_evidence() -> None:
+    # Trunks in front hide all of the absent wall but about 0.5 m of it: fewer beams
+    # pass than the extractor needs to see a wall.
+    front = tuple(CircleObstacle(i, (4.0, y), 0.55) for i, y in enumerate((-0.9, 0.55)))
+    ranges = _scans(World(segments=(BEHIND,), circles=front))
+    crossing = np.abs(8.0 * np.tan(BEARINGS)) < 2.0
+    passing = int(np.count_nonzero(crossing & (ranges[0] > 19.0)))
+    assert 0 < passing < ONE.min_beams_line
+    assert _empty(_wall(), ranges) == 0
+    # Nearly along the beams (the wall is seen edge-on from the origin): nothing read.
+    along = KnownMapArrays(
+        ids=np.array([7], dtype=np.int64),
+        kinds=np.array([0], dtype=np.int8),
+        params=np.array([[3.0, 0.0, 0.0]]),
+        covs=np.zeros((1, 3, 3)),
+        extents=np.array([[0.0, 6.0]]),
+    )
+    assert _empty(along, _scans(None)) == 0
 
 
 def _with_scans(log: MeasurementLog) -> MeasurementLog:
@@ -177,3 +219,52 @@ def test_a_moved_tree_never_seen_where_it_went_counts_neither_way_when_missing()
     s = score_changes(report, truth)
     assert (s.removed_tp, s.removed_fp, s.removed_fn) == (1, 2, 0)
     assert (s.moved_tp, s.moved_fn) == (0, 1)
+
+
+def _with_absent_wall() -> MeasurementLog:
+    """The test log with a 4 m wall 9001 in its known map and not in its world, across
+    the start pose's view 8 m ahead (σ 5 cm, 5 mrad)."""
+    from mapfuse_core.geometry.se2 import compose
+    from tests.test_changes import _log, _replace_known
+
+    log = _log()
+    assert log.true_poses is not None
+    k = log.known_map
+    assert k.extents is not None
+    start = log.true_poses[0]
+    near = compose(start, np.array([8.0, 0.0, 0.0]))
+    wall = np.array([[near[0], near[1], float(start[2]) + np.pi / 2]])
+    return _with_scans(
+        _replace_known(
+            log,
+            ids=np.concatenate([k.ids, [9001]]),
+            kinds=np.concatenate([k.kinds, [0]]).astype(np.int8),
+            params=np.vstack([k.params, wall]),
+            covs=np.vstack([k.covs, np.diag([0.05**2, 0.05**2, 0.005**2])[None]]),
+            extents=np.vstack([k.extents, [[-2.0, 2.0]]]),
+        )
+    )
+
+
+def test_no_wall_that_stands_where_surveyed_is_seen_empty_and_an_absent_one_is() -> None:
+    log = _with_absent_wall()
+    known = log.known_map
+    assert known.extents is not None
+    rows = [r for r in range(len(known)) if int(known.kinds[r]) == 0]
+    assert len(rows) >= 3
+    assert log.true_poses is not None
+    assert log.scan_ranges is not None
+    covs = np.tile(np.eye(3) * 1e-6, (log.n_steps, 1, 1))
+    got = scans_seen_empty(
+        known, rows, log.true_poses, covs, BEARINGS, log.scan_ranges, ChangeParams()
+    )
+    assert got[9001] >= PARAMS.min_scans
+    standing = [int(known.ids[r]) for r in rows if int(known.ids[r]) < 9000]
+    assert all(got[kid] == 0 for kid in standing)
+    # Each standing wall has core beams for K scans: with no returns it reads empty.
+    blank = np.full_like(log.scan_ranges, np.inf)
+    seen = scans_seen_empty(known, rows, log.true_poses, covs, BEARINGS, blank, ChangeParams())
+    assert all(seen[kid] >= PARAMS.min_scans for kid in standing)
+    rep = _classify(log)
+    assert rep.status_of(9001) == ChangeStatus.MISSING
+    assert rep.known[-1].scans_seen_empty >= PARAMS.min_scans

@@ -1,4 +1,4 @@
-"""Where the laser saw through a mapped circle: :func:`scans_seen_empty`.
+"""Where the laser saw through a mapped circle or wall: :func:`scans_seen_empty`.
 
 :func:`~mapfuse_core.evaluation.changes.visibility.scans_in_view` asks whether the
 extractor *would* have returned a feature; that is indirect evidence of absence, and
@@ -22,6 +22,19 @@ wherever those errors put it.  Only such *core* beams are read:
 
 A scan sees the place empty when at least one core beam passes and none hits.  A trunk
 too thin for any core beam at that range (``r ≤ q·σ``) gives no evidence either way.
+
+Walls (known lines with extents) are read the same way along each beam.  A beam meets
+the mapped wall's line at range ``t``; it is a core beam when it meets it inside the
+wall's extent by more than ``q·σ_s`` at both ends, ``σ_s`` the first-order error of
+where it crosses (map and pose position, heading error times ``t``, the wall's lateral
+error times the tangent of the incidence).  It passes beyond ``t + q·σ_t`` (``σ_t``
+the lateral error over the cosine of the incidence, the heading error's effect on
+``t`` and the range noise), hits within ``q·σ_t`` of ``t``, and says nothing when
+shorter.  A wall's place is seen empty when no core beam hits and at least
+``min_beams_line`` pass: the support the extractor needs to see a wall, so that a
+doorway, or the one stretch of a wall left unhidden by people, is not an empty wall.
+Beams beyond ``max_incidence_rad`` from the wall's normal are not read.  A wall without
+extents gives no evidence.
 """
 
 from __future__ import annotations
@@ -48,23 +61,33 @@ def scans_seen_empty(
     ranges: FloatArray,
     params: ChangeParams,
 ) -> dict[int, int]:
-    """Scans in which the circles of ``features`` at ``rows`` were seen empty (see the
-    module docstring), counted at every ``view_stride``-th step times the stride.
+    """Scans in which the circles and walls of ``features`` at ``rows`` were seen empty
+    (see the module docstring), counted at every ``view_stride``-th step times the
+    stride.
 
     ``poses``/``pose_covs``: the sensor pose of every step in the map's frame and its
     covariance (only its largest position variance and its heading variance are used,
     so the frame it is expressed in does not matter); ``bearings``/``ranges``: the raw
-    scans, (B,) and (N, B).  Lines are not read (``0``).
+    scans, (B,) and (N, B).
     """
     out = {int(features.ids[r]): 0 for r in rows}
-    circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
-    if not circles:
-        return out
     P = np.asarray(poses, dtype=float)
     C = np.asarray(pose_covs, dtype=float)
     b = np.asarray(bearings, dtype=float)
     q = float(norm.ppf(params.level))
     sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
+    walls = [
+        r
+        for r in rows
+        if int(features.kinds[r]) == int(FeatureKind.LINE)
+        and features.extents is not None
+        and np.all(np.isfinite(features.extents[r]))
+    ]
+    if walls:
+        _walls_seen_empty(features, walls, P, C, b, ranges, q, sig_range, params, out)
+    circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
+    if not circles:
+        return out
     centres = features.params[circles, :2]
     radii = features.params[circles, 2]
     map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
@@ -97,6 +120,73 @@ def scans_seen_empty(
             if np.any(passes) and not np.any(hits):
                 out[int(features.ids[r])] += params.view_stride
     return out
+
+
+def _walls_seen_empty(
+    features: KnownMapArrays,
+    walls: list[int],
+    P: FloatArray,
+    C: FloatArray,
+    b: FloatArray,
+    ranges: FloatArray,
+    q: float,
+    sig_range: float,
+    params: ChangeParams,
+    out: dict[int, int],
+) -> None:
+    """Add to ``out`` the scans that saw the walls at ``walls`` empty."""
+    assert features.extents is not None
+    min_cos = math.cos(params.max_incidence_rad)
+    for r in walls:
+        line = features.params[r]
+        th = float(line[2])
+        u = np.array([math.cos(th), math.sin(th)])
+        n = np.array([-math.sin(th), math.cos(th)])
+        e0, e1 = sorted(float(e) for e in features.extents[r])
+        cov = features.covs[r]
+        var_nn = float(n @ cov[:2, :2] @ n)
+        var_uu = float(u @ cov[:2, :2] @ u)
+        cov_nt = float(n @ cov[:2, 2])
+        var_th = max(float(cov[2, 2]), 0.0)
+        for k in range(0, P.shape[0], params.view_stride):
+            x = P[k]
+            if not np.all(np.isfinite(x)) or not np.all(np.isfinite(C[k])):
+                continue
+            pos_var = _largest_position_variance(C[k])
+            head_var = max(float(C[k][2, 2]), 0.0)
+            phi = x[2] + b
+            w = np.column_stack((np.cos(phi), np.sin(phi)))
+            nw = w @ n
+            c = float(n @ (line[:2] - x[:2]))
+            ok = np.abs(nw) >= max(min_cos, 1e-9)
+            nw_safe = np.where(ok, nw, 1.0)
+            t = np.where(ok, c / nw_safe, 0.0)
+            ok &= (t > 0.0) & (t <= params.max_range_m)
+            if not np.any(ok):
+                continue
+            s_along = (x[:2] - line[:2]) @ u + t * (w @ u)
+            cos_inc = np.abs(nw)
+            tan2 = (1.0 - cos_inc**2) / np.maximum(cos_inc**2, 1e-18)
+            var_perp = np.clip(var_nn + 2.0 * s_along * cov_nt + s_along**2 * var_th, 0.0, None)
+            var_perp = var_perp + pos_var
+            wp_n = np.cos(phi) * n[1] - np.sin(phi) * n[0]  # n · dw/dphi
+            var_t = (
+                var_perp / np.maximum(cos_inc**2, 1e-18)
+                + (t * wp_n / nw_safe) ** 2 * head_var
+                + sig_range**2
+            )
+            var_s = pos_var + var_uu + t**2 * head_var / np.maximum(cos_inc**2, 1e-18)
+            var_s = var_s + var_perp * tan2
+            margin = q * np.sqrt(np.where(ok, var_s, 0.0))
+            core = ok & (s_along > e0 + margin) & (s_along < e1 - margin)
+            if np.count_nonzero(core) < params.min_beams_line:
+                continue
+            seen = np.asarray(ranges[k], dtype=float)[core]
+            reach = q * np.sqrt(var_t[core])
+            passes = seen > t[core] + reach
+            hits = (seen >= t[core] - reach) & ~passes
+            if not np.any(hits) and np.count_nonzero(passes) >= params.min_beams_line:
+                out[int(features.ids[r])] += params.view_stride
 
 
 def _largest_position_variance(cov: FloatArray) -> float:

@@ -83,10 +83,11 @@ class ChangeParams:
 
     free_space: bool = True
     """Read the log's raw scans, when it has them, for where the laser saw through a
-    known circle's surveyed place (:mod:`mapfuse_core.evaluation.changes.freespace`).
-    A circle seen empty for :attr:`min_scans` scans counts as seen where the map has
-    it: it is linked to a landmark that moved, or else called missing, whatever the
-    extractor's rule predicts.  ``False``: the extractor's (or beam-count) rule alone."""
+    known circle's or wall's surveyed place
+    (:mod:`mapfuse_core.evaluation.changes.freespace`).  A feature seen empty for
+    :attr:`min_scans` scans counts as seen where the map has it: it is linked to a
+    landmark that moved, or else called missing, whatever the extractor's rule
+    predicts.  ``False``: the extractor's (or beam-count) rule alone."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
