@@ -14,10 +14,21 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mapfuse_core.data.measlog import MeasurementLog
 
-__all__ = ["CARMEN_PREFIX", "KNOWN_MAPS", "carmen_path", "is_carmen", "load_carmen_input"]
+if TYPE_CHECKING:
+    from mapfuse_core.evaluation.changes import ChangeParams
+
+__all__ = [
+    "CARMEN_PREFIX",
+    "KNOWN_MAPS",
+    "carmen_change_params",
+    "carmen_path",
+    "is_carmen",
+    "load_carmen_input",
+]
 
 #: Prefix of a CARMEN log input: ``carmen:PATH``.
 CARMEN_PREFIX = "carmen:"
@@ -83,3 +94,27 @@ def load_carmen_input(
         "reference_labels": f"walls of the floor plan from the reference trajectory ({walls})",
     }
     return replace(out, metadata={**out.metadata, **described})
+
+
+def carmen_change_params(log: MeasurementLog, params: ChangeParams) -> ChangeParams:
+    """``params`` with the view predicted by a CARMEN log's own scanner and the indoor
+    extractor (``load_carmen``'s defaults), when the log keeps its raw scans; otherwise
+    ``params`` unchanged (the beam-count view rule)."""
+    import math
+
+    from mapfuse_core.data.datasets import CarmenOptions
+    from mapfuse_core.sim.laser import LaserParams
+
+    b = log.scan_bearings
+    if b is None or b.shape[0] < 2:
+        return params
+    opts = CarmenOptions()
+    span = float(b[-1] - b[0])
+    laser = LaserParams(
+        fov_rad=min(span, 2.0 * math.pi),
+        max_range_m=opts.extraction_max_range_m,
+        n_beams=int(b.shape[0]),
+        sigma_range_m=opts.sigma_range_m,
+        sigma_bearing_rad=opts.sigma_bearing_rad,
+    )
+    return params.with_sensor(laser, opts.extraction)

@@ -25,10 +25,12 @@ def add_parser(sub: Any) -> None:
         "changes",
         help="classify the known map's features (confirmed, moved, missing, unobserved, new)",
         description="Run BACKEND with fusion on SCENARIO (built-in name, TOML, log .npz, "
-        "carpark) and write OUT/changes.json and OUT/changes.png.",
+        "carpark, carmen:PATH) and write OUT/changes.json and OUT/changes.png.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("scenario", help="built-in scenario, .toml path, log .npz or carpark")
+    p.add_argument(
+        "scenario", help="built-in scenario, .toml path, log .npz, carpark or carmen:PATH"
+    )
     p.add_argument("--backend", default="ekf", help="registered estimator (ekf, batch, isam2)")
     p.add_argument("--seed", type=int, default=None, help="random seed for simulation")
     p.add_argument("--steps", type=int, default=None, help="simulate/run only STEPS steps")
@@ -49,6 +51,7 @@ def add_parser(sub: Any) -> None:
 def _cmd_changes(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from mapfuse.carmen_input import carmen_change_params, is_carmen
     from mapfuse.changes import change_section, detect_changes
     from mapfuse.changes_figure import changes_figure
     from mapfuse.run import DATASETS, prepare_log
@@ -59,7 +62,8 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     from mapfuse_core.sim.scenario import load_scenario
     from mapfuse_core.sim.simulate import simulate
 
-    simulated = not (args.scenario.endswith(".npz") or args.scenario in DATASETS)
+    carmen = is_carmen(args.scenario)
+    simulated = not (args.scenario.endswith(".npz") or args.scenario in DATASETS or carmen)
     perturbed = args.moved or args.removed or args.added or args.shift
     if perturbed and not simulated:
         raise ValueError("--moved/--removed/--added/--shift perturb a simulated scenario only")
@@ -93,6 +97,8 @@ def _cmd_changes(args: argparse.Namespace) -> int:
         log = prepare_log(args.scenario, seed=args.seed, data_dir=args.data)
         if args.steps is not None:
             log = log.head(args.steps)
+        if carmen:
+            params = carmen_change_params(log, params)
     run = run_estimator(log, args.backend, fusion=True)
     report = detect_changes(run.result, log, params)
     out = Path(args.out)

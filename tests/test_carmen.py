@@ -79,6 +79,34 @@ def test_flaser_ranges_at_max_or_zero_are_no_return() -> None:
     np.testing.assert_allclose(s1.bearings, [-math.pi / 2, 0.0, math.pi / 2], atol=1e-7)
 
 
+def test_raw_scans_are_kept_only_when_every_message_has_the_same_beams(tmp_path: Path) -> None:
+    # The snippet mixes a 4-beam FLASER with a 3-beam ROBOTLASER1.
+    mixed = load_carmen(SNIPPET)
+    assert mixed.scan_ranges is None
+    assert mixed.metadata["raw_scans"] == "not kept: laser message 1 has other beams than the first"
+    flaser = "\n".join(
+        [
+            "PARAM robot_front_laser_max 50 nohost 0",
+            "FLASER 4 1.0 25.0 50.0 0.0 0.1 0.0 0.0 0.0 0.0 0.0 1.5 host 1.5",
+            "FLASER 4 3.0 2.0 1.0 4.0 0.2 0.0 0.0 0.2 0.0 0.0 2.5 host 2.5",
+        ]
+    )
+    path = tmp_path / "two.log"
+    path.write_text(flaser + "\n")
+    log = load_carmen(path)
+    assert log.metadata["raw_scans"] == "2 x 4 beams"
+    assert log.scan_bearings is not None
+    assert log.scan_ranges is not None
+    assert log.scan_ranges.dtype == np.float32
+    np.testing.assert_allclose(
+        log.scan_bearings, [-math.pi / 2 + i * math.pi / 3 for i in range(4)]
+    )
+    # 25 m is beyond the 20 m used for features but a return; 50 (the max) and 0 are none.
+    np.testing.assert_array_equal(log.scan_ranges[0], [1.0, 25.0, np.inf, np.inf])
+    np.testing.assert_array_equal(log.scan_ranges[1], [3.0, 2.0, 1.0, 4.0])
+    assert load_carmen(path, options=CarmenOptions(keep_scans=False)).scan_ranges is None
+
+
 def test_beam_geometry_follows_carmen_convention() -> None:
     assert guess_beam_geometry(180) == pytest.approx((-math.pi / 2, math.radians(1.0)))
     assert guess_beam_geometry(361) == pytest.approx((-math.pi / 2, math.radians(0.5)))
@@ -196,6 +224,8 @@ def test_bad_options_are_refused() -> None:
         CarmenOptions(odometry="wheel")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="trans_floor_m must be > 0"):
         IncrementNoise(trans_floor_m=0.0)
+    with pytest.raises(ValueError, match="keep_scans must be a bool"):
+        CarmenOptions(keep_scans=1)  # type: ignore[arg-type]
 
 
 # --------------------------------------------------------------------------- profile

@@ -113,6 +113,11 @@ class CarmenOptions:
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""
+    keep_scans: bool = True
+    """Keep the raw scans in the log (``scan_bearings``/``scan_ranges``, every return
+    up to the maximum range), for the free-space evidence of change detection.  Kept
+    only when every laser message has the same beams; the log's metadata says why
+    not otherwise."""
 
     def __post_init__(self) -> None:
         if self.odometry not in ("raw", "simulated", "auto"):
@@ -130,6 +135,8 @@ class CarmenOptions:
             raise ValueError("CarmenOptions.odometry_noise must be an IncrementNoise")
         if not isinstance(self.extraction, ExtractionParams):
             raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
+        if not isinstance(self.keep_scans, bool):
+            raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
 
 
 def _laser_offset(rec: CarmenRecords) -> FloatArray:
@@ -222,6 +229,35 @@ def carmen_scans(rec: CarmenRecords, opts: CarmenOptions) -> list[tuple[Scan, La
     return out
 
 
+def raw_scans(rec: CarmenRecords, opts: CarmenOptions) -> tuple[FloatArray, np.ndarray] | str:
+    """Every laser message's ranges as one (N, B) float32 array (no return: ``inf``;
+    returns beyond ``extraction_max_range_m`` kept) with their (B,) increasing
+    bearings, or why that cannot be: the messages' beams differ, or a bearing is
+    outside ±π."""
+    if not rec.lasers:
+        return "the log has no laser message"
+    first = rec.lasers[0]
+    n = first.ranges.shape[0]
+    bearings = first.start_angle + first.angular_resolution * np.arange(n, dtype=np.float64)
+    for k, msg in enumerate(rec.lasers):
+        if msg.ranges.shape[0] != n or not (
+            math.isclose(msg.start_angle, first.start_angle, abs_tol=1e-9)
+            and math.isclose(msg.angular_resolution, first.angular_resolution, abs_tol=1e-12)
+        ):
+            return f"laser message {k} has other beams than the first"
+    flip = n > 1 and first.angular_resolution < 0.0
+    if flip:
+        bearings = bearings[::-1].copy()
+    if np.any(np.abs(bearings) > math.pi) or np.any(np.diff(bearings) <= 0.0):
+        return "the beams' bearings are not increasing within ±π"
+    ranges = np.empty((len(rec.lasers), n), dtype=np.float32)
+    for k, msg in enumerate(rec.lasers):
+        r = msg.ranges[::-1] if flip else msg.ranges
+        max_r = _max_range(rec, msg, opts)
+        ranges[k] = np.where((r <= 0.0) | (r >= max_r) | ~np.isfinite(r), np.inf, r)
+    return bearings, ranges
+
+
 def _increments(poses: FloatArray) -> FloatArray:
     inc = np.zeros_like(poses)
     for k in range(1, poses.shape[0]):
@@ -297,6 +333,13 @@ def load_carmen(
             extents.append(f.extent)
     m = len(steps)
     kinds = np.full(m, int(FeatureKind.LINE), dtype=np.int8)
+    scans = raw_scans(rec, opts) if opts.keep_scans else "not asked for (keep_scans)"
+    if isinstance(scans, str):
+        metadata["raw_scans"] = f"not kept: {scans}"
+        scan_bearings, scan_ranges = None, None
+    else:
+        metadata["raw_scans"] = f"{scans[1].shape[0]} x {scans[1].shape[1]} beams"
+        scan_bearings, scan_ranges = scans
     return MeasurementLog(
         scenario=f"carmen:{Path(path).name}",
         seed=opts.seed if kind == "simulated" else -1,
@@ -314,6 +357,8 @@ def load_carmen(
         true_poses=true_poses,
         rejected=dict(sorted(rejected.items())),
         metadata=metadata,
+        scan_bearings=scan_bearings,
+        scan_ranges=scan_ranges,
     )
 
 
