@@ -121,6 +121,59 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     assert kid not in {n.true_id for n in rep.new}
 
 
+def _with_phantom_circle(log: MeasurementLog, near: int, offset: tuple[float, float]):
+    """``log`` whose known map also has a circle ``offset`` from known circle ``near``
+    that the world lacks, and that circle's id."""
+    k = log.known_map
+    a_id = int(max(k.ids.max(), log.world.ids.max())) + 1
+    out = _replace_known(
+        log,
+        ids=np.append(k.ids, a_id),
+        kinds=np.append(k.kinds, k.kinds[near]),
+        params=np.vstack((k.params, k.params[near] + np.array([*offset, 0.0]))),
+        covs=np.concatenate((k.covs, k.covs[near][None]), axis=0),
+        extents=None if k.extents is None else np.vstack((k.extents, [np.nan, np.nan])),
+    )
+    return out, a_id
+
+
+def test_a_second_track_of_an_observed_tree_is_not_the_move_of_a_missing_one():
+    """The estimator splits an observed tree B into two landmarks, the second never
+    associated; the map also has a tree A, 4 m from B (within ``max_move_m``), that the
+    world lacks.  The second track is B's (consistent with it), so it is neither A's
+    move nor a new tree: A, predicted in view and never seen, is missing."""
+    log = _log()
+    # This short drive sees each tree in few of the scans the view rule samples.
+    params = dataclasses.replace(PARAMS, min_scans=8)
+    b = _most_in_view(log, FeatureKind.CIRCLE)
+    b_id = int(log.known_map.ids[b])
+    # The side of B from which the drive sees the phantom longest.
+    offsets = [(4.0, 0.0), (-4.0, 0.0), (0.0, 4.0), (0.0, -4.0)]
+    views = []
+    for off in offsets:
+        ph, a_id = _with_phantom_circle(log, b, off)
+        rep = _classify(ph, params)
+        views.append(next(c for c in rep.known if c.known_id == a_id).scans_in_view)
+    phantom, a_id = _with_phantom_circle(log, b, offsets[int(np.argmax(views))])
+    known = set(log.known_map.ids.tolist())
+    lm = phantom.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    of_b = np.flatnonzero(lm == b_id)
+    second = of_b[of_b.size // 2 :]
+    lm[second] = 10**6
+    kn[second] = -1
+    start = phantom.true_poses[0]
+    poses = np.array([relative(start, p)[0] for p in phantom.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    rep = classify_changes(phantom, lm, kn, poses, covs, start, params)
+    a = next(c for c in rep.known if c.known_id == a_id)
+    assert a.scans_in_view >= params.min_scans
+    assert a.status == ChangeStatus.MISSING
+    assert next(c for c in rep.known if c.known_id == b_id).status == ChangeStatus.CONFIRMED
+    assert b_id not in {n.true_id for n in rep.new}
+    assert rep.duplicates >= 1
+
+
 def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     """A known tree never predicted in view, and an unassociated tree 3 m from it: the
     landmark may be a tree the map lacks, so it is new and the known one unobserved."""

@@ -11,7 +11,9 @@
    compared with the unassociated landmarks of its kind within
    ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the feature
    after a move beyond the association gate, and is tested the same way (a consistent
-   one is a landmark the estimator did not merge: the feature is confirmed).
+   one is a landmark the estimator did not merge: the feature is confirmed).  A
+   landmark that an observed known feature already explains (a duplicate, see 5) may
+   confirm the feature but is never taken for its move.
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
    radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
@@ -156,7 +158,11 @@ def classify_changes(
         empty = scans_seen_empty(
             known, unassociated, poses_K, pose_covs, log.scan_bearings, log.scan_ranges, params
         )
-    # Moves beyond the association gate: nearest unassociated landmark, one to one.
+    # Moves beyond the association gate: nearest unassociated landmark, one to one.  A
+    # landmark consistent with a known feature already observed is another track of
+    # that feature (a duplicate): it may confirm this one too (two plan walls a wall's
+    # thickness apart), but it is not this one's move.
+    explained = {i for i, s in enumerate(free) if _duplicate(s, known, rows, params)}
     pairs = []
     for r in unassociated:
         kind = FeatureKind(int(known.kinds[r]))
@@ -168,10 +174,14 @@ def classify_changes(
             # lacks as this one moved (ChangeParams.link_unviewed_lines).
             continue
         for i, s in enumerate(free):
-            if s.kind == kind:
-                d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
-                if math.isfinite(d):
-                    pairs.append((d, r, i))
+            if s.kind != kind:
+                continue
+            d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
+            if not math.isfinite(d):
+                continue
+            if i in explained and not _consistent(s, known, r, params):
+                continue
+            pairs.append((d, r, i))
     used: set[int] = set()
     for _, r, i in sorted(pairs):
         if r in rows or i in used:
@@ -278,6 +288,12 @@ def _row(
         associated=associated,
         landmark=obs.landmark,
     )
+
+
+def _consistent(s: ObservationSet, known: KnownMapArrays, r: int, params: ChangeParams) -> bool:
+    """Whether ``s`` passes the moved test of known feature ``r`` (is that feature)."""
+    _, _, stat, _ = _test(s, known.params[r], known.covs[r], params)
+    return stat <= params.threshold(residual_dof(s.kind))
 
 
 def _duplicate(
