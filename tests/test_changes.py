@@ -174,6 +174,49 @@ def test_a_second_track_of_an_observed_tree_is_not_the_move_of_a_missing_one():
     assert rep.duplicates >= 1
 
 
+def test_a_wall_further_along_the_line_of_an_observed_one_is_not_confirmed_by_it():
+    """The map has a wall A on the line of an observed wall B but 3 m past B's end, and
+    the world lacks A; the estimator splits B into two landmarks, the second never
+    associated.  The second track fits A's line but lies beyond A's ends: it is B's
+    duplicate, and A, never seen itself, is not confirmed."""
+    log = _log()
+    b = _most_in_view(log, FeatureKind.LINE)
+    k = log.known_map
+    assert k.extents is not None
+    b_id = int(k.ids[b])
+    lo, hi = (float(v) for v in k.extents[b])
+    th = float(k.params[b, 2])
+    u = np.array([math.cos(th), math.sin(th)])
+    a_id = int(max(k.ids.max(), log.world.ids.max())) + 1
+    a_params = np.array([*(k.params[b, :2] + (hi + 4.0) * u), th])
+    phantom = _replace_known(
+        log,
+        ids=np.append(k.ids, a_id),
+        kinds=np.append(k.kinds, k.kinds[b]),
+        params=np.vstack((k.params, a_params)),
+        covs=np.concatenate((k.covs, k.covs[b][None]), axis=0),
+        extents=np.vstack((k.extents, [-1.0, 1.0])),
+    )
+    known = set(k.ids.tolist())
+    lm = phantom.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    of_b = np.flatnonzero(lm == b_id)
+    second = of_b[of_b.size // 2 :]
+    lm[second] = 10**6
+    kn[second] = -1
+    start = phantom.true_poses[0]
+    poses = np.array([relative(start, p)[0] for p in phantom.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    rep = classify_changes(phantom, lm, kn, poses, covs, start, PARAMS)
+    a = next(c for c in rep.known if c.known_id == a_id)
+    assert hi - lo > 0.0
+    assert a.status != ChangeStatus.CONFIRMED
+    assert a.landmark != 10**6
+    assert next(c for c in rep.known if c.known_id == b_id).status == ChangeStatus.CONFIRMED
+    assert rep.duplicates >= 1
+    assert b_id not in {n.true_id for n in rep.new}
+
+
 def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     """A known tree never predicted in view, and an unassociated tree 3 m from it: the
     landmark may be a tree the map lacks, so it is new and the known one unobserved."""

@@ -13,7 +13,10 @@
    after a move beyond the association gate, and is tested the same way (a consistent
    one is a landmark the estimator did not merge: the feature is confirmed).  A
    landmark that an observed known feature already explains (a duplicate, see 5) may
-   confirm the feature but is never taken for its move.
+   confirm the feature but is never taken for its move.  A wall is confirmed (or
+   explained) only by a landmark that overlaps the wall itself, its extent widened by
+   three of the wall's and the landmark's position σ: one that fits the line beyond
+   the wall's ends is another stretch of the line.
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
    radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
@@ -94,17 +97,43 @@ def _near(
     r = np.array([feature_residual(obs.kind, known, f)[0] for f in obs.features]).mean(axis=0)
     if abs(r[1]) > max_turn or abs(r[0]) > max_move:
         return math.inf
+    if not _overlaps(obs, known, extent, params.max_move_m):
+        return math.inf
+    return float(abs(r[0]))
+
+
+def _along(obs: ObservationSet, known: FloatArray) -> list[float]:
+    """Where the ends of ``obs``'s observed segments fall along the known line."""
     u_k = np.array([math.cos(known[2]), math.sin(known[2])])
     along = []
     for f, e in zip(obs.features, obs.extents, strict=True):
         u = np.array([math.cos(f[2]), math.sin(f[2])])
         ends = [0.0] if not np.all(np.isfinite(e)) else [float(e[0]), float(e[1])]
         along += [float((f[:2] + t * u - known[:2]) @ u_k) for t in ends]
+    return along
+
+
+def _overlaps(
+    obs: ObservationSet, known: FloatArray, extent: FloatArray | None, margin: float
+) -> bool:
+    """Whether ``obs`` overlaps the known wall along its length, its surveyed extent
+    widened by ``margin`` on each side (without an extent: within ``margin`` of its
+    reference point)."""
+    along = _along(obs, known)
     lo, hi = (0.0, 0.0) if extent is None or not np.all(np.isfinite(extent)) else extent
-    m = params.max_move_m
-    if max(along) < lo - m or min(along) > hi + m:
-        return math.inf
-    return float(abs(r[0]))
+    return not (max(along) < lo - margin or min(along) > hi + margin)
+
+
+def _same_piece(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
+    """Whether line landmark ``obs`` overlaps known wall ``r`` itself, not just its line:
+    the surveyed extent widened by three of the wall's position σ and of the landmark's
+    pose σ.  A wall consistent with another only as a line but beyond its ends is a
+    collinear piece of another wall (the next stretch of a corridor past a door)."""
+    kc = known.covs[r]
+    sig_k = math.sqrt(max(0.0, 0.5 * float(kc[0, 0] + kc[1, 1])))
+    pc = obs.pose_covs
+    sig_p = math.sqrt(max(0.0, 0.5 * float(np.mean(pc[:, 0, 0] + pc[:, 1, 1]))))
+    return _overlaps(obs, known.params[r], _extent(known, r), 3.0 * (sig_k + sig_p))
 
 
 def _extent(known: KnownMapArrays, r: int) -> FloatArray | None:
@@ -179,7 +208,12 @@ def classify_changes(
             d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
             if not math.isfinite(d):
                 continue
-            if i in explained and not _consistent(s, known, r, params):
+            consistent = _consistent(s, known, r, params)
+            if consistent and kind == FeatureKind.LINE and not _same_piece(s, known, r):
+                # The line fits but the landmark lies beyond the wall's ends: another
+                # stretch of the line, not this wall seen again nor moved along itself.
+                continue
+            if i in explained and not consistent:
                 continue
             pairs.append((d, r, i))
     used: set[int] = set()
@@ -309,6 +343,8 @@ def _duplicate(
         if row.status == ChangeStatus.MOVED:
             # A second landmark of a moved feature (a wall seen in pieces).
             return True
+        if s.kind == FeatureKind.LINE and not _same_piece(s, known, r):
+            continue
         _, _, stat, _ = _test(s, kp, known.covs[r], params)
         if stat <= row.threshold:
             return True
