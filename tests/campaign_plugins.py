@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import time
 from typing import Any
 
 from mapfuse.result import EstimatorResult
@@ -26,5 +28,28 @@ class FailsOnOddSeeds(DeadReckoning):
     ) -> EstimatorResult:
         if log.seed % 2:
             raise RuntimeError(f"deliberate failure on seed {log.seed}")
+        res = super().run(log, options, fusion=fusion, progress=progress)
+        return dataclasses.replace(res, estimator=self.name)
+
+
+class HangsWhenAsked(DeadReckoning):
+    """The toy dead-reckoning estimator, blocking for ten minutes on logs of seeds from
+    ``MAPFUSE_TEST_HANG_FROM_SEED`` on when that variable is set: a campaign that stops
+    at a known run, for the kill-and-resume test, whatever the machine's speed."""
+
+    name = "hangs"
+    options_type = DeadReckoningOptions
+
+    def run(
+        self,
+        log: MeasurementLog,
+        options: DeadReckoningOptions,
+        *,
+        fusion: bool,
+        progress: Any = None,
+    ) -> EstimatorResult:
+        start = os.environ.get("MAPFUSE_TEST_HANG_FROM_SEED")
+        if start is not None and log.seed >= int(start):
+            time.sleep(600.0)
         res = super().run(log, options, fusion=fusion, progress=progress)
         return dataclasses.replace(res, estimator=self.name)

@@ -202,31 +202,36 @@ def test_killed_campaign_resumes_and_skips_finished_runs(tmp_path: Path) -> None
     out = tmp_path / "mc"
     cmd = [
         sys.executable, "-m", "mapfuse.cli", "montecarlo", TINY, "--seeds", "0-5",
-        "--estimators", "toy", "--plugin", PLUGINS[0], "--fusion", "off", "--steps", "30",
+        "--estimators", "hangs", "--plugin", "tests.campaign_plugins:HangsWhenAsked",
+        "--fusion", "off", "--steps", "30",
         "--serial", "--quiet", "--no-report", "--out", str(out),
     ]  # fmt: skip
-    proc = subprocess.Popen(cmd, env=_env(), cwd=ROOT)
+    # Seeds 0-2 finish, seed 3 blocks until the kill: the cut falls at a known run.
+    hang = {**_env(), "MAPFUSE_TEST_HANG_FROM_SEED": "3"}
+    proc = subprocess.Popen(cmd, env=hang, cwd=ROOT)
     table = out / "runs.jsonl"
     deadline = time.monotonic() + 120
     try:
         while time.monotonic() < deadline:
-            if table.exists() and len(table.read_text().splitlines()) >= 2:
+            if table.exists() and len(table.read_text().splitlines()) >= 3:
                 break
+            if proc.poll() is not None:
+                pytest.fail(f"the campaign ended (exit {proc.returncode}) before the kill")
             time.sleep(0.2)
         else:
-            pytest.fail("the campaign wrote no run within 120 s")
+            pytest.fail("the campaign wrote no three runs within 120 s")
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     # A write cut short by the kill.
     with table.open("a") as f:
-        f.write('{"seed": 5, "estimator": "to')
+        f.write('{"seed": 5, "estimator": "ha')
     before = {r["seed"] for r in CampaignStore(out).rows()}
-    assert 2 <= len(before) < 6
+    assert before == {0, 1, 2}
     res = subprocess.run(cmd, env=_env(), cwd=ROOT, capture_output=True, text=True, check=True)
     summary = json.loads(res.stdout)
-    assert summary["skipped"] == len(before)
-    assert summary["ran"] == 6 - len(before)
+    assert summary["skipped"] == 3
+    assert summary["ran"] == 3
     seeds = [r["seed"] for r in CampaignStore(out).rows()]
     assert sorted(seeds) == [0, 1, 2, 3, 4, 5]
 
