@@ -100,21 +100,10 @@ def carmen_change_params(log: MeasurementLog, params: ChangeParams) -> ChangePar
     """``params`` with the view predicted by a CARMEN log's own scanner and the indoor
     extractor (``load_carmen``'s defaults), when the log keeps its raw scans; otherwise
     ``params`` unchanged (the beam-count view rule)."""
-    import math
-
     from mapfuse_core.data.datasets import CarmenOptions
-    from mapfuse_core.sim.laser import LaserParams
+    from mapfuse_core.data.datasets.carmen import carmen_view_laser
 
     b = log.scan_bearings
     if b is None or b.shape[0] < 2:
         return params
-    opts = CarmenOptions()
-    span = float(b[-1] - b[0])
-    laser = LaserParams(
-        fov_rad=min(span, 2.0 * math.pi),
-        max_range_m=opts.extraction_max_range_m,
-        n_beams=int(b.shape[0]),
-        sigma_range_m=opts.sigma_range_m,
-        sigma_bearing_rad=opts.sigma_bearing_rad,
-    )
-    return params.with_sensor(laser, opts.extraction)
+    return params.with_sensor(carmen_view_laser(b), CarmenOptions().extraction)

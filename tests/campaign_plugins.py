@@ -12,11 +12,14 @@ from mapfuse_core.data.measlog import MeasurementLog
 from tests.toy_estimator import DeadReckoning, DeadReckoningOptions
 
 
-class FailsOnOddSeeds(DeadReckoning):
-    """The toy dead-reckoning estimator, raising on logs of odd seeds."""
+class _ToyVariant(DeadReckoning):
+    """The toy dead-reckoning estimator under its own name, with :meth:`before` called on
+    every log before the run."""
 
-    name = "fails_on_odd"
     options_type = DeadReckoningOptions
+
+    def before(self, log: MeasurementLog) -> None:
+        """What the variant does to a run (fail it, hold it up)."""
 
     def run(
         self,
@@ -26,30 +29,29 @@ class FailsOnOddSeeds(DeadReckoning):
         fusion: bool,
         progress: Any = None,
     ) -> EstimatorResult:
-        if log.seed % 2:
-            raise RuntimeError(f"deliberate failure on seed {log.seed}")
+        self.before(log)
         res = super().run(log, options, fusion=fusion, progress=progress)
         return dataclasses.replace(res, estimator=self.name)
 
 
-class HangsWhenAsked(DeadReckoning):
+class FailsOnOddSeeds(_ToyVariant):
+    """The toy dead-reckoning estimator, raising on logs of odd seeds."""
+
+    name = "fails_on_odd"
+
+    def before(self, log: MeasurementLog) -> None:
+        if log.seed % 2:
+            raise RuntimeError(f"deliberate failure on seed {log.seed}")
+
+
+class HangsWhenAsked(_ToyVariant):
     """The toy dead-reckoning estimator, blocking for ten minutes on logs of seeds from
     ``MAPFUSE_TEST_HANG_FROM_SEED`` on when that variable is set: a campaign that stops
     at a known run, for the kill-and-resume test, whatever the machine's speed."""
 
     name = "hangs"
-    options_type = DeadReckoningOptions
 
-    def run(
-        self,
-        log: MeasurementLog,
-        options: DeadReckoningOptions,
-        *,
-        fusion: bool,
-        progress: Any = None,
-    ) -> EstimatorResult:
+    def before(self, log: MeasurementLog) -> None:
         start = os.environ.get("MAPFUSE_TEST_HANG_FROM_SEED")
         if start is not None and log.seed >= int(start):
             time.sleep(600.0)
-        res = super().run(log, options, fusion=fusion, progress=progress)
-        return dataclasses.replace(res, estimator=self.name)

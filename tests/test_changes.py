@@ -44,11 +44,17 @@ def _classify(
     known = set(log.known_map.ids.tolist()) - {unassociated}
     lm = log.feat_true_id.copy()
     kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start, poses, covs = _true_trajectory(log)
+    anchor = start if anchor_offset is None else compose(anchor_offset, start)
+    return classify_changes(log, lm, kn, poses, covs, anchor, params)
+
+
+def _true_trajectory(log: MeasurementLog):
+    """The true start pose, the true poses relative to it, and a tiny covariance."""
     start = log.true_poses[0]
     poses = np.array([relative(start, p)[0] for p in log.true_poses])
     covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    anchor = start if anchor_offset is None else compose(anchor_offset, start)
-    return classify_changes(log, lm, kn, poses, covs, anchor, params)
+    return start, poses, covs
 
 
 def _replace_known(log: MeasurementLog, **fields) -> MeasurementLog:
@@ -121,20 +127,45 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     assert kid not in {n.true_id for n in rep.new}
 
 
-def _with_phantom_circle(log: MeasurementLog, near: int, offset: tuple[float, float]):
-    """``log`` whose known map also has a circle ``offset`` from known circle ``near``
-    that the world lacks, and that circle's id."""
+def _with_phantom(
+    log: MeasurementLog, like: int, params: np.ndarray, extent: tuple[float, float]
+) -> tuple[MeasurementLog, int]:
+    """``log`` whose known map also has a feature of known feature ``like``'s kind and σ
+    at ``params`` (with ``extent``) that the world lacks, and that feature's id."""
     k = log.known_map
     a_id = int(max(k.ids.max(), log.world.ids.max())) + 1
     out = _replace_known(
         log,
         ids=np.append(k.ids, a_id),
-        kinds=np.append(k.kinds, k.kinds[near]),
-        params=np.vstack((k.params, k.params[near] + np.array([*offset, 0.0]))),
-        covs=np.concatenate((k.covs, k.covs[near][None]), axis=0),
-        extents=None if k.extents is None else np.vstack((k.extents, [np.nan, np.nan])),
+        kinds=np.append(k.kinds, k.kinds[like]),
+        params=np.vstack((k.params, params)),
+        covs=np.concatenate((k.covs, k.covs[like][None]), axis=0),
+        extents=None if k.extents is None else np.vstack((k.extents, extent)),
     )
     return out, a_id
+
+
+def _with_phantom_circle(log: MeasurementLog, near: int, offset: tuple[float, float]):
+    """``log`` whose known map also has a circle ``offset`` from known circle ``near``
+    that the world lacks, and that circle's id."""
+    at = log.known_map.params[near] + np.array([*offset, 0.0])
+    return _with_phantom(log, near, at, (np.nan, np.nan))
+
+
+def _classify_with_a_second_track(
+    log: MeasurementLog, known_ids: set[int], split: int, params: ChangeParams
+):
+    """Classify with the true decisions and trajectory, but with the second half of
+    known feature ``split``'s observations a separate landmark that the estimator
+    never associated; only ``known_ids`` are associated."""
+    lm = log.feat_true_id.copy()
+    kn = np.array([i if i in known_ids else -1 for i in lm.tolist()], dtype=np.int64)
+    of = np.flatnonzero(lm == split)
+    second = of[of.size // 2 :]
+    lm[second] = 10**6
+    kn[second] = -1
+    start, poses, covs = _true_trajectory(log)
+    return classify_changes(log, lm, kn, poses, covs, start, params)
 
 
 def test_a_second_track_of_an_observed_tree_is_not_the_move_of_a_missing_one():
@@ -155,17 +186,7 @@ def test_a_second_track_of_an_observed_tree_is_not_the_move_of_a_missing_one():
         rep = _classify(ph, params)
         views.append(next(c for c in rep.known if c.known_id == a_id).scans_in_view)
     phantom, a_id = _with_phantom_circle(log, b, offsets[int(np.argmax(views))])
-    known = set(log.known_map.ids.tolist())
-    lm = phantom.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
-    of_b = np.flatnonzero(lm == b_id)
-    second = of_b[of_b.size // 2 :]
-    lm[second] = 10**6
-    kn[second] = -1
-    start = phantom.true_poses[0]
-    poses = np.array([relative(start, p)[0] for p in phantom.true_poses])
-    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    rep = classify_changes(phantom, lm, kn, poses, covs, start, params)
+    rep = _classify_with_a_second_track(phantom, set(log.known_map.ids.tolist()), b_id, params)
     a = next(c for c in rep.known if c.known_id == a_id)
     assert a.scans_in_view >= params.min_scans
     assert a.status == ChangeStatus.MISSING
@@ -187,27 +208,9 @@ def test_a_wall_further_along_the_line_of_an_observed_one_is_not_confirmed_by_it
     lo, hi = (float(v) for v in k.extents[b])
     th = float(k.params[b, 2])
     u = np.array([math.cos(th), math.sin(th)])
-    a_id = int(max(k.ids.max(), log.world.ids.max())) + 1
     a_params = np.array([*(k.params[b, :2] + (hi + 4.0) * u), th])
-    phantom = _replace_known(
-        log,
-        ids=np.append(k.ids, a_id),
-        kinds=np.append(k.kinds, k.kinds[b]),
-        params=np.vstack((k.params, a_params)),
-        covs=np.concatenate((k.covs, k.covs[b][None]), axis=0),
-        extents=np.vstack((k.extents, [-1.0, 1.0])),
-    )
-    known = set(k.ids.tolist())
-    lm = phantom.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
-    of_b = np.flatnonzero(lm == b_id)
-    second = of_b[of_b.size // 2 :]
-    lm[second] = 10**6
-    kn[second] = -1
-    start = phantom.true_poses[0]
-    poses = np.array([relative(start, p)[0] for p in phantom.true_poses])
-    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
-    rep = classify_changes(phantom, lm, kn, poses, covs, start, PARAMS)
+    phantom, a_id = _with_phantom(log, b, a_params, (-1.0, 1.0))
+    rep = _classify_with_a_second_track(phantom, set(k.ids.tolist()), b_id, PARAMS)
     a = next(c for c in rep.known if c.known_id == a_id)
     assert hi - lo > 0.0
     assert a.status != ChangeStatus.CONFIRMED

@@ -41,6 +41,7 @@ __all__ = [
     "IncrementNoise",
     "carmen_association",
     "carmen_scans",
+    "carmen_view_laser",
     "detect_odometry_kind",
     "load_carmen",
 ]
@@ -207,26 +208,52 @@ def _max_range(rec: CarmenRecords, msg: LaserMessage, opts: CarmenOptions) -> fl
     return _DEFAULT_MAX_RANGE_M
 
 
+def _returns(rec: CarmenRecords, msg: LaserMessage, opts: CarmenOptions) -> FloatArray:
+    """``msg``'s ranges with every no-return reading (at or beyond the maximum range,
+    not positive, not finite) as ``inf``."""
+    r = msg.ranges
+    max_r = _max_range(rec, msg, opts)
+    out: FloatArray = np.where((r <= 0.0) | (r >= max_r) | ~np.isfinite(r), np.inf, r)
+    return out
+
+
+def _bearings(msg: LaserMessage) -> FloatArray:
+    n = msg.ranges.shape[0]
+    out: FloatArray = msg.start_angle + msg.angular_resolution * np.arange(n, dtype=np.float64)
+    return out
+
+
+def _laser(n: int, span_rad: float, max_range_m: float, opts: CarmenOptions) -> LaserParams:
+    return LaserParams(
+        fov_rad=min(abs(span_rad), 2.0 * math.pi),
+        max_range_m=max_range_m,
+        n_beams=n,
+        sigma_range_m=opts.sigma_range_m,
+        sigma_bearing_rad=opts.sigma_bearing_rad,
+    )
+
+
 def carmen_scans(rec: CarmenRecords, opts: CarmenOptions) -> list[tuple[Scan, LaserParams]]:
     """Every laser message as a :class:`Scan` (no return: ``inf``) and its laser model."""
     out: list[tuple[Scan, LaserParams]] = []
     for msg in rec.lasers:
         n = msg.ranges.shape[0]
-        max_r = _max_range(rec, msg, opts)
-        r = msg.ranges
-        ranges = np.where((r <= 0.0) | (r >= max_r) | (r > opts.extraction_max_range_m), np.inf, r)
-        bearings: FloatArray = msg.start_angle + msg.angular_resolution * np.arange(
-            n, dtype=np.float64
-        )
-        laser = LaserParams(
-            fov_rad=min(msg.angular_resolution * (n - 1), 2.0 * math.pi),
-            max_range_m=max_r,
-            n_beams=n,
-            sigma_range_m=opts.sigma_range_m,
-            sigma_bearing_rad=opts.sigma_bearing_rad,
-        )
-        out.append((Scan(bearings, ranges, np.full(n, -1, dtype=np.int64)), laser))
+        r = _returns(rec, msg, opts)
+        ranges = np.where(r > opts.extraction_max_range_m, np.inf, r)
+        laser = _laser(n, msg.angular_resolution * (n - 1), _max_range(rec, msg, opts), opts)
+        out.append((Scan(_bearings(msg), ranges, np.full(n, -1, dtype=np.int64)), laser))
     return out
+
+
+def carmen_view_laser(scan_bearings: FloatArray, opts: CarmenOptions | None = None) -> LaserParams:
+    """The laser model that predicts what the extractor sees in a CARMEN log kept with
+    its raw scans: the scans' beams, up to ``extraction_max_range_m`` (no feature is
+    taken from farther returns)."""
+    opts = opts or CarmenOptions()
+    b = np.asarray(scan_bearings, dtype=float)
+    if b.ndim != 1 or b.shape[0] < 2:
+        raise ValueError(f"the scan bearings must be (B,) with B >= 2, got shape {b.shape}")
+    return _laser(int(b.shape[0]), float(b[-1] - b[0]), opts.extraction_max_range_m, opts)
 
 
 def raw_scans(rec: CarmenRecords, opts: CarmenOptions) -> tuple[FloatArray, np.ndarray] | str:
@@ -238,7 +265,6 @@ def raw_scans(rec: CarmenRecords, opts: CarmenOptions) -> tuple[FloatArray, np.n
         return "the log has no laser message"
     first = rec.lasers[0]
     n = first.ranges.shape[0]
-    bearings = first.start_angle + first.angular_resolution * np.arange(n, dtype=np.float64)
     for k, msg in enumerate(rec.lasers):
         if msg.ranges.shape[0] != n or not (
             math.isclose(msg.start_angle, first.start_angle, abs_tol=1e-9)
@@ -246,15 +272,13 @@ def raw_scans(rec: CarmenRecords, opts: CarmenOptions) -> tuple[FloatArray, np.n
         ):
             return f"laser message {k} has other beams than the first"
     flip = n > 1 and first.angular_resolution < 0.0
-    if flip:
-        bearings = bearings[::-1].copy()
+    bearings = _bearings(first)[::-1].copy() if flip else _bearings(first)
     if np.any(np.abs(bearings) > math.pi) or np.any(np.diff(bearings) <= 0.0):
         return "the beams' bearings are not increasing within ±π"
     ranges = np.empty((len(rec.lasers), n), dtype=np.float32)
     for k, msg in enumerate(rec.lasers):
-        r = msg.ranges[::-1] if flip else msg.ranges
-        max_r = _max_range(rec, msg, opts)
-        ranges[k] = np.where((r <= 0.0) | (r >= max_r) | ~np.isfinite(r), np.inf, r)
+        r = _returns(rec, msg, opts)
+        ranges[k] = r[::-1] if flip else r
     return bearings, ranges
 
 

@@ -345,8 +345,7 @@ def _duplicate(
             return True
         if s.kind == FeatureKind.LINE and not _same_piece(s, known, r):
             continue
-        _, _, stat, _ = _test(s, kp, known.covs[r], params)
-        if stat <= row.threshold:
+        if _consistent(s, known, r, params):
             return True
     return False
 
