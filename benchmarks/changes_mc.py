@@ -103,6 +103,11 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
+        if args.also_link_unviewed_circles:
+            linked = dataclasses.replace(params, link_unviewed_circles=True)
+            rep_l = detect_changes(r.result, log, linked)
+            row[f"{name}_linkc_counts"] = rep_l.counts()
+            row[f"{name}_linkc_score"] = score_changes(rep_l, truth).as_dict()
         row[f"{name}_missing_or_removed"] = [
             {
                 "id": c.known_id,
@@ -182,6 +187,12 @@ def main() -> None:
         action="store_true",
         help="ChangeParams.link_unviewed_lines off: walls are linked to a move only "
         "from a surveyed place predicted in view",
+    )
+    p.add_argument(
+        "--also-link-unviewed-circles",
+        action="store_true",
+        help="also classify each run with ChangeParams.link_unviewed_circles on "
+        "(keys '<map>_linkc_counts' and '<map>_linkc_score')",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

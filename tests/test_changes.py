@@ -237,6 +237,16 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     rep = _classify(moved, unassociated=kid)
     assert rep.known[circ].status == ChangeStatus.UNOBSERVED
     assert kid in {n.true_id for n in rep.new}
+    # With link_unviewed_circles the same landmark is taken for the tree's move.
+    linked = _classify(
+        moved, dataclasses.replace(PARAMS, link_unviewed_circles=True), unassociated=kid
+    )
+    c = linked.known[circ]
+    assert c.status == ChangeStatus.MOVED
+    assert not c.associated
+    # The map holds it 3 m off along x; the landmark puts it back (map σ 0.1 m).
+    assert c.displacement[:2] == pytest.approx([-3.0, 0.0], abs=0.3)
+    assert kid not in {n.true_id for n in linked.new}
 
 
 def test_wall_never_predicted_in_view_is_linked_to_its_unassociated_landmark():
@@ -456,6 +466,8 @@ def test_change_params_reject_bad_values():
         ChangeParams(min_scans=0)
     with pytest.raises(ValueError, match="link_unviewed_lines must be a bool"):
         ChangeParams(link_unviewed_lines=1)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="link_unviewed_circles must be a bool"):
+        ChangeParams(link_unviewed_circles="yes")  # type: ignore[arg-type]
 
 
 def test_classify_rejects_decisions_of_another_log():

@@ -197,10 +197,12 @@ def classify_changes(
         kind = FeatureKind(int(known.kinds[r]))
         kid = int(known.ids[r])
         unviewed = in_view[kid] < params.min_scans and empty[kid] < params.min_scans
-        if unviewed and not (kind == FeatureKind.LINE and params.link_unviewed_lines):
+        is_line = kind == FeatureKind.LINE
+        linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles
+        if unviewed and not linked:
             # Not seen where the map has it, but never expected there either: nothing
             # says it moved, and a landmark near a tree is as likely a tree the map
-            # lacks as this one moved (ChangeParams.link_unviewed_lines).
+            # lacks as this one moved (ChangeParams.link_unviewed_circles).
             continue
         for i, s in enumerate(free):
             if s.kind != kind:

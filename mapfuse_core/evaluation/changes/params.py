@@ -80,6 +80,12 @@ class ChangeParams:
     surveyed where the view model cannot see it (its mapped angle off enough to turn
     the scanner's view into a grazing one) is otherwise never linked to where it
     stands."""
+    link_unviewed_circles: bool = False
+    """Look for a moved circle even when its surveyed place was never predicted in view
+    nor seen empty: the nearest unassociated circle within :attr:`max_move_m`, one to
+    one, is taken for it.  Off by default: only distance (and a radius the map knows to
+    its σ) relates the two, and an unmapped tree a few metres from a mapped one that
+    was never in view is then called that tree's move instead of new."""
 
     free_space: bool = True
     """Read the log's raw scans, when it has them, for where the laser saw through a
@@ -103,7 +109,7 @@ class ChangeParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
-        for name in ("link_unviewed_lines", "free_space"):
+        for name in ("link_unviewed_lines", "link_unviewed_circles", "free_space"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ChangeParams.{name} must be a bool, got {getattr(self, name)!r}")
         m = self.missing_radius_sigmas
