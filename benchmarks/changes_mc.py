@@ -18,6 +18,7 @@ JSON line per seed is appended to ``--out``.
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 from typing import Any
@@ -103,11 +104,10 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
-        if args.also_link_unviewed_circles:
-            linked = dataclasses.replace(params, link_unviewed_circles=True)
-            rep_l = detect_changes(r.result, log, linked)
-            row[f"{name}_linkc_counts"] = rep_l.counts()
-            row[f"{name}_linkc_score"] = score_changes(rep_l, truth).as_dict()
+        for tag, fields in _variants(args.variant):
+            rep_v = detect_changes(r.result, log, dataclasses.replace(params, **fields))
+            row[f"{name}_{tag}_counts"] = rep_v.counts()
+            row[f"{name}_{tag}_score"] = score_changes(rep_v, truth).as_dict()
         row[f"{name}_missing_or_removed"] = [
             {
                 "id": c.known_id,
@@ -120,6 +120,19 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             if c.status.value == "missing" or c.known_id in truth.removed
         ]
     return row
+
+
+def _variants(specs: list[str]) -> list[tuple[str, dict[str, object]]]:
+    """``'TAG:field=value,...'`` → ``(TAG, {field: value})``, values as Python literals."""
+    out = []
+    for spec in specs:
+        tag, _, body = spec.partition(":")
+        fields = {}
+        for item in filter(None, body.split(",")):
+            key, _, value = item.partition("=")
+            fields[key.strip()] = ast.literal_eval(value.strip())
+        out.append((tag, fields))
+    return out
 
 
 def _range(text: str) -> tuple[float, float]:
@@ -189,10 +202,11 @@ def main() -> None:
         "from a surveyed place predicted in view",
     )
     p.add_argument(
-        "--also-link-unviewed-circles",
-        action="store_true",
-        help="also classify each run with ChangeParams.link_unviewed_circles on "
-        "(keys '<map>_linkc_counts' and '<map>_linkc_score')",
+        "--variant",
+        action="append",
+        default=[],
+        help="also classify each run with other ChangeParams, 'TAG:field=value,...' "
+        "(values as Python literals; keys '<map>_TAG_counts' and '<map>_TAG_score')",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

@@ -249,12 +249,34 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     assert kid not in {n.true_id for n in linked.new}
 
 
+def test_link_needs_only_link_min_scans_in_view_not_the_missing_rules_k():
+    """A tree in view for fewer scans than ``K`` (here ``K`` is out of reach) and
+    never associated: with ``link_min_scans`` of 1 its landmark 3 m away is its move,
+    with ``link_min_scans=None`` (``K``) the tree is unobserved and the landmark new."""
+    log = _log()
+    blind = dataclasses.replace(PARAMS, min_scans=10**6)
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
+    short = _classify(moved, dataclasses.replace(blind, link_min_scans=1), unassociated=kid)
+    c = short.known[circ]
+    assert 1 <= c.scans_in_view < blind.min_scans
+    assert c.status == ChangeStatus.MOVED
+    assert c.displacement[:2] == pytest.approx([-3.0, 0.0], abs=0.3)
+    assert kid not in {n.true_id for n in short.new}
+    strict = _classify(moved, dataclasses.replace(blind, link_min_scans=None), unassociated=kid)
+    assert strict.known[circ].status == ChangeStatus.UNOBSERVED
+    assert kid in {n.true_id for n in strict.new}
+
+
 def test_wall_never_predicted_in_view_is_linked_to_its_unassociated_landmark():
     """No feature reaches ``min_scans`` here; a wall surveyed 2 m beside where it stands,
     never associated, is that wall moved (a landmark parallel to it and overlapping it
     along its length), and with the linking off it is unobserved and its landmark new."""
     log = _log()
-    blind = dataclasses.replace(PARAMS, min_scans=10**6)
+    blind = dataclasses.replace(PARAMS, min_scans=10**6, link_min_scans=None)
     line = _most_in_view(log, FeatureKind.LINE)
     kid = int(log.known_map.ids[line])
     p = log.known_map.params.copy()
@@ -263,8 +285,9 @@ def test_wall_never_predicted_in_view_is_linked_to_its_unassociated_landmark():
     moved = _replace_known(log, params=p)
     rep = _classify(moved, blind, unassociated=kid)
     c = rep.known[line]
-    # In view long enough for the view rule at the default K: only min_scans keeps that
-    # rule from linking it, so the link comes from link_unviewed_lines.
+    # In view long enough for the view rule at the default K: only min_scans (and with
+    # it link_min_scans) keeps that rule from linking it, so the link comes from
+    # link_unviewed_lines.
     assert c.scans_in_view >= PARAMS.min_scans
     assert c.status == ChangeStatus.MOVED
     assert not c.associated
@@ -273,6 +296,32 @@ def test_wall_never_predicted_in_view_is_linked_to_its_unassociated_landmark():
     off = _classify(moved, dataclasses.replace(blind, link_unviewed_lines=False), unassociated=kid)
     assert off.known[line].status == ChangeStatus.UNOBSERVED
     assert kid in {n.true_id for n in off.new}
+
+
+def test_short_wall_is_not_moved_onto_a_longer_unmapped_wall():
+    """The map has a wall of 1 m (its σ 0.1 m) 2 m beside a longer wall it lacks, never
+    associated: a wall moved keeps its length, so the longer landmark is not its move.
+    The short wall is missing or unobserved and the long one new; the same long wall
+    surveyed 2 m off at its own length is that wall, moved."""
+    log = _log()
+    line = _most_in_view(log, FeatureKind.LINE)
+    kid = int(log.known_map.ids[line])
+    assert log.known_map.extents is not None
+    lo, hi = (float(v) for v in log.known_map.extents[line])
+    assert hi - lo > 1.0 + 6.0 * 0.1 + 0.5
+    p = log.known_map.params.copy()
+    th = float(p[line, 2])
+    p[line, :2] += 2.0 * np.array([-math.sin(th), math.cos(th)])
+    ext = log.known_map.extents.copy()
+    mid = 0.5 * (lo + hi)
+    ext[line] = (mid - 0.5, mid + 0.5)
+    short = _classify(_replace_known(log, params=p, extents=ext), unassociated=kid)
+    c = short.known[line]
+    assert c.status in (ChangeStatus.MISSING, ChangeStatus.UNOBSERVED)
+    assert kid in {n.true_id for n in short.new}
+    full = _classify(_replace_known(log, params=p), unassociated=kid)
+    assert full.known[line].status == ChangeStatus.MOVED
+    assert kid not in {n.true_id for n in full.new}
 
 
 def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_landmark():
@@ -466,6 +515,8 @@ def test_change_params_reject_bad_values():
         ChangeParams(min_scans=0)
     with pytest.raises(ValueError, match="link_unviewed_lines must be a bool"):
         ChangeParams(link_unviewed_lines=1)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="link_min_scans must be None or an int"):
+        ChangeParams(link_min_scans=0)
     with pytest.raises(ValueError, match="link_unviewed_circles must be a bool"):
         ChangeParams(link_unviewed_circles="yes")  # type: ignore[arg-type]
 

@@ -7,7 +7,9 @@
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
 3. A known feature without one, predicted in view at its surveyed place for at least
-   ``K`` scans (a wall: whether or not, :attr:`ChangeParams.link_unviewed_lines`), is
+   :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
+   :attr:`ChangeParams.link_unviewed_lines`; a tree: with
+   :attr:`ChangeParams.link_unviewed_circles`), is
    compared with the unassociated landmarks of its kind within
    ``max_move_m`` (and ``max_turn_rad``): the nearest, one to one, is the feature
    after a move beyond the association gate, and is tested the same way (a consistent
@@ -16,7 +18,8 @@
    confirm the feature but is never taken for its move.  A wall is confirmed (or
    explained) only by a landmark that overlaps the wall itself, its extent widened by
    three of the wall's and the landmark's position σ: one that fits the line beyond
-   the wall's ends is another stretch of the line.
+   the wall's ends is another stretch of the line.  A wall moved keeps its length: a
+   landmark longer than the wall by more than those σ at each end is not its move.
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
    radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
@@ -136,6 +139,23 @@ def _same_piece(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
     return _overlaps(obs, known.params[r], _extent(known, r), 3.0 * (sig_k + sig_p))
 
 
+def _longer(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
+    """Whether line landmark ``obs`` spans more of the known wall's line than wall
+    ``r`` is long, by more than six of the wall's and the landmark's position σ (three
+    at each end): a wall moved is still its own length, so a longer landmark is
+    another wall (a plan wall that does not stand, near one the plan lacks)."""
+    extent = _extent(known, r)
+    if extent is None or not np.all(np.isfinite(extent)):
+        return False
+    along = _along(obs, known.params[r])
+    kc = known.covs[r]
+    sig_k = math.sqrt(max(0.0, 0.5 * float(kc[0, 0] + kc[1, 1])))
+    pc = obs.pose_covs
+    sig_p = math.sqrt(max(0.0, 0.5 * float(np.mean(pc[:, 0, 0] + pc[:, 1, 1]))))
+    excess = (max(along) - min(along)) - float(extent[1] - extent[0])
+    return excess > 6.0 * (sig_k + sig_p)
+
+
 def _extent(known: KnownMapArrays, r: int) -> FloatArray | None:
     return None if known.extents is None else np.asarray(known.extents[r], dtype=float)
 
@@ -196,7 +216,8 @@ def classify_changes(
     for r in unassociated:
         kind = FeatureKind(int(known.kinds[r]))
         kid = int(known.ids[r])
-        unviewed = in_view[kid] < params.min_scans and empty[kid] < params.min_scans
+        need = params.min_scans if params.link_min_scans is None else params.link_min_scans
+        unviewed = in_view[kid] < need and empty[kid] < need
         is_line = kind == FeatureKind.LINE
         linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles
         if unviewed and not linked:
@@ -216,6 +237,8 @@ def classify_changes(
                 # stretch of the line, not this wall seen again nor moved along itself.
                 continue
             if i in explained and not consistent:
+                continue
+            if kind == FeatureKind.LINE and not consistent and _longer(s, known, r):
                 continue
             pairs.append((d, r, i))
     used: set[int] = set()

@@ -80,6 +80,14 @@ class ChangeParams:
     surveyed where the view model cannot see it (its mapped angle off enough to turn
     the scanner's view into a grazing one) is otherwise never linked to where it
     stands."""
+    link_min_scans: int | None = 8
+    """Scans a known feature without an associated landmark must be predicted in view
+    at its surveyed place (or seen empty there) before an unassociated landmark within
+    the move limits is taken for its move, counted like :attr:`min_scans` (``None``:
+    :attr:`min_scans`).  Calling a feature missing needs ``K`` scans of its absence; a
+    link has the landmark as evidence besides, so it asks for fewer: two of the view's
+    sampled poses at the default stride.  A tree moved out of the scanner's reach often
+    had its surveyed place in view only briefly (docs/changes.md)."""
     link_unviewed_circles: bool = False
     """Look for a moved circle even when its surveyed place was never predicted in view
     nor seen empty: the nearest unassociated circle within :attr:`max_move_m`, one to
@@ -109,6 +117,9 @@ class ChangeParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"ChangeParams.{name} must be an int >= 1, got {v!r}")
+        lm = self.link_min_scans
+        if lm is not None and (isinstance(lm, bool) or not isinstance(lm, int) or lm < 1):
+            raise ValueError(f"ChangeParams.link_min_scans must be None or an int >= 1, got {lm!r}")
         for name in ("link_unviewed_lines", "link_unviewed_circles", "free_space"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ChangeParams.{name} must be a bool, got {getattr(self, name)!r}")
