@@ -30,6 +30,7 @@ def _pr(tp: int, fp: int, fn: int) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("jsonl")
+    ap.add_argument("--scenario", default="loop600", help="the benchmark's --scenario")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--moved", type=float, default=0.15)
     ap.add_argument("--removed", type=float, default=0.05)
@@ -39,7 +40,7 @@ def main() -> None:
     a = ap.parse_args()
     with open(a.jsonl) as f:
         rows = [json.loads(line) for line in f]
-    base = dataclasses.replace(load_scenario("loop600"), steps=a.steps)
+    base = dataclasses.replace(load_scenario(a.scenario), steps=a.steps)
     size = []  # (significance measure, kind, detected)
     mtp = mfn = 0
     split = {True: [0, 0], False: [0, 0]}  # surveyed place in view → [detected, missed]
