@@ -104,7 +104,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
-        for tag, fields in _variants(args.variant):
+        for tag, fields in args.variant:
             rep_v = detect_changes(r.result, log, dataclasses.replace(params, **fields))
             row[f"{name}_{tag}_counts"] = rep_v.counts()
             row[f"{name}_{tag}_score"] = score_changes(rep_v, truth).as_dict()
@@ -122,17 +122,38 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
     return row
 
 
-def _variants(specs: list[str]) -> list[tuple[str, dict[str, object]]]:
-    """``'TAG:field=value,...'`` → ``(TAG, {field: value})``, values as Python literals."""
-    out = []
-    for spec in specs:
-        tag, _, body = spec.partition(":")
-        fields = {}
-        for item in filter(None, body.split(",")):
-            key, _, value = item.partition("=")
-            fields[key.strip()] = ast.literal_eval(value.strip())
-        out.append((tag, fields))
-    return out
+# ChangeParams fields the truth is built from: a variant may not change them, or it
+# would be scored against another truth than its own.
+_TRUTH_FIELDS = ("min_obs", "min_scans", "view_stride")
+
+
+def _variant(spec: str) -> tuple[str, dict[str, object]]:
+    """``'TAG:field=value;field=value'`` → ``(TAG, {field: value})``, values as Python
+    literals; checked against :class:`ChangeParams` before anything is simulated."""
+    tag, sep, body = spec.partition(":")
+    if not sep or not tag.isidentifier():
+        raise argparse.ArgumentTypeError(f"{spec!r}: expected 'TAG:field=value;...'")
+    fields: dict[str, object] = {}
+    for item in filter(None, (x.strip() for x in body.split(";"))):
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise argparse.ArgumentTypeError(f"{spec!r}: {item!r} is not field=value")
+        if key in _TRUTH_FIELDS:
+            raise argparse.ArgumentTypeError(
+                f"{spec!r}: {key} sets what the truth counts, vary it in its own run"
+            )
+        try:
+            fields[key] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError) as e:
+            raise argparse.ArgumentTypeError(f"{spec!r}: {value!r} is not a literal") from e
+    if not fields:
+        raise argparse.ArgumentTypeError(f"{spec!r}: no field=value given")
+    try:
+        dataclasses.replace(ChangeParams(), **fields)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise argparse.ArgumentTypeError(f"{spec!r}: {e}") from e
+    return tag, fields
 
 
 def _range(text: str) -> tuple[float, float]:
@@ -203,13 +224,17 @@ def main() -> None:
     )
     p.add_argument(
         "--variant",
+        type=_variant,
         action="append",
         default=[],
-        help="also classify each run with other ChangeParams, 'TAG:field=value,...' "
+        help="also classify each run with other ChangeParams, 'TAG:field=value;...' "
         "(values as Python literals; keys '<map>_TAG_counts' and '<map>_TAG_score')",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()
+    tags = [tag for tag, _ in args.variant]
+    if len(set(tags)) != len(tags):
+        p.error(f"--variant tags must differ, got {tags}")
     for seed in range(*args.seeds):
         row = _one(seed, args)
         with open(args.out, "a") as f:

@@ -237,7 +237,22 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     rep = _classify(moved, unassociated=kid)
     assert rep.known[circ].status == ChangeStatus.UNOBSERVED
     assert kid in {n.true_id for n in rep.new}
-    # With link_unviewed_circles the same landmark is taken for the tree's move.
+
+
+def test_link_unviewed_circles_takes_the_nearest_landmark_for_the_trees_move():
+    """The tree of the test above, never in view where the map has it, with
+    ``link_unviewed_circles``: its landmark 3 m away is its move, not a new tree."""
+    log = _log()
+    rep0 = _classify(log)
+    circ = min(
+        (i for i, c in enumerate(rep0.known) if c.kind == FeatureKind.CIRCLE),
+        key=lambda i: rep0.known[i].scans_in_view,
+    )
+    assert rep0.known[circ].scans_in_view < PARAMS.min_scans
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
     linked = _classify(
         moved, dataclasses.replace(PARAMS, link_unviewed_circles=True), unassociated=kid
     )
@@ -247,6 +262,23 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
     # The map holds it 3 m off along x; the landmark puts it back (map σ 0.1 m).
     assert c.displacement[:2] == pytest.approx([-3.0, 0.0], abs=0.3)
     assert kid not in {n.true_id for n in linked.new}
+
+
+def test_link_min_scans_above_k_links_whatever_is_seen_long_enough_to_be_missing():
+    """``link_min_scans`` larger than ``min_scans`` acts as ``min_scans``: a tree in
+    view long enough to be called missing is always looked for, so its landmark 3 m
+    away is its move."""
+    log = _log()
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
+    rep = _classify(moved, dataclasses.replace(PARAMS, link_min_scans=10**6), unassociated=kid)
+    c = rep.known[circ]
+    assert c.scans_in_view >= PARAMS.min_scans
+    assert c.status == ChangeStatus.MOVED
+    assert kid not in {n.true_id for n in rep.new}
 
 
 def test_link_needs_only_link_min_scans_in_view_not_the_missing_rules_k():
@@ -322,6 +354,12 @@ def test_short_wall_is_not_moved_onto_a_longer_unmapped_wall():
     full = _classify(_replace_known(log, params=p), unassociated=kid)
     assert full.known[line].status == ChangeStatus.MOVED
     assert kid not in {n.true_id for n in full.new}
+    # Surveyed 0.4 m short (within six of the map's σ of 0.1 m in all, the pose σ
+    # being tiny here), the wall is still linked: the margin allows for the survey.
+    ext_short = log.known_map.extents.copy()
+    ext_short[line] = (lo + 0.2, hi - 0.2)
+    near = _classify(_replace_known(log, params=p, extents=ext_short), unassociated=kid)
+    assert near.known[line].status == ChangeStatus.MOVED
 
 
 def test_turn_beyond_max_turn_but_within_the_maps_own_angle_sigma_links_the_landmark():
@@ -515,8 +553,9 @@ def test_change_params_reject_bad_values():
         ChangeParams(min_scans=0)
     with pytest.raises(ValueError, match="link_unviewed_lines must be a bool"):
         ChangeParams(link_unviewed_lines=1)  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="link_min_scans must be None or an int"):
-        ChangeParams(link_min_scans=0)
+    for bad in (0, -1, 1.5, True, "8"):
+        with pytest.raises(ValueError, match="link_min_scans must be None or an int"):
+            ChangeParams(link_min_scans=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="link_unviewed_circles must be a bool"):
         ChangeParams(link_unviewed_circles="yes")  # type: ignore[arg-type]
 

@@ -6,8 +6,8 @@
 2. A known feature with an associated landmark is tested against that landmark's
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
-3. A known feature without one, predicted in view at its surveyed place for at least
-   :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
+3. A known feature without one, predicted in view at its surveyed place, or seen empty
+   there, for at least :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
    :attr:`ChangeParams.link_unviewed_lines`; a tree: with
    :attr:`ChangeParams.link_unviewed_circles`), is
    compared with the unassociated landmarks of its kind within
@@ -19,13 +19,13 @@
    explained) only by a landmark that overlaps the wall itself, its extent widened by
    three of the wall's and the landmark's position σ: one that fits the line beyond
    the wall's ends is another stretch of the line.  A wall moved keeps its length: a
-   landmark longer than the wall by more than those σ at each end is not its move.
+   landmark longer than the wall by more than six of those σ in all is not its move.
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
    scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
    radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
-   log's raw scans saw a circle's surveyed place empty for at least ``K`` scans
-   (:mod:`mapfuse_core.evaluation.changes.freespace`; such a circle also counts as
-   seen in step 3), else unobserved.
+   log's raw scans saw its surveyed place empty for at least ``K`` scans
+   (:mod:`mapfuse_core.evaluation.changes.freespace`; seen empty also counts as seen
+   in step 3), else unobserved.
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
    except duplicates: those consistent with an observed known feature, or within the
    move limits of one classified moved (another piece of it).
@@ -141,9 +141,10 @@ def _same_piece(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
 
 def _longer(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
     """Whether line landmark ``obs`` spans more of the known wall's line than wall
-    ``r`` is long, by more than six of the wall's and the landmark's position σ (three
-    at each end): a wall moved is still its own length, so a longer landmark is
-    another wall (a plan wall that does not stand, near one the plan lacks)."""
+    ``r`` is long, by more than six of the wall's and the landmark's position σ (the
+    margin of three at each end that :func:`_same_piece` allows): a wall moved is
+    still its own length, so a longer landmark is another wall (a plan wall that does
+    not stand, near one the plan lacks)."""
     extent = _extent(known, r)
     if extent is None or not np.all(np.isfinite(extent)):
         return False
@@ -216,7 +217,7 @@ def classify_changes(
     for r in unassociated:
         kind = FeatureKind(int(known.kinds[r]))
         kid = int(known.ids[r])
-        need = params.min_scans if params.link_min_scans is None else params.link_min_scans
+        need = min(params.link_min_scans or params.min_scans, params.min_scans)
         unviewed = in_view[kid] < need and empty[kid] < need
         is_line = kind == FeatureKind.LINE
         linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles

@@ -71,26 +71,29 @@ class ChangeParams:
     """Largest turn of a line considered a move of that line (widened by three of the
     line's own angle σ)."""
     link_unviewed_lines: bool = True
-    """Look for a moved wall even when its surveyed place was never predicted in view.
-    A wall is told apart by its direction and its extent: an unassociated landmark
-    within :attr:`max_move_m` and :attr:`max_turn_rad` of it that also overlaps it along
-    its length is that wall moved far more often than a wall the map lacks.  Circles
-    are linked only from a surveyed place seen empty: an unmapped tree a few metres
-    from one the map has is common, and nothing but distance relates the two.  A wall
+    """Look for a moved wall even when its surveyed place was in view or seen empty for
+    fewer than :attr:`link_min_scans` scans.  A wall is told apart by its direction and
+    its extent: an unassociated landmark within :attr:`max_move_m` and
+    :attr:`max_turn_rad` of it that also overlaps it along its length is that wall
+    moved far more often than a wall the map lacks (circles:
+    :attr:`link_unviewed_circles`).  A wall
     surveyed where the view model cannot see it (its mapped angle off enough to turn
     the scanner's view into a grazing one) is otherwise never linked to where it
     stands."""
     link_min_scans: int | None = 8
     """Scans a known feature without an associated landmark must be predicted in view
     at its surveyed place (or seen empty there) before an unassociated landmark within
-    the move limits is taken for its move, counted like :attr:`min_scans` (``None``:
-    :attr:`min_scans`).  Calling a feature missing needs ``K`` scans of its absence; a
+    the move limits is taken for its move, counted like :attr:`min_scans` (``None``, or
+    more than :attr:`min_scans`: :attr:`min_scans`, so that a feature seen long enough
+    to be called missing is always looked for).  Calling a feature missing needs ``K``
+    scans of its absence; a
     link has the landmark as evidence besides, so it asks for fewer: two of the view's
     sampled poses at the default stride.  A tree moved out of the scanner's reach often
     had its surveyed place in view only briefly (docs/changes.md)."""
     link_unviewed_circles: bool = False
-    """Look for a moved circle even when its surveyed place was never predicted in view
-    nor seen empty: the nearest unassociated circle within :attr:`max_move_m`, one to
+    """Look for a moved circle even when its surveyed place was in view or seen empty for
+    fewer than :attr:`link_min_scans` scans: the nearest unassociated circle within
+    :attr:`max_move_m`, one to
     one, is taken for it.  Off by default: only distance (and a radius the map knows to
     its σ) relates the two, and an unmapped tree a few metres from a mapped one that
     was never in view is then called that tree's move instead of new."""
@@ -98,10 +101,11 @@ class ChangeParams:
     free_space: bool = True
     """Read the log's raw scans, when it has them, for where the laser saw through a
     known circle's or wall's surveyed place
-    (:mod:`mapfuse_core.evaluation.changes.freespace`).  A feature seen empty for
-    :attr:`min_scans` scans counts as seen where the map has it: it is linked to a
-    landmark that moved, or else called missing, whatever the extractor's rule
-    predicts.  ``False``: the extractor's (or beam-count) rule alone."""
+    (:mod:`mapfuse_core.evaluation.changes.freespace`).  A feature seen empty counts
+    as seen where the map has it, whatever the extractor's rule predicts: for
+    :attr:`link_min_scans` scans it is linked to a landmark that moved, for
+    :attr:`min_scans` it is otherwise called missing.  ``False``: the extractor's (or
+    beam-count) rule alone."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
