@@ -8,6 +8,7 @@ it was; the copy's new known features get their tracks only once the match is ke
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,10 +16,10 @@ import numpy as np
 from ekf_reference.association import IteratedUpdate, apply_iterated, element_pairings
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.data.measlog import KnownMapArrays
-from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
 
-__all__ = ["fuse_match"]
+__all__ = ["fuse_match", "worst_pairing"]
 
 
 def fuse_match(
@@ -59,3 +60,35 @@ def fuse_match(
     # happened to be linearised (CCDA's estimate).
     upd = apply_iterated(trial, lambda state: element_pairings(state, pairs))
     return trial, known_index, upd
+
+
+def worst_pairing(
+    g: GaussianMap,
+    feats: list[int],
+    known: KnownMapArrays,
+    res: CCDAResult,
+    assoc: AssociationConfig,
+    upd: IteratedUpdate,
+) -> tuple[int, float, int] | None:
+    """The pairing of ``res`` that fails its own test against the others, if any.
+
+    For each pairing, the match is fused again without it: the NIS it adds,
+    ``upd.nis`` less that of the rest, is its χ² given the others (exactly so for a
+    linear problem), with its own dimension as the degrees of freedom.  Returns
+    ``(index in res.pairings, χ², dof)`` of the largest failure of the
+    ``assoc.gate_prob`` quantile, or ``None`` when every pairing passes.
+    """
+    worst: tuple[int, float, int] | None = None
+    worst_ratio = 1.0
+    for p in range(len(res.pairings)):
+        rest = res.pairings[:p] + res.pairings[p + 1 :]
+        if not rest:
+            continue
+        trimmed = dataclasses.replace(res, pairings=rest)
+        _, _, without = fuse_match(g, feats, known, trimmed, assoc)
+        dof = upd.dims - without.dims
+        delta = upd.nis - without.nis
+        ratio = delta / chi2_gate(assoc.gate_prob, dof)
+        if ratio > worst_ratio:
+            worst, worst_ratio = (p, float(delta), dof), ratio
+    return worst

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ekf_reference.anchoring import fuse_match
+from ekf_reference.anchoring import fuse_match, worst_pairing
 from ekf_reference.association import (
     Candidate,
     Query,
@@ -48,6 +48,7 @@ from mapfuse_core.matching.ccda import ccda_match
 __all__ = ["run_ekf"]
 
 JOINTLY_INCONSISTENT = "jointly inconsistent"
+PAIRING_INCONSISTENT = "a pairing inconsistent with the others"
 """``EKFResult.ccda_reasons`` key of CCDA matches the joint test refused
 (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
 
@@ -443,6 +444,13 @@ class _Run:
             )
             self.ccda_refused.append((k, upd.nis, dof))
             return
+        if assoc.match_joint_test and assoc.match_pairing_test:
+            bad = worst_pairing(g, feats, known, res, assoc, upd)
+            if bad is not None:
+                reason = PAIRING_INCONSISTENT
+                self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + 1
+                self.ccda_refused.append((k, bad[1], bad[2]))
+                return
         self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
         if not upd.converged:
             warnings.warn(

@@ -108,12 +108,15 @@ class EKFResult:
     """Loop closures found at the joins, in order (none unless ``config.loop_closure``,
     and none once the known map is fused: the local maps are then held to it)."""
     ccda_reasons: Mapping[str, int] = field(default_factory=dict)
-    """CCDA matchings per outcome (:attr:`~mapfuse_core.matching.ccda.CCDAResult.reason`,
-    or ``"jointly inconsistent"`` for a match CCDA accepted and the joint test of its
-    pairings refused); the counts sum to :attr:`ccda_attempts`."""
+    """CCDA matchings per outcome (:attr:`~mapfuse_core.matching.ccda.CCDAResult.reason`;
+    ``"jointly inconsistent"`` for a match CCDA accepted and the joint test of its
+    pairings refused, ``"a pairing inconsistent with the others"`` for one that a
+    pairing's own test refused); the counts sum to :attr:`ccda_attempts`."""
     ccda_refused: tuple[tuple[int, float, int], ...] = ()
-    """``(step, χ², degrees of freedom)`` of each CCDA match the joint test refused
-    (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
+    """``(step, χ², degrees of freedom)`` of each CCDA match the EKF refused: the χ² of
+    all its pairings (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)
+    or of the pairing that failed its own test
+    (:attr:`~mapfuse_core.matching.AssociationConfig.match_pairing_test`)."""
     tentative_promoted: int = 0
     """Tentative features promoted to the map (``config.tentative_min_sightings`` > 1)."""
     tentative_dropped: int = 0

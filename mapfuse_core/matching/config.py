@@ -88,6 +88,12 @@ class AssociationConfig:
     drifted together: after metres of unfused drift its gates are loose enough for a
     wrong pairing among correct ones (``docs/ccda.md``).  Used by the EKF; its
     decisions carry the outcome to the factor graph."""
+    match_pairing_test: bool = True
+    """With :attr:`match_joint_test`, also test each pairing of the match against the
+    others: the χ² it adds to the joint update of the rest, against the
+    :attr:`gate_prob` quantile of its own dimension; refuse the match when one fails.
+    One wrong pairing among many right ones can pass the joint test, its excess spread
+    over the whole dimension (a wall moved since the survey, ``docs/changes.md``)."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gate_prob, numbers.Real) and 0.0 < self.gate_prob < 1.0):
@@ -102,7 +108,12 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-        for name in ("one_observation_per_circle", "one_observation_per_line", "match_joint_test"):
+        for name in (
+            "one_observation_per_circle",
+            "one_observation_per_line",
+            "match_joint_test",
+            "match_pairing_test",
+        ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
         if not isinstance(self.ccda, CCDAParams):
