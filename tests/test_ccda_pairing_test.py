@@ -13,26 +13,12 @@ from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
+from tests.test_ccda_joint_test import KNOWN as JOINT_KNOWN
+from tests.test_ccda_joint_test import SIGMA_COMMON, SIGMA_OWN, TRUTH
 
-TRUTH = np.array([3.0, -2.0, 0.4])
-"""``x^A_B``: the known map's frame in the run's."""
-KNOWN = np.array(
-    [
-        [10.0, 2.0, 0.3],
-        [-6.0, 8.0, 0.4],
-        [25.0, -12.0, 0.25],
-        [-15.0, -20.0, 0.5],
-        [18.0, 15.0, 0.35],
-        [-2.0, -9.0, 0.45],
-        [5.0, 20.0, 0.3],
-        [-20.0, 5.0, 0.4],
-    ]
-)
+KNOWN = np.vstack([JOINT_KNOWN, [[5.0, 20.0, 0.3], [-20.0, 5.0, 0.4]]])
+"""The joint test's six circles and two more: eight pairings."""
 KNOWN_COV = np.diag([0.02**2, 0.02**2, 0.01**2])
-SIGMA_COMMON = 1.0
-"""σ (m) of the drift the run's features share."""
-SIGMA_OWN = np.array([0.03, 0.03, 0.01])
-"""σ of each run feature's own error (x, y, radius)."""
 ASSOC = AssociationConfig()
 
 

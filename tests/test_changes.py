@@ -220,9 +220,9 @@ def test_a_wall_further_along_the_line_of_an_observed_one_is_not_confirmed_by_it
     assert b_id not in {n.true_id for n in rep.new}
 
 
-def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
-    """A known tree never predicted in view, and an unassociated tree 3 m from it: the
-    landmark may be a tree the map lacks, so it is new and the known one unobserved."""
+def _least_viewed_tree_surveyed_3m_off() -> tuple[MeasurementLog, int, int]:
+    """The test log with its least-viewed known tree (in view under ``min_scans``)
+    surveyed 3 m off along x: the log, the tree's row and its id."""
     log = _log()
     rep0 = _classify(log)
     circ = min(
@@ -230,10 +230,15 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
         key=lambda i: rep0.known[i].scans_in_view,
     )
     assert rep0.known[circ].scans_in_view < PARAMS.min_scans
-    kid = int(log.known_map.ids[circ])
     p = log.known_map.params.copy()
     p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
+    return _replace_known(log, params=p), circ, int(log.known_map.ids[circ])
+
+
+def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
+    """A known tree never predicted in view, and an unassociated tree 3 m from it: the
+    landmark may be a tree the map lacks, so it is new and the known one unobserved."""
+    moved, circ, kid = _least_viewed_tree_surveyed_3m_off()
     rep = _classify(moved, unassociated=kid)
     assert rep.known[circ].status == ChangeStatus.UNOBSERVED
     assert kid in {n.true_id for n in rep.new}
@@ -242,17 +247,7 @@ def test_landmark_near_a_known_feature_never_in_view_is_new_not_its_move():
 def test_link_unviewed_circles_takes_the_nearest_landmark_for_the_trees_move():
     """The tree of the test above, never in view where the map has it, with
     ``link_unviewed_circles``: its landmark 3 m away is its move, not a new tree."""
-    log = _log()
-    rep0 = _classify(log)
-    circ = min(
-        (i for i, c in enumerate(rep0.known) if c.kind == FeatureKind.CIRCLE),
-        key=lambda i: rep0.known[i].scans_in_view,
-    )
-    assert rep0.known[circ].scans_in_view < PARAMS.min_scans
-    kid = int(log.known_map.ids[circ])
-    p = log.known_map.params.copy()
-    p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
+    moved, circ, kid = _least_viewed_tree_surveyed_3m_off()
     linked = _classify(
         moved, dataclasses.replace(PARAMS, link_unviewed_circles=True), unassociated=kid
     )

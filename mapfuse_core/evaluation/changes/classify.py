@@ -132,11 +132,16 @@ def _same_piece(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
     the surveyed extent widened by three of the wall's position σ and of the landmark's
     pose σ.  A wall consistent with another only as a line but beyond its ends is a
     collinear piece of another wall (the next stretch of a corridor past a door)."""
+    return _overlaps(obs, known.params[r], _extent(known, r), 3.0 * _position_sigmas(obs, known, r))
+
+
+def _position_sigmas(obs: ObservationSet, known: KnownMapArrays, r: int) -> float:
+    """Known feature ``r``'s position σ plus the landmark's mean pose position σ (m)."""
     kc = known.covs[r]
     sig_k = math.sqrt(max(0.0, 0.5 * float(kc[0, 0] + kc[1, 1])))
     pc = obs.pose_covs
     sig_p = math.sqrt(max(0.0, 0.5 * float(np.mean(pc[:, 0, 0] + pc[:, 1, 1]))))
-    return _overlaps(obs, known.params[r], _extent(known, r), 3.0 * (sig_k + sig_p))
+    return sig_k + sig_p
 
 
 def _longer(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
@@ -149,12 +154,8 @@ def _longer(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
     if extent is None or not np.all(np.isfinite(extent)):
         return False
     along = _along(obs, known.params[r])
-    kc = known.covs[r]
-    sig_k = math.sqrt(max(0.0, 0.5 * float(kc[0, 0] + kc[1, 1])))
-    pc = obs.pose_covs
-    sig_p = math.sqrt(max(0.0, 0.5 * float(np.mean(pc[:, 0, 0] + pc[:, 1, 1]))))
     excess = (max(along) - min(along)) - float(extent[1] - extent[0])
-    return excess > 6.0 * (sig_k + sig_p)
+    return excess > 6.0 * _position_sigmas(obs, known, r)
 
 
 def _extent(known: KnownMapArrays, r: int) -> FloatArray | None:
