@@ -4,6 +4,9 @@ Move significance is re-derived from the regenerated changes (lines: across the
 line or turned), so it matches :meth:`ChangeTruth.significant_move`.
 
     PYTHONPATH=. python benchmarks/changes_summary.py /tmp/changes.jsonl --steps 600
+
+Several files, one per world, are summarised together with one ``--scenario`` each, in
+the same order (generated worlds: ``--scenario w1.toml --scenario w2.toml ...``).
 """
 
 from __future__ import annotations
@@ -29,8 +32,12 @@ def _pr(tp: int, fp: int, fn: int) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("jsonl")
-    ap.add_argument("--scenario", default="loop600", help="the benchmark's --scenario")
+    ap.add_argument("jsonl", nargs="+")
+    ap.add_argument(
+        "--scenario",
+        action="append",
+        help="the benchmark's --scenario (default loop600), once per file or once for all",
+    )
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--moved", type=float, default=0.15)
     ap.add_argument("--removed", type=float, default=0.05)
@@ -38,16 +45,30 @@ def main() -> None:
     ap.add_argument("--min-scans", type=int, default=None, help="re-score missing with this K")
     ap.add_argument("--move-m", default="0.3,5.0", help="the benchmark's --move-m")
     a = ap.parse_args()
-    with open(a.jsonl) as f:
-        rows = [json.loads(line) for line in f]
-    base = dataclasses.replace(load_scenario(a.scenario), steps=a.steps)
+    scenarios = a.scenario or ["loop600"]
+    if len(scenarios) == 1:
+        scenarios = scenarios * len(a.jsonl)
+    if len(scenarios) != len(a.jsonl):
+        ap.error(f"{len(a.jsonl)} files but {len(scenarios)} --scenario: give one, or one each")
+    rows, bases = [], []
+    for path, name in zip(a.jsonl, scenarios, strict=True):
+        base = dataclasses.replace(load_scenario(name), steps=a.steps)
+        seen: set[int] = set()
+        with open(path) as f:
+            for line in f:
+                r = json.loads(line)
+                if r["seed"] in seen:
+                    continue  # a seed appended twice to one file
+                seen.add(r["seed"])
+                rows.append(r)
+                bases.append(base)
     size = []  # (significance measure, kind, detected)
     mtp = mfn = 0
     split = {True: [0, 0], False: [0, 0]}  # surveyed place in view → [detected, missed]
     mfp = {"unchanged": 0, "changed": 0}
     rem = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
     add = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
-    for r in rows:
+    for r, base in zip(rows, bases, strict=True):
         sc = with_changes(
             base,
             np.random.default_rng(1000 + r["seed"]),

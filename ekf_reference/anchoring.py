@@ -4,6 +4,8 @@ enter, and the pairings fix the anchor by an iterated update.
 The pipeline fuses on a copy so that a match the joint test refuses
 (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`) leaves its map as
 it was; the copy's new known features get their tracks only once the match is kept.
+:func:`vet_match` gives the verdict of both tests and, when one pairing fails its own,
+which one: the pipeline can then match again without that feature.
 """
 
 from __future__ import annotations
@@ -19,7 +21,33 @@ from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
 
-__all__ = ["fuse_match", "worst_pairing"]
+__all__ = [
+    "JOINTLY_INCONSISTENT",
+    "PAIRING_INCONSISTENT",
+    "Vetted",
+    "fuse_match",
+    "match_arrays",
+    "vet_match",
+    "worst_pairing",
+]
+
+JOINTLY_INCONSISTENT = "jointly inconsistent"
+"""Refusal reason of a match whose pairings fail the joint test
+(:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
+PAIRING_INCONSISTENT = "a pairing inconsistent with the others"
+"""Refusal reason of a match one of whose pairings fails its own test
+(:attr:`~mapfuse_core.matching.AssociationConfig.match_pairing_test`)."""
+
+
+def match_arrays(g: GaussianMap, feats: list[int]) -> KnownMapArrays:
+    """The features ``feats`` of ``g`` as CCDA's first map (ids: their indices in ``g``)."""
+    return KnownMapArrays(
+        ids=np.array(feats, dtype=np.int64),
+        kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
+        params=g.mean[feats].copy(),
+        covs=np.stack([g.block(i) for i in feats]),
+        extents=np.array([g.elements[i].extent for i in feats], dtype=np.float64),
+    )
 
 
 def fuse_match(
@@ -92,3 +120,50 @@ def worst_pairing(
         if ratio > worst_ratio:
             worst, worst_ratio = (p, float(delta), dof), ratio
     return worst
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Vetted:
+    """A CCDA match fused on a copy of the map, and the verdict of its tests."""
+
+    trial: GaussianMap
+    """The copy with the match fused (:func:`fuse_match`)."""
+    known_index: dict[int, int]
+    """Index in :attr:`trial` of each known feature."""
+    update: IteratedUpdate
+    """Outcome of the iterated update of all the pairings."""
+    refusal: str | None
+    """``None`` when the match passes, else :data:`JOINTLY_INCONSISTENT` or
+    :data:`PAIRING_INCONSISTENT`."""
+    chi2: float
+    """The failed statistic (the joint one, or the worst pairing's own); the joint one
+    when the match passes."""
+    dof: int
+    """Its degrees of freedom."""
+    culprit: int | None
+    """Index in the match's pairings of the pairing that fails its own test by the
+    largest ratio to its gate (with the pairing test on), whether the match failed that
+    test or the joint one; ``None`` when no pairing fails its own."""
+
+
+def vet_match(
+    g: GaussianMap,
+    feats: list[int],
+    known: KnownMapArrays,
+    res: CCDAResult,
+    assoc: AssociationConfig,
+) -> Vetted:
+    """Fuse ``res`` on a copy of ``g`` and test it: jointly (χ² of every pairing, the
+    anchor's 3 dimensions less) and, with ``assoc.match_pairing_test``, each pairing
+    against the others (:func:`worst_pairing`)."""
+    trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
+    dof = upd.dims - 3
+    if not assoc.match_joint_test:
+        return Vetted(trial, known_index, upd, None, upd.nis, dof, None)
+    bad = worst_pairing(g, feats, known, res, assoc, upd) if assoc.match_pairing_test else None
+    culprit = None if bad is None else bad[0]
+    if dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
+        return Vetted(trial, known_index, upd, JOINTLY_INCONSISTENT, upd.nis, dof, culprit)
+    if bad is not None:
+        return Vetted(trial, known_index, upd, PAIRING_INCONSISTENT, bad[1], bad[2], culprit)
+    return Vetted(trial, known_index, upd, None, upd.nis, dof, None)

@@ -8,7 +8,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ekf_reference.anchoring import fuse_match, worst_pairing
+from ekf_reference.anchoring import (
+    JOINTLY_INCONSISTENT,
+    PAIRING_INCONSISTENT,
+    Vetted,
+    match_arrays,
+    vet_match,
+)
 from ekf_reference.association import (
     Candidate,
     Query,
@@ -38,19 +44,14 @@ from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.tracks import Tracks
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
-from mapfuse_core.matching.ccda import ccda_match
+from mapfuse_core.matching.ccda import CCDAResult, ccda_match
 
-__all__ = ["run_ekf"]
-
-JOINTLY_INCONSISTENT = "jointly inconsistent"
-PAIRING_INCONSISTENT = "a pairing inconsistent with the others"
-"""``EKFResult.ccda_reasons`` key of CCDA matches the joint test refused
-(:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)."""
+__all__ = ["JOINTLY_INCONSISTENT", "PAIRING_INCONSISTENT", "run_ekf"]
 
 
 class _Run:
@@ -66,6 +67,7 @@ class _Run:
         self.ccda_attempts = 0
         self.ccda_reasons: dict[str, int] = {}
         self.ccda_refused: list[tuple[int, float, int]] = []
+        self.ccda_excluded: list[tuple[int, int]] = []
         self.tentative = Tentatives(config.tentative_min_sightings, config.tentative_window_steps)
         self.anchor_step = -1
         self.known, self.known_centre = centred_known_map(log.known_map)
@@ -412,46 +414,44 @@ class _Run:
     # ------------------------------------------------------------------ CCDA
 
     def try_ccda(self, k: int) -> None:
-        g = self.global_map
         feats = [
             i
-            for i, e in enumerate(g.elements)
+            for i, e in enumerate(self.global_map.elements)
             if e.role == Role.FEATURE
             and e.n_obs >= self.config.data_association.min_obs_for_matching
         ]
         known = self.known
         if not feats or len(known) == 0:
             return
-        self.ccda_attempts += 1
-        map_a = KnownMapArrays(
-            ids=np.array(feats, dtype=np.int64),
-            kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
-            params=g.mean[feats].copy(),
-            covs=np.stack([g.block(i) for i in feats]),
-            extents=np.array([g.elements[i].extent for i in feats], dtype=np.float64),
-        )
         assoc = self.config.data_association
-        res = ccda_match(map_a, known, assoc.ccda)
-        if not res.accepted:
-            self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
-            return
-        # Fused on a copy first: a match the joint test refuses leaves the map untouched.
-        trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
-        dof = upd.dims - 3
-        if assoc.match_joint_test and dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
-            self.ccda_reasons[JOINTLY_INCONSISTENT] = (
-                self.ccda_reasons.get(JOINTLY_INCONSISTENT, 0) + 1
-            )
-            self.ccda_refused.append((k, upd.nis, dof))
-            return
-        if assoc.match_joint_test and assoc.match_pairing_test:
-            bad = worst_pairing(g, feats, known, res, assoc, upd)
-            if bad is not None:
-                reason = PAIRING_INCONSISTENT
-                self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + 1
-                self.ccda_refused.append((k, bad[1], bad[2]))
+        for rerun in range(assoc.match_exclusions + 1):
+            res = ccda_match(match_arrays(self.global_map, feats), known, assoc.ccda)
+            self.ccda_attempts += 1
+            if not res.accepted:
+                self._count(res.reason)
                 return
-        self.ccda_reasons[res.reason] = self.ccda_reasons.get(res.reason, 0) + 1
+            # Fused on a copy first: a match a test refuses leaves the map untouched.
+            v = vet_match(self.global_map, feats, known, res, assoc)
+            if v.refusal is None:
+                self._fuse_match(k, feats, res, v)
+                return
+            self._count(v.refusal)
+            self.ccda_refused.append((k, v.chi2, v.dof))
+            if v.culprit is None or rerun == assoc.match_exclusions:
+                return
+            # Match again at once without the map feature of the failing pairing (a
+            # feature moved since the survey): CCDA's own checks apply to what is left.
+            ia, jb = res.pairings[v.culprit]
+            self.ccda_excluded.append((k, int(known.ids[jb])))
+            feats = feats[:ia] + feats[ia + 1 :]
+
+    def _count(self, reason: str) -> None:
+        self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + 1
+
+    def _fuse_match(self, k: int, feats: list[int], res: CCDAResult, v: Vetted) -> None:
+        g, known = self.global_map, self.known
+        trial, known_index, upd = v.trial, v.known_index, v.update
+        self._count(res.reason)
         if not upd.converged:
             warnings.warn(
                 f"step {k}: the update with CCDA's {len(res.pairings)} pairings did not "
@@ -593,6 +593,7 @@ def _result(
         ccda_attempts=run.ccda_attempts,
         ccda_reasons=dict(run.ccda_reasons),
         ccda_refused=tuple(run.ccda_refused),
+        ccda_excluded=tuple(run.ccda_excluded),
         tentative_promoted=run.tentative.promoted,
         tentative_dropped=run.tentative.dropped,
         loop_closures=tuple(run.loop_closures),

@@ -117,6 +117,11 @@ class EKFResult:
     all its pairings (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`)
     or of the pairing that failed its own test
     (:attr:`~mapfuse_core.matching.AssociationConfig.match_pairing_test`)."""
+    ccda_excluded: tuple[tuple[int, int], ...] = ()
+    """``(step, known id)`` of each pairing whose failure of its own test made the EKF
+    match again at once without its map feature
+    (:attr:`~mapfuse_core.matching.AssociationConfig.match_exclusions`); the refused
+    match is in :attr:`ccda_refused`, and each re-run is a CCDA attempt of its own."""
     tentative_promoted: int = 0
     """Tentative features promoted to the map (``config.tentative_min_sightings`` > 1)."""
     tentative_dropped: int = 0

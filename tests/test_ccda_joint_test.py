@@ -126,9 +126,9 @@ def test_a_wrong_pairing_within_the_shared_drift_passes_every_marginal_gate_not_
     assert dofs.tolist() == [3] * len(feats)
 
 
-def _corrupting(first_only: list[bool]) -> object:
+def _corrupting(first_only: list[bool], swapped: list[int] | None = None) -> object:
     """``ccda_match`` that, on its first accepted match, pairs one circle of the map with
-    another known circle."""
+    another known circle (whose id it appends to ``swapped``)."""
     original = pipeline.ccda_match
 
     def match(map_a: KnownMapArrays, map_b: KnownMapArrays, params: object) -> CCDAResult:
@@ -141,21 +141,25 @@ def _corrupting(first_only: list[bool]) -> object:
         ia, jb = next((ia, jb) for ia, jb in res.pairings if jb in circles)
         other = next(j for j in circles if j not in used)
         bad = tuple((a, other if (a, b) == (ia, jb) else b) for a, b in res.pairings)
+        if swapped is not None:
+            swapped.append(int(map_b.ids[other]))
         return dataclasses.replace(res, pairings=bad)
 
     return match
 
 
-@pytest.mark.parametrize("joint_test", [True, False])
-def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_later(
-    monkeypatch: pytest.MonkeyPatch, joint_test: bool
+@pytest.mark.parametrize(("joint_test", "exclusions"), [(True, 0), (True, 4), (False, 4)])
+def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_it(
+    monkeypatch: pytest.MonkeyPatch, joint_test: bool, exclusions: int
 ) -> None:
     log = synthetic_log(steps=300, seed=4)
-    monkeypatch.setattr(pipeline, "ccda_match", _corrupting([True]))
+    swapped: list[int] = []
+    monkeypatch.setattr(pipeline, "ccda_match", _corrupting([True], swapped))
     cfg = EKFConfig(fusion=True)
-    cfg = dataclasses.replace(
-        cfg, data_association=dataclasses.replace(cfg.data_association, match_joint_test=joint_test)
+    assoc = dataclasses.replace(
+        cfg.data_association, match_joint_test=joint_test, match_exclusions=exclusions
     )
+    cfg = dataclasses.replace(cfg, data_association=assoc)
     with warnings.catch_warnings():
         # The corrupted match, fused, does not converge and says so.
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -163,13 +167,24 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_later(
     assert sum(res.ccda_reasons.values()) == res.ccda_attempts
     assert res.anchor is not None
     wrong = [(t, kid) for t, kid in res.anchor.pairings if t != kid]
-    if joint_test:
-        assert res.ccda_reasons[JOINTLY_INCONSISTENT] == 1
-        ((step, c2, dof),) = res.ccda_refused
-        assert c2 > chi2_gate(cfg.data_association.gate_prob, dof)
-        assert res.anchor.accepted_at_step > step
-        assert wrong == []
-    else:
+    if not joint_test:
         assert JOINTLY_INCONSISTENT not in res.ccda_reasons
         assert res.ccda_refused == ()
+        assert res.ccda_excluded == ()
         assert len(wrong) == 1
+        return
+    assert res.ccda_reasons[JOINTLY_INCONSISTENT] == 1
+    ((step, c2, dof),) = res.ccda_refused
+    assert c2 > chi2_gate(cfg.data_association.gate_prob, dof)
+    assert wrong == []
+    if exclusions == 0:
+        # Refused as it stands; a correct match comes at a later attempt.
+        assert res.ccda_excluded == ()
+        assert res.anchor.accepted_at_step > step
+    else:
+        # The swapped pairing fails its own test; CCDA, run again at once without its
+        # map feature, gives a correct match of at least min_pairings at the same step.
+        ((ex_step, ex_known),) = res.ccda_excluded
+        assert ex_step == step == res.anchor.accepted_at_step
+        assert len(res.anchor.pairings) >= cfg.data_association.ccda.min_pairings
+        assert [ex_known] == swapped

@@ -94,6 +94,13 @@ class AssociationConfig:
     :attr:`gate_prob` quantile of its own dimension; refuse the match when one fails.
     One wrong pairing among many right ones can pass the joint test, its excess spread
     over the whole dimension (a wall moved since the survey, ``docs/changes.md``)."""
+    match_exclusions: int = 4
+    """When a test refuses a match and one pairing fails its own test, CCDA runs again
+    at once without that pairing's map feature, up to this many times per attempt
+    (0: refuse and wait for the next attempt).  A feature moved since the survey but
+    still within CCDA's marginal gates otherwise keeps the same match refused at every
+    attempt while the map grows.  The re-run passes every check of CCDA and both tests
+    again on what is left; the bound only caps the cost of one attempt."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gate_prob, numbers.Real) and 0.0 < self.gate_prob < 1.0):
@@ -108,6 +115,9 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+        v = self.match_exclusions
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
+            raise ValueError(f"match_exclusions must be an int >= 0, got {v!r}")
         for name in (
             "one_observation_per_circle",
             "one_observation_per_line",
