@@ -152,17 +152,23 @@ def vet_match(
     known: KnownMapArrays,
     res: CCDAResult,
     assoc: AssociationConfig,
+    culprit_if_joint_fails: bool = True,
 ) -> Vetted:
     """Fuse ``res`` on a copy of ``g`` and test it: jointly (χ² of every pairing, the
     anchor's 3 dimensions less) and, with ``assoc.match_pairing_test``, each pairing
-    against the others (:func:`worst_pairing`)."""
+    against the others (:func:`worst_pairing`).  ``culprit_if_joint_fails=False``
+    skips the per-pairing fuses when the joint test already refuses the match and no
+    culprit is wanted."""
     trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
     dof = upd.dims - 3
     if not assoc.match_joint_test:
         return Vetted(trial, known_index, upd, None, upd.nis, dof, None)
-    bad = worst_pairing(g, feats, known, res, assoc, upd) if assoc.match_pairing_test else None
+    joint_fails = dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof)
+    bad = None
+    if assoc.match_pairing_test and (culprit_if_joint_fails or not joint_fails):
+        bad = worst_pairing(g, feats, known, res, assoc, upd)
     culprit = None if bad is None else bad[0]
-    if dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof):
+    if joint_fails:
         return Vetted(trial, known_index, upd, JOINTLY_INCONSISTENT, upd.nis, dof, culprit)
     if bad is not None:
         return Vetted(trial, known_index, upd, PAIRING_INCONSISTENT, bad[1], bad[2], culprit)

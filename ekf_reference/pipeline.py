@@ -431,13 +431,14 @@ class _Run:
                 self._count(res.reason)
                 return
             # Fused on a copy first: a match a test refuses leaves the map untouched.
-            v = vet_match(self.global_map, feats, known, res, assoc)
+            rerun_left = rerun < assoc.match_exclusions
+            v = vet_match(self.global_map, feats, known, res, assoc, rerun_left)
             if v.refusal is None:
                 self._fuse_match(k, feats, res, v)
                 return
             self._count(v.refusal)
             self.ccda_refused.append((k, v.chi2, v.dof))
-            if v.culprit is None or rerun == assoc.match_exclusions:
+            if v.culprit is None or not rerun_left:
                 return
             # Match again at once without the map feature of the failing pairing (a
             # feature moved since the survey): CCDA's own checks apply to what is left.
@@ -457,7 +458,7 @@ class _Run:
                 f"step {k}: the update with CCDA's {len(res.pairings)} pairings did not "
                 f"converge in {upd.iterations} iterations; the anchor is its last iterate",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         for j, i in known_index.items():
             track = self.tracks.new()

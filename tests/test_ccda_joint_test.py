@@ -126,26 +126,45 @@ def test_a_wrong_pairing_within_the_shared_drift_passes_every_marginal_gate_not_
     assert dofs.tolist() == [3] * len(feats)
 
 
-def _corrupting(first_only: list[bool], swapped: list[int] | None = None) -> object:
-    """``ccda_match`` that, on its first accepted match, pairs one circle of the map with
-    another known circle (whose id it appends to ``swapped``)."""
-    original = pipeline.ccda_match
+class _Swapping:
+    """``ccda_match`` that, on the first accepted match, pairs the map circle of the last
+    circle pairing with a known circle no pairing uses; when ``persistent``, also every
+    later match that pairs that map feature.  Records the map feature ids of every call."""
 
-    def match(map_a: KnownMapArrays, map_b: KnownMapArrays, params: object) -> CCDAResult:
-        res = original(map_a, map_b, params)  # type: ignore[arg-type]
-        if not res.accepted or not first_only[0]:
+    def __init__(self, persistent: bool) -> None:
+        self.original = pipeline.ccda_match
+        self.persistent = persistent
+        self.calls: list[list[int]] = []
+        self.feature: int | None = None
+        """Id (in the map given to CCDA) of the map feature given the wrong partner."""
+        self.other: int | None = None
+        """Row of that wrong partner in the known map."""
+        self.known_id: int | None = None
+        """Its id."""
+        self.row_differs = False
+        """Whether the swapped pairing's index in the match differs from its row in the
+        map (so a mix-up of the two excludes another feature)."""
+
+    def __call__(self, map_a: KnownMapArrays, map_b: KnownMapArrays, params: object) -> CCDAResult:
+        self.calls.append([int(i) for i in map_a.ids])
+        res = self.original(map_a, map_b, params)  # type: ignore[arg-type]
+        if not res.accepted:
             return res
-        first_only[0] = False
         circles = [j for j in range(len(map_b)) if map_b.kinds[j] == int(FeatureKind.CIRCLE)]
-        used = {jb for _, jb in res.pairings}
-        ia, jb = next((ia, jb) for ia, jb in res.pairings if jb in circles)
-        other = next(j for j in circles if j not in used)
-        bad = tuple((a, other if (a, b) == (ia, jb) else b) for a, b in res.pairings)
-        if swapped is not None:
-            swapped.append(int(map_b.ids[other]))
+        if self.feature is None:
+            used = {jb for _, jb in res.pairings}
+            p, (ia, _) = [(p, x) for p, x in enumerate(res.pairings) if x[1] in circles][-1]
+            self.feature = int(map_a.ids[ia])
+            self.other = next(j for j in circles if j not in used)
+            self.known_id = int(map_b.ids[self.other])
+            self.row_differs = p != ia
+        elif not self.persistent:
+            return res
+        hit = [ia for ia, _ in res.pairings if int(map_a.ids[ia]) == self.feature]
+        if not hit or any(jb == self.other for _, jb in res.pairings):
+            return res
+        bad = tuple((a, self.other if a == hit[0] else b) for a, b in res.pairings)
         return dataclasses.replace(res, pairings=bad)
-
-    return match
 
 
 @pytest.mark.parametrize(("joint_test", "exclusions"), [(True, 0), (True, 4), (False, 4)])
@@ -153,8 +172,10 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
     monkeypatch: pytest.MonkeyPatch, joint_test: bool, exclusions: int
 ) -> None:
     log = synthetic_log(steps=300, seed=4)
-    swapped: list[int] = []
-    monkeypatch.setattr(pipeline, "ccda_match", _corrupting([True], swapped))
+    # With the re-run the wrong partner is offered again whenever that map feature is
+    # in the match: only its exclusion gives a correct anchor at the refusal's step.
+    swap = _Swapping(persistent=exclusions > 0 and joint_test)
+    monkeypatch.setattr(pipeline, "ccda_match", swap)
     cfg = EKFConfig(fusion=True)
     assoc = dataclasses.replace(
         cfg.data_association, match_joint_test=joint_test, match_exclusions=exclusions
@@ -164,7 +185,7 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
         # The corrupted match, fused, does not converge and says so.
         warnings.simplefilter("ignore", RuntimeWarning)
         res = run_ekf(log, cfg)
-    assert sum(res.ccda_reasons.values()) == res.ccda_attempts
+    assert sum(res.ccda_reasons.values()) == res.ccda_attempts == len(swap.calls)
     assert res.anchor is not None
     wrong = [(t, kid) for t, kid in res.anchor.pairings if t != kid]
     if not joint_test:
@@ -181,10 +202,12 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
         # Refused as it stands; a correct match comes at a later attempt.
         assert res.ccda_excluded == ()
         assert res.anchor.accepted_at_step > step
-    else:
-        # The swapped pairing fails its own test; CCDA, run again at once without its
-        # map feature, gives a correct match of at least min_pairings at the same step.
-        ((ex_step, ex_known),) = res.ccda_excluded
-        assert ex_step == step == res.anchor.accepted_at_step
-        assert len(res.anchor.pairings) >= cfg.data_association.ccda.min_pairings
-        assert [ex_known] == swapped
+        return
+    # The swapped pairing fails its own test; CCDA runs again at once on the same map
+    # less exactly that feature, and its match is accepted at the same step.
+    assert swap.row_differs
+    assert res.ccda_excluded == ((step, swap.known_id),)
+    assert res.anchor.accepted_at_step == step
+    first, rerun = swap.calls[-2:]
+    assert swap.feature in first
+    assert rerun == [i for i in first if i != swap.feature]

@@ -5,9 +5,17 @@ its own."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from ekf_reference.anchoring import fuse_match, worst_pairing
+from ekf_reference.anchoring import (
+    JOINTLY_INCONSISTENT,
+    PAIRING_INCONSISTENT,
+    fuse_match,
+    vet_match,
+    worst_pairing,
+)
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
@@ -107,3 +115,31 @@ def test_a_pairing_the_joint_test_lets_through_fails_its_own() -> None:
     assert joint_ok >= 25
     assert failed >= 0.7 * joint_ok
     assert shifted == failed
+
+
+def test_vet_match_names_the_shifted_pairing_whichever_test_refuses_the_match() -> None:
+    rng = np.random.default_rng(13)
+    n = len(KNOWN)
+    feats = list(range(n))
+    # 0.2 m: the joint test passes on about half the maps; take the first such map.
+    for _ in range(50):
+        g, known = _case(rng, 0.2)
+        v = vet_match(g, feats, known, _match(n), ASSOC)
+        if v.refusal == PAIRING_INCONSISTENT:
+            break
+    assert v.refusal == PAIRING_INCONSISTENT
+    assert v.culprit == 0
+    assert v.dof == 3
+    assert v.chi2 > chi2_gate(ASSOC.gate_prob, 3)
+    # 2 m, fifty of its σ: the joint test refuses; the culprit is still named, unless
+    # the caller does not want it (the per-pairing fuses are then skipped).
+    g, known = _case(rng, 2.0)
+    v = vet_match(g, feats, known, _match(n), ASSOC)
+    assert v.refusal == JOINTLY_INCONSISTENT
+    assert v.culprit == 0
+    v = vet_match(g, feats, known, _match(n), ASSOC, culprit_if_joint_fails=False)
+    assert v.refusal == JOINTLY_INCONSISTENT
+    assert v.culprit is None
+    # With the tests off nothing is refused.
+    off = dataclasses.replace(ASSOC, match_joint_test=False)
+    assert vet_match(g, feats, known, _match(n), off).refusal is None
