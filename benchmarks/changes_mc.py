@@ -9,8 +9,10 @@ rejections and un-fused features (which ones were truly changed, and whether any
 observation was fused into one after its un-fuse step).  ``--map-sigma`` replaces the
 known map's σ (a better survey: a change smaller than the map's own noise cannot be
 told from it).  The ungated run is made
-only when the gate un-fused something: until then the two runs are the same.  One
-JSON line per seed is appended to ``--out``.
+only when the gate un-fused something: until then the two runs are the same.
+``--assoc`` changes the EKF's association settings (the match's tests and re-runs,
+``docs/changes.md``, "Generated worlds").  One JSON line per seed is appended to
+``--out``.
 
     PYTHONPATH=. python benchmarks/changes_mc.py --seeds 0 20 --out /tmp/changes.jsonl
 """
@@ -33,6 +35,7 @@ from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
+from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 
@@ -65,7 +68,8 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
     row: dict[str, object] = {"seed": seed}
     for name, sc in (("unchanged", base), ("changed", changed)):
         log = simulate(sc, seed=seed, workers=1).log
-        r = run(log, "ekf", fusion=True, known_map_gating=True)
+        assoc = args.assoc
+        r = run(log, "ekf", fusion=True, known_map_gating=True, data_association=assoc)
         m = r.metrics
         row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
         row[f"{name}_nees_mean"] = m["nees"]["mean"]
@@ -76,7 +80,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             row[f"{name}_gate"] = _gate_summary(kg, changed_ids, r.result, log)
         ungated = r
         if kg is not None and kg["known_unfused"]:
-            ungated = run(log, "ekf", fusion=True, known_map_gating=False)
+            ungated = run(log, "ekf", fusion=True, known_map_gating=False, data_association=assoc)
         row[f"{name}_off_rmse_m"] = ungated.metrics["position_error_m"]["rmse"]
         row[f"{name}_off_nees_mean"] = ungated.metrics["nees"]["mean"]
         row[f"{name}_off_nees"] = _nees(ungated)
@@ -156,6 +160,23 @@ def _variant(spec: str) -> tuple[str, dict[str, object]]:
     return tag, fields
 
 
+def _assoc(spec: str) -> AssociationConfig:
+    """``'field=value;...'`` → the default :class:`AssociationConfig` with those fields."""
+    fields: dict[str, object] = {}
+    for item in filter(None, (x.strip() for x in spec.split(";"))):
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise argparse.ArgumentTypeError(f"{spec!r}: {item!r} is not field=value")
+        try:
+            fields[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError) as e:
+            raise argparse.ArgumentTypeError(f"{spec!r}: {value!r} is not a literal") from e
+    try:
+        return dataclasses.replace(AssociationConfig(), **fields)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise argparse.ArgumentTypeError(f"{spec!r}: {e}") from e
+
+
 def _range(text: str) -> tuple[float, float]:
     lo, hi = (float(v) for v in text.split(","))
     return lo, hi
@@ -229,6 +250,13 @@ def main() -> None:
         default=[],
         help="also classify each run with other ChangeParams, 'TAG:field=value;...' "
         "(values as Python literals; keys '<map>_TAG_counts' and '<map>_TAG_score')",
+    )
+    p.add_argument(
+        "--assoc",
+        type=_assoc,
+        default=AssociationConfig(),
+        help="the EKF's AssociationConfig with these fields changed, 'field=value;...' "
+        "(e.g. 'match_exclusions=0' or 'match_pairing_test=False')",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

@@ -15,13 +15,14 @@ import argparse
 import dataclasses
 import json
 import math
+from typing import Any
 
 import numpy as np
 
 from mapfuse.campaign.stats import anees_series
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.sim.scenario import load_scenario
+from mapfuse_core.sim.scenario import Scenario, load_scenario
 
 
 def _pr(tp: int, fp: int, fn: int) -> str:
@@ -50,18 +51,20 @@ def main() -> None:
         scenarios = scenarios * len(a.jsonl)
     if len(scenarios) != len(a.jsonl):
         ap.error(f"{len(a.jsonl)} files but {len(scenarios)} --scenario: give one, or one each")
-    rows, bases = [], []
+    rows: list[dict[str, Any]] = []
+    bases: list[Scenario] = []
     for path, name in zip(a.jsonl, scenarios, strict=True):
         base = dataclasses.replace(load_scenario(name), steps=a.steps)
-        seen: set[int] = set()
+        by_seed: dict[int, dict[str, Any]] = {}
         with open(path) as f:
             for line in f:
                 r = json.loads(line)
-                if r["seed"] in seen:
-                    continue  # a seed appended twice to one file
-                seen.add(r["seed"])
-                rows.append(r)
-                bases.append(base)
+                if r["seed"] in by_seed:
+                    print(f"{path}: seed {r['seed']} appears again; its last row is used")
+                r["file"] = path
+                by_seed[r["seed"]] = r
+        rows += by_seed.values()
+        bases += [base] * len(by_seed)
     size = []  # (significance measure, kind, detected)
     mtp = mfn = 0
     split = {True: [0, 0], False: [0, 0]}  # surveyed place in view → [detected, missed]
@@ -122,9 +125,9 @@ def main() -> None:
         "| false moves on unchanged maps:",
         mfp["unchanged"],
     )
-    for seen, (tp, fn) in sorted(split.items(), reverse=True):
+    for in_view, (tp, fn) in sorted(split.items(), reverse=True):
         if tp + fn:
-            where = "came into view" if seen else "never came into view"
+            where = "came into view" if in_view else "never came into view"
             print(f"  significant moves whose surveyed place {where}: {tp} of {tp + fn} detected")
     for pre in ("changed", "unchanged"):
         print(f"removed ({pre}):", _pr(*rem[pre]))
@@ -152,7 +155,7 @@ def main() -> None:
     _anees_table(rows)
 
 
-def _anees_table(rows: list[dict]) -> None:
+def _anees_table(rows: list[dict[str, Any]]) -> None:
     """ANEES over the seeds per step, with its two-sided 95 % bounds (rows that hold
     the per-step NEES of both maps)."""
     ok = [r for r in rows if r.get("changed_anchor") and r.get("unchanged_anchor")]
@@ -183,7 +186,7 @@ def _ci(x: np.ndarray, rng: np.random.Generator) -> str:
     return f"{x.mean():.4f} [{lo:.4f}, {hi:.4f}]"
 
 
-def _gate_table(rows: list[dict]) -> None:
+def _gate_table(rows: list[dict[str, Any]]) -> None:
     """The known-map gate on and off (rows of ``changes_mc.py`` that hold both)."""
     ok = [
         r
@@ -226,14 +229,15 @@ def _gate_table(rows: list[dict]) -> None:
         )
     kept = []
     for r in rows:
-        g = r.get("changed_gate")
-        if g is None:
+        gate_row = r.get("changed_gate")
+        if gate_row is None:
             continue
         moved = {m["id"] for m in r.get("changed_moves", []) if m["status"] == "moved"}
         kept += [
-            (r["seed"], k) for k in moved & set(g["fused_changed"]) - set(g["unfused_changed"])
+            (r["file"], r["seed"], k)
+            for k in moved & set(gate_row["fused_changed"]) - set(gate_row["unfused_changed"])
         ]
-    print(f"classified moved after the run but still fused by the gate (seed, id): {kept}")
+    print(f"classified moved after the run but still fused by the gate (file, seed, id): {kept}")
 
 
 if __name__ == "__main__":
