@@ -177,11 +177,13 @@ class GraphBuilder(OwnAssociation):
             and decisions.anchor is not None
             and self._mode == "fixed"
         ):
-            a = np.asarray(decisions.anchor.x_Wknown_Wglobal, dtype=float)
-            self.anchor_init = inverse(a)
-            self.anchor_step = min(int(decisions.anchor.accepted_at_step), self.n_steps - 1)
-            self.anchor_step = max(self.anchor_step, 0)
+            # The anchor is the EKF's.  A graph of fewer steps than the EKF needed to
+            # match has none (nor fits one): the match is not known at its last step.
             self.anchor_source = "ekf"
+            if int(decisions.anchor.accepted_at_step) < self.n_steps:
+                a = np.asarray(decisions.anchor.x_Wknown_Wglobal, dtype=float)
+                self.anchor_init = inverse(a)
+                self.anchor_step = max(int(decisions.anchor.accepted_at_step), 0)
         if opts.split_circles:
             self._check_split_circles()
         self._fix_prior_noise = make_noise(np.diag(np.square(opts.first_pose_sigma)))

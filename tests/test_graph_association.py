@@ -144,6 +144,26 @@ def test_ekf_association_with_fusion_uses_the_ekf_anchor() -> None:
     assert err.max() < 0.2
 
 
+@pytest.mark.parametrize("backend", ["isam2", "batch"])
+def test_a_graph_cut_before_the_ekf_matched_has_no_anchor_and_equals_the_unfused_one(
+    backend: str,
+) -> None:
+    log = synthetic_log(steps=120, seed=0)
+    ekf = run_ekf(log, EKFConfig(fusion=True))
+    assert ekf.anchor is not None
+    cut = ekf.anchor.accepted_at_step  # steps 0 .. cut - 1: the match is not known yet
+    assert cut > 5
+    common = {"association": "ekf", "decisions": ekf.decisions, "steps": cut}
+    fused = run_graph(log, backend, fusion=True, **common)
+    plain = run_graph(log, backend, fusion=False, **common)
+    assert fused.anchor is None
+    np.testing.assert_allclose(fused.poses, plain.poses, atol=1e-9)
+    # One step more and the anchor is in, at the EKF's step.
+    later = run_graph(log, backend, fusion=True, **{**common, "steps": cut + 1})
+    assert later.anchor is not None
+    assert later.anchor.accepted_at_step == cut
+
+
 def test_fusion_off_has_no_anchor_and_no_known_variables() -> None:
     log = synthetic_log(steps=40, seed=0)
     res = run_graph(log, "batch", fusion=False, association="truth")
