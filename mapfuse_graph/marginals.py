@@ -24,11 +24,20 @@ def _body_to_abs(thetas: FloatArray) -> FloatArray:
 
 
 def body_to_abs_cov(P_body: FloatArray, theta: float) -> FloatArray:
-    """Pose2 covariance in GTSAM's body tangent → absolute ``(x, y, θ)``: ``G P Gᵀ``."""
+    """Pose2 covariance in GTSAM's body tangent → absolute ``(x, y, θ)``: ``G P Gᵀ`` with
+    ``G = blockdiag(R(θ), 1)``, written out (it runs once per filtered step)."""
     c, s = math.cos(theta), math.sin(theta)
-    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    out: FloatArray = G @ P_body @ G.T
-    return 0.5 * (out + out.T)
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = np.asarray(P_body, dtype=float).tolist()
+    # Symmetrised first, as G P Gᵀ of the symmetric part.
+    p01 = 0.5 * (p01 + p10)
+    p02 = 0.5 * (p02 + p20)
+    p12 = 0.5 * (p12 + p21)
+    xx = c * c * p00 - 2.0 * c * s * p01 + s * s * p11
+    yy = s * s * p00 + 2.0 * c * s * p01 + c * c * p11
+    xy = c * s * (p00 - p11) + (c * c - s * s) * p01
+    xt = c * p02 - s * p12
+    yt = s * p02 + c * p12
+    return np.array([[xx, xy, xt], [xy, yy, yt], [xt, yt, p22]])
 
 
 def _key_dims(values: gtsam.Values) -> list[tuple[int, int]]:
