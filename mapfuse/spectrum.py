@@ -1,8 +1,9 @@
 """The filtering–smoothing spectrum: position RMSE and ANEES against the smoother's lag.
 
-``mapfuse spectrum SCENARIO --lags 0,1,5,30,inf --seeds 0-4`` runs, per seed and in
-series, the EKF (the filter: lag 0), the fixed-lag smoother
-(:mod:`mapfuse_graph.fixedlag`) at each lag, and batch (the full smoother: lag ∞).  The
+``mapfuse spectrum SCENARIO --lags 0,1,5,30,inf --seeds 0-4`` runs, per seed, the EKF
+(the filter: lag 0), the fixed-lag smoother (:mod:`mapfuse_graph.fixedlag`) at each lag,
+and batch (the full smoother: lag ∞), the seeds in parallel on the campaign engine's
+dask cluster (:func:`spectrum`).  The
 graph runs consume the EKF's association decisions of the same seed (or ``--association
 truth``), so that the lag is the only difference between the fixed-lag rows.  Each
 fixed-lag run is scored on its *final* poses (a pose as it leaves the window), the
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +33,9 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = [
+    "SeedRun",
+    "SeedSpectrum",
+    "SpectrumJob",
     "SpectrumResult",
     "SpectrumRow",
     "add_spectrum_parser",
@@ -40,6 +45,7 @@ __all__ = [
     "spectrum",
     "spectrum_figure",
     "spectrum_markdown",
+    "spectrum_seed",
 ]
 
 
@@ -184,6 +190,116 @@ def _lag(v: float) -> str:
     return "∞" if math.isinf(v) else f"{v:g} s"
 
 
+@dataclass(frozen=True)
+class SpectrumJob:
+    """What one seed of a spectrum runs (plain data: it travels to a worker)."""
+
+    source: str
+    """Scenario name, ``.toml`` or log ``.npz``."""
+    seed: int | None
+    """Simulation seed (``None`` for a saved log)."""
+    lags: tuple[float, ...]
+    """Fixed-lag lags in seconds, ascending."""
+    fusion: bool
+    """Whether to fuse the known map."""
+    association: str
+    """Association of the graph runs."""
+    landmarks: str
+    """Fixed-lag landmark policy."""
+    steps: int | None
+    """Steps of the log used (``None``: all)."""
+    data_dir: str | None
+    """Data directory for a real dataset."""
+
+
+@dataclass(frozen=True)
+class SeedRun:
+    """One estimator at one lag on one seed."""
+
+    estimator: str
+    """``"ekf"``, ``"fixedlag"`` or ``"batch"``."""
+    lag_s: float
+    """Lag in seconds (0 for the EKF, ``inf`` for batch)."""
+    rmse_m: float
+    """Position RMSE of the evaluated poses (m)."""
+    nees: float
+    """Mean NEES of the run."""
+    nees_bounds: tuple[float, float]
+    """Two-sided 95 % interval of a consistent run's mean NEES."""
+    time_s: float
+    """The estimator's total step time (s)."""
+
+
+@dataclass(frozen=True)
+class SeedSpectrum:
+    """Every run of one seed (what a worker sends back)."""
+
+    seed: int | None
+    """The job's seed."""
+    scenario: str
+    """The log's scenario name."""
+    fusion: bool
+    """Whether the known map was fused (``False`` where the log has none)."""
+    runs: tuple[SeedRun, ...]
+    """EKF, fixed-lag at each lag, batch, in run order."""
+
+
+def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = None) -> SeedSpectrum:
+    """The EKF, the fixed-lag smoother at each lag and batch on the log of one seed.
+
+    A simulated log is made with one extraction process: this runs on campaign workers,
+    which may not start processes."""
+    from mapfuse.estimators.graph import FixedLagEstimator
+    from mapfuse.run import fusion_for, prepare_log, run
+    from mapfuse_graph.fixedlag import FixedLagOptions
+
+    workers = None if job.source.endswith(".npz") else 1
+    log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir, workers=workers)
+    if log.true_poses is None:
+        raise ValueError(f"{job.source}: the spectrum needs true poses (a simulated log)")
+    if job.steps is not None:
+        log = log.head(min(job.steps, log.n_steps))
+    runs: list[SeedRun] = []
+
+    def note(label: str, r: Any, lag: float) -> None:
+        m = r.metrics
+        nees = m["nees"]
+        iv = (nees.get("mean_interval") or {}).get("interval_95") or [math.nan, math.nan]
+        runs.append(
+            SeedRun(
+                estimator=label,
+                lag_s=lag,
+                rmse_m=float(m["position_error_m"]["rmse"]),
+                nees=float(nees["mean"]),
+                nees_bounds=(float(iv[0]), float(iv[1])),
+                time_s=float(sum(r.result.step_time_s)),
+            )
+        )
+        if progress is not None:
+            progress(
+                f"seed {job.seed} {label} {_lag(lag)}: rmse {m['position_error_m']['rmse']:.4f} m"
+                f", nees {nees['mean']:.3f}"
+            )
+
+    ekf = run(log, "ekf", fusion=job.fusion)
+    note("ekf", ekf, 0.0)
+    graph_kw: dict[str, Any] = {"association": job.association, "upstream": ekf.result}
+    fixedlag = FixedLagEstimator()
+    for lag in job.lags:
+        r = run(
+            log,
+            fixedlag,
+            fusion=job.fusion,
+            fixedlag=FixedLagOptions(lag_s=lag, landmarks=job.landmarks),
+            **graph_kw,
+        )
+        note("fixedlag", r, lag)
+    note("batch", run(log, "batch", fusion=job.fusion, **graph_kw), math.inf)
+    return SeedSpectrum(
+        seed=job.seed, scenario=log.scenario, fusion=fusion_for(log, job.fusion), runs=tuple(runs)
+    )
+
+
 def spectrum(
     source: str,
     lags: Sequence[float],
@@ -195,81 +311,90 @@ def spectrum(
     steps: int | None = None,
     data_dir: str | None = None,
     progress: Callable[[str], None] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    serial: bool | None = None,
 ) -> SpectrumResult:
     """Run the EKF, the fixed-lag smoother at each of ``lags`` and batch on each seed's
-    log of ``source`` (a scenario, ``.toml`` or a log ``.npz``), serially."""
-    from mapfuse.estimators.graph import FixedLagEstimator
-    from mapfuse.run import fusion_for, prepare_log, run
+    log of ``source`` (a scenario, ``.toml`` or a log ``.npz``).
+
+    The seeds run on the campaign engine (:func:`mapfuse.campaign.engine.map_on_cluster`):
+    a dask ``LocalCluster`` of ``workers`` processes (default: the cores, at most one per
+    seed) or the cluster at ``scheduler``.  ``serial=True`` runs them one after the
+    other in this process, with a ``progress`` line per run; by default a single seed
+    runs so, several seeds on the cluster, with a line per finished seed.  Each seed's
+    runs depend on the seed alone, and the table is built in the order of ``seeds``, so
+    the result is the same serially and on any number of workers (but the times)."""
     from mapfuse_graph.fixedlag import FixedLagOptions
 
     if association not in ("ekf", "truth"):
         raise ValueError(f"association must be 'ekf' or 'truth', got {association!r}")
     if steps is not None and steps < 2:
         raise ValueError(f"steps must be >= 2, got {steps}")
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if serial and (workers is not None or scheduler is not None):
+        raise ValueError("serial excludes workers and scheduler")
     lags = sorted(set(float(v) for v in lags))
     FixedLagOptions(lag_s=lags[0], landmarks=landmarks)  # validates before any run
-    t_start = time.perf_counter()
-    fixedlag = FixedLagEstimator()
-    per: dict[tuple[str, float], list[tuple[float, float, tuple[float, float], float]]] = {}
-    scenario = source
-    used_fusion = fusion
+    if not seeds:
+        raise ValueError("the spectrum needs at least one seed")
     saved = source.endswith(".npz")
     if saved and len(seeds) > 1:
         raise ValueError(f"--seeds: a saved log ({source}) is one run, not {len(seeds)} seeds")
-    for seed in seeds:
-        log = prepare_log(source, seed=None if saved else seed, data_dir=data_dir)
-        if log.true_poses is None:
-            raise ValueError(f"{source}: the spectrum needs true poses (a simulated log)")
-        if steps is not None:
-            log = log.head(min(steps, log.n_steps))
-        scenario, used_fusion = log.scenario, fusion_for(log, fusion)
-
-        def note(label: str, r: Any, lag: float, seed: int = seed) -> None:
-            m = r.metrics
-            nees = m["nees"]
-            iv = (nees.get("mean_interval") or {}).get("interval_95") or [math.nan, math.nan]
-            bounds = (float(iv[0]), float(iv[1]))
-            total = float(sum(r.result.step_time_s))
-            per.setdefault((label, lag), []).append(
-                (float(m["position_error_m"]["rmse"]), float(nees["mean"]), bounds, total)
-            )
-            if progress is not None:
-                progress(
-                    f"seed {seed} {label} {_lag(lag)}: rmse {m['position_error_m']['rmse']:.4f} m"
-                    f", nees {nees['mean']:.3f}"
-                )
-
-        ekf = run(log, "ekf", fusion=fusion)
-        note("ekf", ekf, 0.0)
-        graph_kw: dict[str, Any] = {"association": association, "upstream": ekf.result}
-        for lag in lags:
-            r = run(
-                log,
-                fixedlag,
-                fusion=fusion,
-                fixedlag=FixedLagOptions(lag_s=lag, landmarks=landmarks),
-                **graph_kw,
-            )
-            note("fixedlag", r, lag)
-        note("batch", run(log, "batch", fusion=fusion, **graph_kw), math.inf)
-    rows = []
-    for (label, lag), vals in per.items():
-        rows.append(
-            SpectrumRow(
-                estimator=label,
-                lag_s=lag,
-                rmse_m=tuple(v[0] for v in vals),
-                nees=tuple(v[1] for v in vals),
-                nees_bounds=tuple(v[2] for v in vals),
-                time_s=tuple(v[3] for v in vals),
-            )
+    t_start = time.perf_counter()
+    jobs = [
+        SpectrumJob(
+            source=source,
+            seed=None if saved else int(seed),
+            lags=tuple(lags),
+            fusion=fusion,
+            association=association,
+            landmarks=landmarks,
+            steps=steps,
+            data_dir=data_dir,
         )
+        for seed in seeds
+    ]
+    if serial is None:
+        serial = len(jobs) == 1 and workers is None and scheduler is None
+    done: dict[int | None, SeedSpectrum] = {}
+    if serial:
+        for job in jobs:
+            done[job.seed] = spectrum_seed(job, progress)
+    else:
+        from mapfuse.campaign.engine import map_on_cluster
+
+        n = min(workers or os.cpu_count() or 1, len(jobs)) if scheduler is None else None
+        for out, _ in map_on_cluster(
+            spectrum_seed, jobs, workers=n, scheduler=scheduler, name="mapfuse-spectrum"
+        ):
+            done[out.seed] = out
+            if progress is not None:
+                best = min(out.runs, key=lambda r: r.rmse_m)
+                progress(
+                    f"seed {out.seed} done: {len(out.runs)} runs, lowest rmse "
+                    f"{best.rmse_m:.4f} m ({best.estimator} {_lag(best.lag_s)})"
+                )
+    per_seed = [done[job.seed] for job in jobs]
+    first = per_seed[0]
+    rows = [
+        SpectrumRow(
+            estimator=run0.estimator,
+            lag_s=run0.lag_s,
+            rmse_m=tuple(s.runs[i].rmse_m for s in per_seed),
+            nees=tuple(s.runs[i].nees for s in per_seed),
+            nees_bounds=tuple(s.runs[i].nees_bounds for s in per_seed),
+            time_s=tuple(s.runs[i].time_s for s in per_seed),
+        )
+        for i, run0 in enumerate(first.runs)
+    ]
     order = {"ekf": 0, "fixedlag": 1, "batch": 2}
     rows.sort(key=lambda r: (order[r.estimator], r.lag_s))
     return SpectrumResult(
-        scenario=scenario,
+        scenario=first.scenario,
         seeds=tuple(seeds),
-        fusion=used_fusion,
+        fusion=first.fusion,
         association=association,
         landmarks=landmarks,
         rows=tuple(rows),
@@ -399,6 +524,9 @@ def _cmd_spectrum(args: argparse.Namespace) -> int:
         steps=args.steps,
         data_dir=args.data,
         progress=say,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        serial=True if args.serial else None,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -416,8 +544,9 @@ def add_spectrum_parser(sub: Any) -> None:
         "spectrum",
         help="RMSE and ANEES against lag: EKF, fixed-lag smoother, batch",
         description="Run the EKF (lag 0), the fixed-lag smoother at each --lags and batch "
-        "(lag inf) on each seed, serially; write OUT/spectrum.json, OUT/report.md and "
-        "OUT/spectrum.png, and print the table as JSON.",
+        "(lag inf) on each seed (several seeds on a dask LocalCluster, one per core, or "
+        "--scheduler; one seed, or --serial, in this process); write OUT/spectrum.json, "
+        "OUT/report.md and OUT/spectrum.png, and print the table as JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
@@ -443,5 +572,15 @@ def add_spectrum_parser(sub: Any) -> None:
     p.add_argument("--steps", type=int, default=None, help="use only the first STEPS steps")
     p.add_argument("--data", default=None, help="data directory for real datasets")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--quiet", action="store_true", help="no per-run lines on stderr")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="local worker processes (default: the cores, at most one per seed)",
+    )
+    p.add_argument("--scheduler", default=None, help="address of a running dask scheduler")
+    p.add_argument(
+        "--serial", action="store_true", help="run every seed in this process, without dask"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=_cmd_spectrum)

@@ -88,6 +88,48 @@ def test_spectrum_rejects_unknown_association(log_path: str) -> None:
         spectrum(log_path, [0.0], [0], association="own")
 
 
+TINY = str(Path(__file__).resolve().parent / "data" / "tiny_loop.toml")
+
+
+def _values(res: SpectrumResult) -> list[tuple[object, ...]]:
+    """Every result of a spectrum but its timings."""
+    return [(r.estimator, r.lag_s, r.rmse_m, r.nees, r.nees_bounds) for r in res.rows]
+
+
+@pytest.mark.slow
+def test_spectrum_on_two_workers_equals_the_serial_one() -> None:
+    """Seeds on the campaign engine's LocalCluster give the serial table exactly, in
+    the order of the seeds whatever order they finish in."""
+    kw = {"association": "truth", "steps": 60}
+    lines: list[str] = []
+    serial = spectrum(TINY, [0.0, math.inf], [5, 3], serial=True, **kw)  # type: ignore[arg-type]
+    two = spectrum(TINY, [0.0, math.inf], [5, 3], workers=2, progress=lines.append, **kw)  # type: ignore[arg-type]
+    assert serial.seeds == two.seeds == (5, 3)
+    assert _values(two) == _values(serial)
+    assert [len(r.rmse_m) for r in two.rows] == [2] * 4
+    assert serial.rows[0].rmse_m[0] != serial.rows[0].rmse_m[1]  # two seeds, two logs
+    assert sorted(line.split()[1] for line in lines) == ["3", "5"]  # a line per seed
+    one = spectrum(TINY, [0.0, math.inf], [3], **kw)  # type: ignore[arg-type]
+    assert _values(one) == [
+        (e, lag, (r[1],), (n[1],), (b[1],)) for e, lag, r, n, b in _values(serial)
+    ]
+
+
+@pytest.mark.parametrize(
+    ("kw", "msg"),
+    [
+        ({"workers": 0}, "workers must be >= 1"),
+        ({"serial": True, "workers": 2}, "serial excludes"),
+        ({"serial": True, "scheduler": "tcp://127.0.0.1:1"}, "serial excludes"),
+    ],
+)
+def test_spectrum_refuses_bad_execution_settings(
+    log_path: str, kw: dict[str, object], msg: str
+) -> None:
+    with pytest.raises(ValueError, match=msg):
+        spectrum(log_path, [0.0], [0], **kw)  # type: ignore[arg-type]
+
+
 def test_plot_spectrum_draws_on_the_given_axes() -> None:
     from matplotlib.figure import Figure
 

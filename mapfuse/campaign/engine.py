@@ -11,19 +11,23 @@ in completion order; finished runs are skipped.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from mapfuse.campaign.spec import CampaignSpec
 from mapfuse.campaign.store import CampaignStore
 from mapfuse.campaign.task import RunOutcome, run_seed
 
-__all__ = ["BLAS_ENV", "CampaignSummary", "run_campaign"]
+__all__ = ["BLAS_ENV", "CampaignSummary", "map_on_cluster", "run_campaign"]
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 #: Environment of every local worker: one BLAS thread each.
 BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -58,9 +62,20 @@ def _serial(spec: CampaignSpec, todo: list[int]) -> Iterator[RunOutcome]:
         yield run_seed(spec, seed)
 
 
-def _distributed(
-    spec: CampaignSpec, todo: list[int], workers: int | None, scheduler: str | None
-) -> Iterator[tuple[RunOutcome, int]]:
+def map_on_cluster(
+    fn: Callable[[T], R],
+    items: Sequence[T],
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    name: str = "mapfuse-run",
+) -> Iterator[tuple[R, int]]:
+    """``fn(item)`` for every item on dask.distributed, yielded as ``(result, workers)``
+    in completion order: a ``LocalCluster`` of ``workers`` single-threaded processes
+    (default: the cores; one BLAS thread each) or the cluster at ``scheduler``.  ``fn``
+    and the items must pickle (a module-level function and plain data).  Whoever
+    aggregates the results orders them itself: completion order depends on the
+    workers, the results do not."""
     from dask.distributed import Client, LocalCluster, as_completed
 
     cluster = None
@@ -80,17 +95,25 @@ def _distributed(
         n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
         tag = uuid.uuid4().hex[:8]
         futures = [
-            client.submit(run_seed, spec, seed, key=f"mapfuse-run-{seed}-{tag}", pure=False)
-            for seed in todo
+            client.submit(fn, item, key=f"{name}-{i}-{tag}", pure=False)
+            for i, item in enumerate(items)
         ]
         for fut in as_completed(futures):
-            outcome = fut.result()
+            result = fut.result()
             fut.release()
-            yield outcome, n_workers
+            yield result, n_workers
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _distributed(
+    spec: CampaignSpec, todo: list[int], workers: int | None, scheduler: str | None
+) -> Iterator[tuple[RunOutcome, int]]:
+    return map_on_cluster(
+        functools.partial(run_seed, spec), todo, workers=workers, scheduler=scheduler
+    )
 
 
 def run_campaign(
