@@ -187,7 +187,9 @@ def _run_fixedlag(
     n = builder.n_steps
     t_of = np.asarray(log.timestamps, dtype=float)
     lag = float(fl.lag_s)
-    smoother = gtsam.IncrementalFixedLagSmoother(lag, isam2_params(opts, builder.split_circles))
+    smoother = gtsam.IncrementalFixedLagSmoother(
+        lag, isam2_params(opts, builder.split_circles, smoother=True)
+    )
     isam = smoother.getISAM2()
     # Held for the whole run: callbacks then receive this object, not a deep copy.
     linearization_point = smoother.getLinearizationPoint()

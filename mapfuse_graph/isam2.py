@@ -86,18 +86,33 @@ class ISAM2Options:
     threshold, which costs more than an update that relinearises nothing; between checks
     each update still solves its linear system exactly, at the last linearisation
     point."""
-    partial_relinearization_check: bool = True
-    """At a check, GTSAM's partial check: it walks the Bayes tree from the root and
-    descends into a clique's children only where that clique has a variable to
-    relinearise, instead of comparing every variable's delta with its threshold
-    (``ISAM2Params.enablePartialRelinearizationCheck``).  A variable below a clique that
-    needs nothing can then keep a delta above its threshold until an ancestor moves.
-    Here that costs no accuracy that shows: the keys of each update's new factors are
-    ordered last, so what new information moves (the newest poses, the landmarks in
-    view, a loop closure's old landmark) sits at the top of the tree; and the final
-    Gauss–Newton step (:attr:`final_gauss_newton`) relinearises everything.  The
-    filtered estimates stay within a few hundredths of a σ of the full check's, for a
-    shorter ``ISAM2.update`` (``docs/performance.md``)."""
+    partial_relinearization_check: bool | None = None
+    """At a check, GTSAM's partial check (``ISAM2Params.enablePartialRelinearizationCheck``):
+    it walks the Bayes tree from the root and descends into a clique's children only
+    where that clique has a variable to relinearise, instead of comparing every
+    variable's delta with its threshold.  A variable below a clique that needs nothing
+    can then keep a delta above its threshold until an ancestor moves.  ``None`` (the
+    default): on for iSAM2, off for the fixed-lag smoother.
+
+    * iSAM2: the keys of each update's new factors are ordered last, so what new
+      information moves (the newest poses, the landmarks in view, a loop closure's old
+      landmark) sits at the top of the tree, and the final Gauss–Newton step
+      (:attr:`final_gauss_newton`) relinearises everything.  The filtered estimates stay
+      within a few hundredths of a σ of the full check's, for a shorter
+      ``ISAM2.update`` (``docs/performance.md``).
+    * Fixed-lag smoother: marginalising a variable freezes the linearisation of every
+      factor it leaves behind, so a pose that leaves the window with a stale
+      linearisation point passes its error on to the rest of the run for good; with the
+      partial check the smoother's poses at lags of 5–30 s are overconfident
+      (``docs/fixedlag.md``)."""
+
+    def partial_check(self, smoother: bool) -> bool:
+        """Whether the check is partial for iSAM2 (``smoother=False``) or the fixed-lag
+        smoother (``True``): :attr:`partial_relinearization_check`, or its default."""
+        if self.partial_relinearization_check is None:
+            return not smoother
+        return bool(self.partial_relinearization_check)
+
     factorization: str = "CHOLESKY"
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
     final_updates: int = 5
@@ -132,6 +147,11 @@ class ISAM2Options:
                     )
         elif not th > 0:
             raise ValueError("relinearize_threshold must be > 0")
+        if self.partial_relinearization_check not in (None, True, False):
+            raise ValueError(
+                "partial_relinearization_check must be None, True or False, "
+                f"got {self.partial_relinearization_check!r}"
+            )
         if self.relinearize_skip < 1:
             raise ValueError("relinearize_skip must be >= 1")
         if self.factorization not in ("CHOLESKY", "QR"):
@@ -236,8 +256,11 @@ def _newest_pose_marginal(
     return x, P
 
 
-def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
-    """GTSAM parameters of ``opts`` (also those of the fixed-lag smoother's iSAM2)."""
+def isam2_params(
+    opts: ISAM2Options, split_circles: bool, smoother: bool = False
+) -> gtsam.ISAM2Params:
+    """GTSAM parameters of ``opts`` for iSAM2, or (``smoother=True``) for the fixed-lag
+    smoother's iSAM2."""
     params = gtsam.ISAM2Params()
     th = opts.relinearize_threshold
     if isinstance(th, dict):
@@ -251,7 +274,7 @@ def isam2_params(opts: ISAM2Options, split_circles: bool) -> gtsam.ISAM2Params:
     else:
         params.setRelinearizeThreshold(float(th))
     params.relinearizeSkip = opts.relinearize_skip
-    params.enablePartialRelinearizationCheck = opts.partial_relinearization_check
+    params.enablePartialRelinearizationCheck = opts.partial_check(smoother)
     params.setFactorization(opts.factorization)
     return params
 

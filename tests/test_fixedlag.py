@@ -11,7 +11,8 @@ import pytest
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph.fixedlag import split_by_lag
-from mapfuse_graph.solvers import FixedLagOptions, GraphResult, run_graph
+from mapfuse_graph.isam2 import isam2_params
+from mapfuse_graph.solvers import FixedLagOptions, GraphResult, ISAM2Options, run_graph
 from tests.loop600 import loop600_log
 from tests.synthetic import synthetic_log
 
@@ -34,7 +35,11 @@ def _rel_diff(a: np.ndarray, b: np.ndarray, covs: np.ndarray) -> np.ndarray:
 
 
 def _fixedlag(
-    log: MeasurementLog, lag: float, steps: int | None = None, **kw: object
+    log: MeasurementLog,
+    lag: float,
+    steps: int | None = None,
+    isam2: ISAM2Options | None = None,
+    **kw: object,
 ) -> GraphResult:
     return run_graph(
         log,
@@ -43,6 +48,7 @@ def _fixedlag(
         association="truth",
         steps=steps,
         fixedlag=FixedLagOptions(lag_s=lag, **kw),  # type: ignore[arg-type]
+        isam2=isam2,
     )
 
 
@@ -95,18 +101,34 @@ def test_zero_lag_filter_equals_isam2_filter_on_loop600() -> None:
     np.testing.assert_array_equal(fl.poses[:-1], fl.filtered_poses[:-1])
 
 
-def test_infinite_lag_equals_isam2_on_a_synthetic_loop() -> None:
+@pytest.mark.parametrize("partial", [False, True])
+def test_infinite_lag_equals_isam2_on_a_synthetic_loop(partial: bool) -> None:
     """Same updates, same relinearisation: with nothing to marginalise the smoother is
     iSAM2 (its filtered poses to 1e-6 m, its final ones to 1e-3 σ)."""
     log = synthetic_log(steps=150, seed=3)
-    fl = _fixedlag(log, INF)
-    inc = run_graph(log, "isam2", fusion=True, association="truth")
+    opts = ISAM2Options(partial_relinearization_check=partial)
+    fl = _fixedlag(log, INF, isam2=opts)
+    inc = run_graph(log, "isam2", fusion=True, association="truth", isam2=opts)
     assert fl.filtered_poses is not None
     assert inc.filtered_poses is not None
     assert _abs_diff(fl.filtered_poses, inc.filtered_poses).max() <= 1e-6
     assert _rel_diff(fl.poses, inc.poses, inc.covs).max() <= 1e-3
     assert fl.anchor is not None
     assert inc.anchor is not None
+
+
+def test_the_partial_relinearisation_check_is_isam2s_default_and_not_the_smoothers() -> None:
+    """A pose leaves the smoother's window with the linearisation it has; the partial
+    check would let it leave stale (``docs/fixedlag.md``)."""
+    default = ISAM2Options()
+    assert isam2_params(default, False).enablePartialRelinearizationCheck
+    assert not isam2_params(default, False, smoother=True).enablePartialRelinearizationCheck
+    for forced in (False, True):
+        opts = ISAM2Options(partial_relinearization_check=forced)
+        for smoother in (False, True):
+            assert isam2_params(opts, False, smoother).enablePartialRelinearizationCheck is forced
+    with pytest.raises(ValueError, match="partial_relinearization_check must be"):
+        ISAM2Options(partial_relinearization_check="yes")  # type: ignore[arg-type]
 
 
 # --------------------------------------------------------------------------- the window
