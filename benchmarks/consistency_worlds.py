@@ -149,7 +149,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--seeds", type=int, nargs=2, default=(1, 13), help="first, end (exclusive)")
     p.add_argument("--world", default=DEFAULT_WORLD, help="generator keywords, key=value,...")
-    p.add_argument("--estimators", default="ekf,batch,isam2")
+    p.add_argument("--estimators", default="ekf,batch,isam2,fixedlag")
     p.add_argument("--out", required=True, help="JSON lines, appended to (resumes by seed)")
     args = p.parse_args()
     world = parse_world_args(args.world)

@@ -454,6 +454,8 @@ def plot_spectrum(ax: Axes, result: SpectrumResult, metric: str = "rmse") -> Non
             )
         ax.axhline(3.0, color="0.4", lw=0.8, ls="--")
     ax.set_xscale("symlog", linthresh=1.0)
+    # The same span on every panel: a little room left of lag 0 and right of ∞.
+    ax.set_xlim(-0.3, ticks[-1] * 1.5)
     ax.set_xticks(ticks)
     ax.set_xticklabels(labels)
     ax.set_xlabel("lag")

@@ -107,7 +107,7 @@ def test_infinite_lag_equals_isam2_on_a_synthetic_loop(partial: bool) -> None:
     iSAM2 (its filtered poses to 1e-6 m, its final ones to 1e-3 σ)."""
     log = synthetic_log(steps=150, seed=3)
     opts = ISAM2Options(partial_relinearization_check=partial)
-    fl = _fixedlag(log, INF, isam2=opts)
+    fl = _fixedlag(log, INF, isam2=opts, relinearize_threshold=None, relinearize_skip=None)
     inc = run_graph(log, "isam2", fusion=True, association="truth", isam2=opts)
     assert fl.filtered_poses is not None
     assert inc.filtered_poses is not None
@@ -129,6 +129,41 @@ def test_the_partial_relinearisation_check_is_isam2s_default_and_not_the_smoothe
             assert isam2_params(opts, False, smoother).enablePartialRelinearizationCheck is forced
     with pytest.raises(ValueError, match="partial_relinearization_check must be"):
         ISAM2Options(partial_relinearization_check="yes")  # type: ignore[arg-type]
+
+
+def test_the_smoother_relinearises_its_window_on_its_own_schedule(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """By default the smoother checks every update at 2 cm and 2 mrad, whatever iSAM2's
+    settings; ``None`` takes iSAM2's."""
+    import mapfuse_graph.fixedlag as fixedlag
+
+    seen: list[ISAM2Options] = []
+    original = fixedlag.isam2_params
+
+    def spy(opts: ISAM2Options, split: bool, smoother: bool = False) -> object:
+        seen.append(opts)
+        return original(opts, split, smoother)
+
+    monkeypatch.setattr(fixedlag, "isam2_params", spy)
+    log = synthetic_log(steps=20, seed=0)
+    mine = ISAM2Options(relinearize_skip=7, final_updates=2)
+    run_graph(log, "fixedlag", fusion=False, association="truth", isam2=mine)
+    theirs = FixedLagOptions(relinearize_threshold=None, relinearize_skip=None)
+    run_graph(log, "fixedlag", fusion=False, association="truth", isam2=mine, fixedlag=theirs)
+    own, isam2s = seen
+    assert own.relinearize_skip == 1
+    assert own.relinearize_threshold == {
+        "x": (0.02, 0.02, 0.002),
+        "l": (0.02, 0.002),
+        "c": (0.02, 0.02, 0.02),
+        "k": (0.02, 0.002),
+        "q": (0.02, 0.02, 0.02),
+        "a": (0.02, 0.02, 0.002),
+    }
+    assert own.final_updates == 2  # the rest of ISAM2Options is used as given
+    assert isam2s == mine
+    assert FixedLagOptions(relinearize_threshold=[0.1, 0.01]).relinearize_threshold == (0.1, 0.01)  # type: ignore[arg-type]
 
 
 # --------------------------------------------------------------------------- the window
@@ -188,6 +223,13 @@ def test_split_by_lag_cuts_where_the_smoother_marginalises() -> None:
         ({"lag_s": math.nan}, "lag_s must be a number"),
         ({"lag_s": "5"}, "lag_s must be a number"),
         ({"landmarks": "drop"}, "landmarks must be one of keep, window"),
+        ({"relinearize_threshold": (0.02,)}, "relinearize_threshold must be None or"),
+        ({"relinearize_threshold": (0.0, 0.002)}, "relinearize_threshold must be None or"),
+        ({"relinearize_threshold": (math.inf, 0.002)}, "relinearize_threshold must be None or"),
+        ({"relinearize_threshold": "0.02,0.002"}, "relinearize_threshold must be None or"),
+        ({"relinearize_threshold": (0.02, True)}, "relinearize_threshold must be None or"),
+        ({"relinearize_skip": 0}, "relinearize_skip must be None or an integer >= 1"),
+        ({"relinearize_skip": True}, "relinearize_skip must be None or an integer >= 1"),
     ],
 )
 def test_bad_fixedlag_options_are_rejected(kw: dict[str, object], msg: str) -> None:
