@@ -1,8 +1,7 @@
 """The fixed-lag smoother: GTSAM's ``IncrementalFixedLagSmoother`` over the same graph.
 
 The factors, fusion and anchor are those of iSAM2 (the same
-:class:`~mapfuse_graph.builder.GraphBuilder` steps, the same :class:`ISAM2Options` but
-for a closer relinearisation schedule, :attr:`FixedLagOptions.relinearize_threshold`);
+:class:`~mapfuse_graph.builder.GraphBuilder` steps, the same :class:`ISAM2Options`);
 the smoother adds a timestamp per variable (the log's ``timestamps``) and, at each
 update, marginalises every variable whose timestamp is older than the newest one by
 more than :attr:`FixedLagOptions.lag_s`.  Marginalising is GTSAM's
@@ -25,8 +24,9 @@ Which estimate is which, at step ``k`` (time ``t_k``):
   linear system, linearised as :attr:`ISAM2Options.final_marginals` says
   (:func:`~mapfuse_graph.marginals.bayes_tree_marginals`).
 
-With ``lag_s = inf`` nothing leaves: it is iSAM2 with the smoother's relinearisation
-schedule (hence batch, within iSAM2's tolerance).  With ``lag_s = 0`` each pose leaves
+With ``lag_s = inf`` nothing leaves: it is iSAM2 with GTSAM's full relinearisation
+check (:attr:`ISAM2Options.partial_relinearization_check`; hence batch, within iSAM2's
+tolerance).  With ``lag_s = 0`` each pose leaves
 one update after it enters: the final estimate is the filtered one, and the filtered
 one is iSAM2's except that marginalised poses are never relinearised.
 
@@ -46,7 +46,6 @@ factors, added while the graph grows, need them).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -66,22 +65,23 @@ from mapfuse_graph.isam2 import (
     _newest_pose_marginal,
     final_step,
     isam2_params,
-    thresholds,
 )
 from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
 from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import _anchor, _landmarks, _pose_covs, _Solved
 
-__all__ = ["LANDMARK_POLICIES", "FixedLagOptions", "split_by_lag"]
+__all__ = ["LANDMARK_POLICIES", "FixedLagOptions", "split_by_lag", "window_graph"]
 
 LANDMARK_POLICIES: tuple[str, ...] = ("keep", "window")
+
+#: Symbol characters of the ``Pose2`` variables (the others are vectors,
+#: :data:`~mapfuse_graph.keys.KEY_KINDS`).
+_POSE2_SYMBOLS = frozenset("xa")
 
 
 @dataclass(frozen=True)
 class FixedLagOptions:
-    """Settings of the fixed-lag smoother.  Its iSAM2 takes :class:`ISAM2Options` but for
-    the relinearisation schedule, which is the smoother's own (below) unless set to
-    ``None``."""
+    """Settings of the fixed-lag smoother (its iSAM2 takes :class:`ISAM2Options`)."""
 
     lag_s: float = 5.0
     """Length of the window in seconds of the log's timestamps: a variable whose
@@ -90,39 +90,8 @@ class FixedLagOptions:
     landmarks: str = "keep"
     """``"keep"`` (the map stays in the window) or ``"window"`` (a landmark unobserved
     for longer than the lag is marginalised; needs a fixed association)."""
-    relinearize_threshold: tuple[float, float] | None = (0.02, 0.002)
-    """The smoother's relinearisation thresholds (positions, line distances and radii in
-    m; angles in rad), or ``None`` for :attr:`ISAM2Options.relinearize_threshold`.
-    Tighter than iSAM2's: a variable that leaves the window is frozen, in the linear
-    factor GTSAM leaves on its neighbours, at its linearisation point then, so the
-    smoother relinearises what is in the window closely; the window bounds what that
-    costs.  With iSAM2's 25 cm and 10 mrad, every tenth update, the smoother's poses
-    and anchor are overconfident (``docs/fixedlag.md``)."""
-    relinearize_skip: int | None = 1
-    """Check for relinearisation every this many updates (``None``: iSAM2's)."""
 
     def __post_init__(self) -> None:
-        th = self.relinearize_threshold
-        if isinstance(th, list):  # as read from JSON or TOML
-            th = tuple(th)
-            object.__setattr__(self, "relinearize_threshold", th)
-        if th is not None and (
-            not isinstance(th, tuple)
-            or len(th) != 2
-            or not all(
-                isinstance(v, int | float)
-                and not isinstance(v, bool)
-                and math.isfinite(v)
-                and v > 0
-                for v in th
-            )
-        ):
-            raise ValueError(
-                f"relinearize_threshold must be None or (position, angle) > 0, got {th!r}"
-            )
-        skip = self.relinearize_skip
-        if skip is not None and (isinstance(skip, bool) or not isinstance(skip, int) or skip < 1):
-            raise ValueError(f"relinearize_skip must be None or an integer >= 1, got {skip!r}")
         lag = self.lag_s
         if isinstance(lag, bool) or not isinstance(lag, int | float) or math.isnan(lag):
             raise ValueError(f"lag_s must be a number, got {lag!r}")
@@ -202,6 +171,39 @@ class _FixedLagEstimate:
         return np.asarray(self.smoother.marginalCovariance(key), dtype=float)
 
 
+def window_graph(
+    factors: gtsam.NonlinearFactorGraph, linearization_point: gtsam.Values
+) -> gtsam.NonlinearFactorGraph:
+    """The smoother's factors as a graph that can be linearised anywhere.
+
+    What GTSAM leaves when it marginalises (``ISAM2::marginalizeLeaves``) is a
+    ``LinearContainerFactor`` holding the marginal as a linear factor in the deltas of its
+    keys from their linearisation point then, which iSAM2 never moves again (those keys
+    become its *fixed* variables), but the container is made without that point: its
+    ``linearize`` returns the same linear factor at any values.  Linearised at the
+    smoother's estimate instead, as the final Gauss–Newton step and the window's
+    marginals do, it would read those deltas from the wrong origin.  Each container is
+    made again here with its keys' linearisation point, so that GTSAM shifts it to
+    wherever it is linearised.  The other factors are kept as they are; removed slots
+    are dropped."""
+    out = gtsam.NonlinearFactorGraph()
+    for i in range(factors.size()):
+        f = factors.at(i)
+        if f is None:
+            continue
+        if isinstance(f, gtsam.LinearContainerFactor):
+            at = gtsam.Values()
+            keys = f.keys()  # bound to a name: GTSAM's key containers must outlive the loop
+            for key in keys:
+                if chr(gtsam.Symbol(key).chr()) in _POSE2_SYMBOLS:
+                    at.insert(key, linearization_point.atPose2(key))
+                else:
+                    at.insert(key, linearization_point.atVector(key))
+            f = gtsam.LinearContainerFactor(f.factor(), at)
+        out.add(f)
+    return out
+
+
 def _landmark_keys(builder: GraphBuilder, i: int) -> list[int]:
     kind = builder.landmarks[i].kind
     keys = [landmark_key(i, kind)]
@@ -219,12 +221,6 @@ def _run_fixedlag(
 ) -> _Solved:
     fl = options or FixedLagOptions()
     opts = isam2 or ISAM2Options()
-    if fl.relinearize_threshold is not None:
-        opts = dataclasses.replace(
-            opts, relinearize_threshold=thresholds(*fl.relinearize_threshold)
-        )
-    if fl.relinearize_skip is not None:
-        opts = dataclasses.replace(opts, relinearize_skip=fl.relinearize_skip)
     log = builder.log
     n = builder.n_steps
     t_of = np.asarray(log.timestamps, dtype=float)
@@ -314,7 +310,10 @@ def _run_fixedlag(
     for _ in range(opts.final_updates * opts.relinearize_skip):
         smoother.update()
     window, tree_of = final_step(
-        smoother.getFactors(), isam.calculateBestEstimate(), linearization_point, opts
+        window_graph(smoother.getFactors(), linearization_point),
+        isam.calculateBestEstimate(),
+        linearization_point,
+        opts,
     )
     solve = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -352,6 +351,7 @@ def _run_fixedlag(
         "window_steps": int(in_window.sum()),
         "marginalised_landmarks": len(est.gone_vectors),
         "variables_relinearized": relin,
+        "final_gauss_newton_step_max": tree_of.step_max,
     }
     return _Solved(
         graph=graph,
