@@ -3,11 +3,10 @@
 ``mapfuse spectrum SCENARIO --lags 0,1,5,30,inf --seeds 0-4`` runs, per seed, the EKF
 (the filter: lag 0), the fixed-lag smoother (:mod:`mapfuse_graph.fixedlag`) at each lag,
 and batch (the full smoother: lag ∞), the seeds in parallel on the campaign engine's
-dask cluster (:func:`spectrum`).  The
-graph runs consume the EKF's association decisions of the same seed (or ``--association
-truth``), so that the lag is the only difference between the fixed-lag rows.  Each
-fixed-lag run is scored on its *final* poses (a pose as it leaves the window), the
-estimate a user with that latency gets.
+dask cluster (:func:`spectrum`).  The graph runs consume the EKF's association decisions
+of the same seed (or ``--association truth``), so that the lag is the only difference
+between the fixed-lag rows.  Each fixed-lag run is scored on its *final* poses (a pose
+as it leaves the window), the estimate a user with that latency gets.
 
 ANEES is the mean over seeds of each run's mean NEES (3 degrees of freedom); the two
 sided 95 % bounds of a consistent estimator's ANEES are printed beside it, from the
@@ -244,17 +243,18 @@ class SeedSpectrum:
     """EKF, fixed-lag at each lag, batch, in run order."""
 
 
-def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = None) -> SeedSpectrum:
-    """The EKF, the fixed-lag smoother at each lag and batch on the log of one seed.
+def _run_name(job: SpectrumJob) -> str:
+    """``"seed 3"``, or the saved log's name."""
+    return f"seed {job.seed}" if job.seed is not None else Path(job.source).name
 
-    A simulated log is made with one extraction process: this runs on campaign workers,
-    which may not start processes."""
+
+def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = None) -> SeedSpectrum:
+    """The EKF, the fixed-lag smoother at each lag and batch on the log of one seed."""
     from mapfuse.estimators.graph import FixedLagEstimator
     from mapfuse.run import fusion_for, prepare_log, run
     from mapfuse_graph.fixedlag import FixedLagOptions
 
-    workers = None if job.source.endswith(".npz") else 1
-    log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir, workers=workers)
+    log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir)
     if log.true_poses is None:
         raise ValueError(f"{job.source}: the spectrum needs true poses (a simulated log)")
     if job.steps is not None:
@@ -277,8 +277,8 @@ def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = Non
         )
         if progress is not None:
             progress(
-                f"seed {job.seed} {label} {_lag(lag)}: rmse {m['position_error_m']['rmse']:.4f} m"
-                f", nees {nees['mean']:.3f}"
+                f"{_run_name(job)} {label} {_lag(lag)}: rmse "
+                f"{m['position_error_m']['rmse']:.4f} m, nees {nees['mean']:.3f}"
             )
 
     ekf = run(log, "ekf", fusion=job.fusion)
@@ -335,7 +335,11 @@ def spectrum(
         raise ValueError(f"workers must be >= 1, got {workers}")
     if serial and (workers is not None or scheduler is not None):
         raise ValueError("serial excludes workers and scheduler")
+    if workers is not None and scheduler is not None:
+        raise ValueError("workers are local processes: give workers or scheduler, not both")
     lags = sorted(set(float(v) for v in lags))
+    if not lags:
+        raise ValueError("the spectrum needs at least one lag")
     FixedLagOptions(lag_s=lags[0], landmarks=landmarks)  # validates before any run
     if not seeds:
         raise ValueError("the spectrum needs at least one seed")
@@ -356,6 +360,7 @@ def spectrum(
         )
         for seed in seeds
     ]
+    job_of = {job.seed: job for job in jobs}
     if serial is None:
         serial = len(jobs) == 1 and workers is None and scheduler is None
     done: dict[int | None, SeedSpectrum] = {}
@@ -373,7 +378,7 @@ def spectrum(
             if progress is not None:
                 best = min(out.runs, key=lambda r: r.rmse_m)
                 progress(
-                    f"seed {out.seed} done: {len(out.runs)} runs, lowest rmse "
+                    f"{_run_name(job_of[out.seed])} done: {len(out.runs)} runs, lowest rmse "
                     f"{best.rmse_m:.4f} m ({best.estimator} {_lag(best.lag_s)})"
                 )
     per_seed = [done[job.seed] for job in jobs]

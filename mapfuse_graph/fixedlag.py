@@ -66,17 +66,20 @@ from mapfuse_graph.isam2 import (
     final_step,
     isam2_params,
 )
-from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
+from mapfuse_graph.keys import (
+    POSE2_SYMBOLS,
+    anchor_key,
+    known_key,
+    landmark_key,
+    pose_key,
+    radius_key,
+)
 from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import _anchor, _landmarks, _pose_covs, _Solved
 
 __all__ = ["LANDMARK_POLICIES", "FixedLagOptions", "split_by_lag", "window_graph"]
 
 LANDMARK_POLICIES: tuple[str, ...] = ("keep", "window")
-
-#: Symbol characters of the ``Pose2`` variables (the others are vectors,
-#: :data:`~mapfuse_graph.keys.KEY_KINDS`).
-_POSE2_SYMBOLS = frozenset("xa")
 
 
 @dataclass(frozen=True)
@@ -195,7 +198,7 @@ def window_graph(
             at = gtsam.Values()
             keys = f.keys()  # bound to a name: GTSAM's key containers must outlive the loop
             for key in keys:
-                if chr(gtsam.Symbol(key).chr()) in _POSE2_SYMBOLS:
+                if chr(gtsam.Symbol(key).chr()) in POSE2_SYMBOLS:
                     at.insert(key, linearization_point.atPose2(key))
                 else:
                     at.insert(key, linearization_point.atVector(key))

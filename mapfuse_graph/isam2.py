@@ -33,7 +33,7 @@ from mapfuse_graph.results import (
     _Solved,
 )
 
-__all__ = ["ISAM2Options", "isam2_params", "thresholds"]
+__all__ = ["ISAM2Options", "isam2_params"]
 
 
 _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
@@ -51,7 +51,7 @@ _POS_M = 0.25
 _ANG_RAD = 0.01
 
 
-def thresholds(position: float, angle: float) -> dict[str, tuple[float, ...]]:
+def _thresholds(position: float, angle: float) -> dict[str, tuple[float, ...]]:
     """Per-symbol relinearisation thresholds: ``position`` for positions, line distances
     and radii, ``angle`` for headings and line angles."""
     p, a = float(position), float(angle)
@@ -65,7 +65,7 @@ def thresholds(position: float, angle: float) -> dict[str, tuple[float, ...]]:
     }
 
 
-_DEFAULT_THRESHOLDS = thresholds(_POS_M, _ANG_RAD)
+_DEFAULT_THRESHOLDS = _thresholds(_POS_M, _ANG_RAD)
 
 
 @dataclass(frozen=True)
@@ -91,10 +91,11 @@ class ISAM2Options:
     the radius variables."""
     relinearize_skip: int = 10
     """Check for relinearisation every this many updates (GTSAM's default).  The check
-    back-substitutes the whole Bayes tree and compares every variable's delta with its
-    threshold, which costs more than an update that relinearises nothing; between checks
-    each update still solves its linear system exactly, at the last linearisation
-    point."""
+    back-substitutes the whole Bayes tree and compares variables' deltas with their
+    thresholds (every variable, or the top of the tree with
+    :attr:`partial_relinearization_check`), which costs more than an update that
+    relinearises nothing; between checks each update still solves its linear system
+    exactly, at the last linearisation point."""
     partial_relinearization_check: bool | None = None
     """At a check, GTSAM's partial check (``ISAM2Params.enablePartialRelinearizationCheck``):
     it walks the Bayes tree from the root and descends into a clique's children only
@@ -114,26 +115,23 @@ class ISAM2Options:
       linearisation point; the full check costs the smoother no measurable time and
       keeps its NEES 1–4 % lower (``docs/fixedlag.md``)."""
 
-    def partial_check(self, smoother: bool) -> bool:
-        """Whether the check is partial for iSAM2 (``smoother=False``) or the fixed-lag
-        smoother (``True``): :attr:`partial_relinearization_check`, or its default."""
-        if self.partial_relinearization_check is None:
-            return not smoother
-        return bool(self.partial_relinearization_check)
-
     factorization: str = "CHOLESKY"
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
     final_updates: int = 5
-    """Extra empty updates at the end so the final estimate is fully relinearised; each
-    checks for relinearisation whatever :attr:`relinearize_skip`."""
+    """Extra empty updates at the end, each checking for relinearisation whatever
+    :attr:`relinearize_skip`.  With the partial check they relinearise only what the
+    top of the tree shows; what lies below keeps its linearisation point, and only
+    :attr:`final_gauss_newton` takes the final estimate to the optimum."""
     final_gauss_newton: bool = True
     """After the final updates, one Gauss–Newton step on the whole graph linearised at
     iSAM2's estimate.  iSAM2 keeps each variable's linearisation point until its delta
     passes the relinearisation threshold, so its estimate stops short of the optimum by a
-    few hundredths of a σ; one step from there, where the problem is nearly linear,
-    lands on the batch optimum.  With ``final_marginals="relinearized"`` the step reuses
-    the marginals' elimination, so it costs one back-substitution.  The filtered
-    (per-step) estimates are iSAM2's alone either way."""
+    few hundredths of a σ (with the partial check, a variable deep in the tree can be
+    further: 22 cm on a known wall's ρ in ``tests/test_graph.py``); one step from
+    there, where the problem is nearly linear, lands on the batch optimum.  With
+    ``final_marginals="relinearized"`` the step reuses the marginals' elimination, so it
+    costs one back-substitution.  The filtered (per-step) estimates are iSAM2's alone
+    either way."""
     final_marginals: str = "relinearized"
     """Smoothed marginals of a fresh linearisation at iSAM2's final estimate, the point
     :attr:`final_gauss_newton` steps from (``"relinearized"``; exact there, and the step
@@ -143,6 +141,13 @@ class ISAM2Options:
     point may lag its estimate by up to the relinearisation threshold).  Both linearise
     the whole graph once and are read by :func:`bayes_tree_marginals`, so they cost the
     same."""
+
+    def partial_check(self, *, smoother: bool) -> bool:
+        """Whether the check is partial for iSAM2 (``smoother=False``) or the fixed-lag
+        smoother (``True``): :attr:`partial_relinearization_check`, or its default."""
+        if self.partial_relinearization_check is None:
+            return not smoother
+        return self.partial_relinearization_check
 
     def __post_init__(self) -> None:
         th = self.relinearize_threshold
@@ -155,7 +160,8 @@ class ISAM2Options:
                     )
         elif not th > 0:
             raise ValueError("relinearize_threshold must be > 0")
-        if self.partial_relinearization_check not in (None, True, False):
+        partial = self.partial_relinearization_check
+        if not (partial is None or isinstance(partial, bool)):
             raise ValueError(
                 "partial_relinearization_check must be None, True or False, "
                 f"got {self.partial_relinearization_check!r}"
@@ -265,7 +271,7 @@ def _newest_pose_marginal(
 
 
 def isam2_params(
-    opts: ISAM2Options, split_circles: bool, smoother: bool = False
+    opts: ISAM2Options, split_circles: bool, *, smoother: bool = False
 ) -> gtsam.ISAM2Params:
     """GTSAM parameters of ``opts`` for iSAM2, or (``smoother=True``) for the fixed-lag
     smoother's iSAM2."""
@@ -282,7 +288,7 @@ def isam2_params(
     else:
         params.setRelinearizeThreshold(float(th))
     params.relinearizeSkip = opts.relinearize_skip
-    params.enablePartialRelinearizationCheck = opts.partial_check(smoother)
+    params.enablePartialRelinearizationCheck = opts.partial_check(smoother=smoother)
     params.setFactorization(opts.factorization)
     return params
 
