@@ -26,9 +26,9 @@ Which estimate is which, at step ``k`` (time ``t_k``):
 
 With ``lag_s = inf`` nothing leaves: it is iSAM2 with GTSAM's full relinearisation
 check (:attr:`ISAM2Options.partial_relinearization_check`; hence batch, within iSAM2's
-tolerance).  With ``lag_s = 0`` each pose leaves
-one update after it enters: the final estimate is the filtered one, and the filtered
-one is iSAM2's except that marginalised poses are never relinearised.
+tolerance).  With ``lag_s = 0`` each pose leaves one update after it enters: the final
+estimate is the filtered one, and the filtered one is iSAM2's except that marginalised
+poses are never relinearised.
 
 Landmarks (:attr:`FixedLagOptions.landmarks`):
 
@@ -66,14 +66,7 @@ from mapfuse_graph.isam2 import (
     final_step,
     isam2_params,
 )
-from mapfuse_graph.keys import (
-    POSE2_SYMBOLS,
-    anchor_key,
-    known_key,
-    landmark_key,
-    pose_key,
-    radius_key,
-)
+from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
 from mapfuse_graph.marginals import _key_dims, bayes_tree_marginals, body_to_abs_cov
 from mapfuse_graph.results import _anchor, _landmarks, _pose_covs, _Solved
 
@@ -195,14 +188,8 @@ def window_graph(
         if f is None:
             continue
         if isinstance(f, gtsam.LinearContainerFactor):
-            at = gtsam.Values()
-            keys = f.keys()  # bound to a name: GTSAM's key containers must outlive the loop
-            for key in keys:
-                if chr(gtsam.Symbol(key).chr()) in POSE2_SYMBOLS:
-                    at.insert(key, linearization_point.atPose2(key))
-                else:
-                    at.insert(key, linearization_point.atVector(key))
-            f = gtsam.LinearContainerFactor(f.factor(), at)
+            # GTSAM keeps, of the values given, those of the container's own keys.
+            f = gtsam.LinearContainerFactor(f.factor(), linearization_point)
         out.add(f)
     return out
 

@@ -49,23 +49,14 @@ _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
 # cost and accuracy of these values against tighter ones.
 _POS_M = 0.25
 _ANG_RAD = 0.01
-
-
-def _thresholds(position: float, angle: float) -> dict[str, tuple[float, ...]]:
-    """Per-symbol relinearisation thresholds: ``position`` for positions, line distances
-    and radii, ``angle`` for headings and line angles."""
-    p, a = float(position), float(angle)
-    return {
-        "x": (p, p, a),
-        "l": (p, a),
-        "c": (p, p, p),
-        "k": (p, a),
-        "q": (p, p, p),
-        "a": (p, p, a),
-    }
-
-
-_DEFAULT_THRESHOLDS = _thresholds(_POS_M, _ANG_RAD)
+_DEFAULT_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "x": (_POS_M, _POS_M, _ANG_RAD),
+    "l": (_POS_M, _ANG_RAD),
+    "c": (_POS_M, _POS_M, _POS_M),
+    "k": (_POS_M, _ANG_RAD),
+    "q": (_POS_M, _POS_M, _POS_M),
+    "a": (_POS_M, _POS_M, _ANG_RAD),
+}
 
 
 @dataclass(frozen=True)

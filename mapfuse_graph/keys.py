@@ -14,7 +14,6 @@ from mapfuse_core.geometry.features import FeatureKind
 
 __all__ = [
     "KEY_KINDS",
-    "POSE2_SYMBOLS",
     "anchor_key",
     "describe_key",
     "key_map",
@@ -55,9 +54,6 @@ def anchor_key() -> int:
     """Key of the anchor ``A = x^Wglobal_Wknown``."""
     return int(gtsam.symbol("a", 0))
 
-
-#: Symbol characters of the ``Pose2`` variables; every other variable is a vector.
-POSE2_SYMBOLS = frozenset("xa")
 
 #: What the variables of each symbol character are (``{i}``: the symbol's index).
 KEY_KINDS: dict[str, str] = {
