@@ -2,17 +2,19 @@
 
 For every seed: loop600 cut to ``--steps`` steps, once with its known map and once
 with ``--moved``/``--removed``/``--added`` of it changed (moves 0.3–5 m, lines turned
-0.05–0.3 rad); the EKF runs with fusion on both, with the known-map gate
-(``EKFConfig.known_map_gating``) on and off; the gated runs are classified and
-scored, and every run's position RMSE and mean NEES are recorded, with the gate's
-rejections and un-fused features (which ones were truly changed, and whether any
-observation was fused into one after its un-fuse step).  ``--map-sigma`` replaces the
-known map's σ (a better survey: a change smaller than the map's own noise cannot be
-told from it).  The ungated run is made
-only when the gate un-fused something: until then the two runs are the same.
+0.05–0.3 rad; drawn from ``1000 + seed`` and ``--change-salt``); the EKF runs with
+fusion on both, with the known-map gate (``EKFConfig.known_map_gating``) on and off;
+the gated runs are classified and scored, and every run's position RMSE, error per
+step and mean NEES are recorded, with the gate's rejections and un-fused features
+(which ones were truly changed, and whether any observation was fused into one after
+its un-fuse step).  ``--map-sigma`` replaces the known map's σ (a better survey: a
+change smaller than the map's own noise cannot be told from it).  The ungated run is
+made only when the gate un-fused something: until then the two runs are the same.
 ``--assoc`` changes the EKF's association settings (the match's tests and re-runs,
-``docs/changes.md``, "Generated worlds").  One JSON line per seed is appended to
-``--out``.
+``docs/changes.md``, "Generated worlds").  ``--graph NAME`` also runs that graph
+backend (``batch``, ``isam2``, ``fixedlag``) on each gated EKF run's decisions and
+records its RMSE, NEES and change scores under ``<map>_graph_*``.  One JSON line per
+seed is appended to ``--out``.
 
     PYTHONPATH=. python benchmarks/changes_mc.py --seeds 0 20 --out /tmp/changes.jsonl
 """
@@ -54,7 +56,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
     base = _base(args)
     changed = with_changes(
         base,
-        np.random.default_rng(1000 + seed),
+        change_rng(seed, args.change_salt),
         moved=args.moved,
         removed=args.removed,
         added=args.added,
@@ -65,7 +67,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         missing_radius_sigmas=args.missing_radius_sigmas,
         link_unviewed_lines=not args.no_link_unviewed_lines,
     ).with_sensor(base.laser)
-    row: dict[str, object] = {"seed": seed}
+    row: dict[str, object] = {"seed": seed, "change_salt": args.change_salt}
     for name, sc in (("unchanged", base), ("changed", changed)):
         log = simulate(sc, seed=seed, workers=1).log
         assoc = args.assoc
@@ -74,6 +76,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
         row[f"{name}_nees_mean"] = m["nees"]["mean"]
         row[f"{name}_nees"] = _nees(r)
+        row[f"{name}_pos_err_mm"] = _pos_err_mm(r)
         kg = m.get("known_map_rejections")
         changed_ids = _changed_ids(sc)
         if kg is not None:
@@ -88,6 +91,7 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             row[f"{name}_anchor"] = False
             continue
         row[f"{name}_anchor"] = True
+        row[f"{name}_anchor_step"] = r.result.anchor.accepted_at_step
         rep = detect_changes(r.result, log, params)
         truth = change_truth(sc, log, params)
         row[f"{name}_counts"] = rep.counts()
@@ -108,6 +112,15 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
+        if args.graph:
+            g = run(log, args.graph, fusion=True, upstream=r.result)
+            row[f"{name}_graph_rmse_m"] = g.metrics["position_error_m"]["rmse"]
+            row[f"{name}_graph_nees_mean"] = g.metrics["nees"]["mean"]
+            row[f"{name}_graph_nees"] = _nees(g)
+            if g.result.anchor is not None:
+                rep_g = detect_changes(g.result, log, params)
+                row[f"{name}_graph_counts"] = rep_g.counts()
+                row[f"{name}_graph_score"] = score_changes(rep_g, truth).as_dict()
         for tag, fields in args.variant:
             rep_v = detect_changes(r.result, log, dataclasses.replace(params, **fields))
             row[f"{name}_{tag}_counts"] = rep_v.counts()
@@ -177,6 +190,12 @@ def _assoc(spec: str) -> AssociationConfig:
         raise argparse.ArgumentTypeError(f"{spec!r}: {e}") from e
 
 
+def change_rng(seed: int, salt: int | None) -> np.random.Generator:
+    """The generator of a seed's changes: ``1000 + seed``, with ``salt`` beside it when
+    given (one per world, so that worlds do not share their draws of the moves)."""
+    return np.random.default_rng(1000 + seed if salt is None else [1000 + seed, salt])
+
+
 def _range(text: str) -> tuple[float, float]:
     lo, hi = (float(v) for v in text.split(","))
     return lo, hi
@@ -185,6 +204,12 @@ def _range(text: str) -> tuple[float, float]:
 def _nees(r: Run) -> list[float | None]:
     """The run's vehicle NEES per step (None where undefined), for the ANEES over seeds."""
     return [None if not np.isfinite(v) else round(float(v), 4) for v in run_errors(r)[1]]
+
+
+def _pos_err_mm(r: Run) -> list[int]:
+    """The run's position error per step in mm (the RMSE after a given step)."""
+    dx = run_errors(r)[0]
+    return [round(1000.0 * float(v)) for v in np.hypot(dx[:, 0], dx[:, 1])]
 
 
 def _changed_ids(sc: Scenario) -> set[int]:
@@ -257,6 +282,18 @@ def main() -> None:
         default=AssociationConfig(),
         help="the EKF's AssociationConfig with these fields changed, 'field=value;...' "
         "(e.g. 'match_exclusions=0' or 'match_pairing_test=False')",
+    )
+    p.add_argument(
+        "--graph",
+        default=None,
+        choices=("batch", "isam2", "fixedlag"),
+        help="also run this graph backend on each gated EKF run's decisions",
+    )
+    p.add_argument(
+        "--change-salt",
+        type=int,
+        default=None,
+        help="drawn beside the seed for the changes (give each world its own)",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

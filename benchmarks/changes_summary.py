@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.changes_mc import change_rng
 from mapfuse.campaign.stats import anees_series
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind
@@ -74,7 +75,7 @@ def main() -> None:
     for r, base in zip(rows, bases, strict=True):
         sc = with_changes(
             base,
-            np.random.default_rng(1000 + r["seed"]),
+            change_rng(r["seed"], r.get("change_salt")),
             moved=a.moved,
             removed=a.removed,
             added=a.added,
@@ -153,6 +154,8 @@ def main() -> None:
 
     _gate_table(rows)
     _anees_table(rows)
+    _after_anchor(rows)
+    _graph_table(rows)
 
 
 def _anees_table(rows: list[dict[str, Any]]) -> None:
@@ -177,6 +180,70 @@ def _anees_table(rows: list[dict[str, Any]]) -> None:
             f"| {pre} | {gate} | {a.overall:.3f} | {a.fraction_inside:.3f} "
             f"| {a.fraction_above:.3f} |"
         )
+
+
+def _after_anchor(rows: list[dict[str, Any]]) -> None:
+    """The EKF's RMSE ratio split at the later of the two runs' anchor steps: what the
+    changed map costs by anchoring later, and what it costs once both are anchored."""
+    ok = [r for r in rows if "changed_anchor_step" in r and "unchanged_anchor_step" in r]
+    ok = [r for r in ok if "changed_pos_err_mm" in r]
+    if not ok:
+        return
+    rng = np.random.default_rng(0)
+    delay = np.array([r["changed_anchor_step"] - r["unchanged_anchor_step"] for r in ok])
+    after = []
+    for r in ok:
+        k = max(r["changed_anchor_step"], r["unchanged_anchor_step"])
+        u = np.asarray(r["unchanged_pos_err_mm"][k:], dtype=float)
+        c = np.asarray(r["changed_pos_err_mm"][k:], dtype=float)
+        n = min(u.size, c.size)
+        if n:
+            after.append(math.sqrt(np.mean(c[:n] ** 2)) / math.sqrt(np.mean(u[:n] ** 2)))
+    print(
+        f"\nEKF anchor step, changed minus unchanged, over {len(ok)} seeds: median "
+        f"{int(np.median(delay))}, later on {int(np.sum(delay > 0))}, earlier on "
+        f"{int(np.sum(delay < 0))}, max {int(delay.max())}"
+    )
+    if after:
+        a = np.array(after)
+        print(
+            f"EKF RMSE ratio after both anchors: {_ci(a, rng)}, within 10 % on "
+            f"{int(np.sum(a <= 1.10))}/{a.size}"
+        )
+
+
+def _graph_table(rows: list[dict[str, Any]]) -> None:
+    """The graph backend run on the gated EKF's decisions (``changes_mc.py --graph``)."""
+    ok = [r for r in rows if "changed_graph_rmse_m" in r and "unchanged_graph_rmse_m" in r]
+    ok = [r for r in ok if r.get("changed_anchor") and r.get("unchanged_anchor")]
+    if not ok:
+        return
+    rng = np.random.default_rng(0)
+    u = np.array([r["unchanged_graph_rmse_m"] for r in ok])
+    c = np.array([r["changed_graph_rmse_m"] for r in ok])
+    ratio = c / u
+    print(f"\ngraph on the EKF's decisions, {len(ok)} seeds with an anchor on both maps:")
+    print(
+        f"RMSE unchanged {_ci(u, rng)} m, changed {_ci(c, rng)} m; ratio per seed "
+        f"{_ci(ratio, rng)}, median {np.median(ratio):.3f}, worst {ratio.max():.3f}, "
+        f"within 10 % on {int(np.sum(ratio <= 1.10))}/{ratio.size}; ratio of means "
+        f"{c.mean() / u.mean():.3f}"
+    )
+    for pre in ("unchanged", "changed"):
+        key = f"{pre}_graph_nees"
+        if all(key in r for r in ok):
+            n = min(len(r[key]) for r in ok)
+            x = np.array([[np.nan if v is None else v for v in r[key][:n]] for r in ok])
+            a = anees_series(x)
+            print(
+                f"{pre}: ANEES {a.overall:.3f}, steps inside the bounds "
+                f"{a.fraction_inside:.3f}, above {a.fraction_above:.3f}"
+            )
+    for pre in ("changed", "unchanged"):
+        scores = [r[f"{pre}_graph_score"] for r in ok if f"{pre}_graph_score" in r]
+        for cls in ("moved", "removed", "added"):
+            tp, fp, fn = (sum(s[cls][k] for s in scores) for k in ("tp", "fp", "fn"))
+            print(f"graph {cls} ({pre}):", _pr(tp, fp, fn))
 
 
 def _ci(x: np.ndarray, rng: np.random.Generator) -> str:

@@ -15,7 +15,9 @@ steps are almost fully correlated.  The pose covariance is the track's (in
 when the map is fused; the anchor's own covariance is left out because the track's
 already carries it.  The trajectory has itself been corrected with the known
 feature under test, which pulls the evidence towards it: the test is conservative
-(``docs/changes.md``).
+(``docs/changes.md``).  When the observations scatter about their fused value more
+than their measurement noise allows, the fused covariance is scaled up by the excess
+(:func:`spread_factor`), so that an inconsistent set cannot make a move on its own.
 """
 
 from __future__ import annotations
@@ -29,7 +31,13 @@ from mapfuse_core.evaluation.changes.residual import feature_residual
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
 
-__all__ = ["LandmarkEvidence", "ObservationSet", "fuse_against", "observation_sets"]
+__all__ = [
+    "LandmarkEvidence",
+    "ObservationSet",
+    "fuse_against",
+    "observation_sets",
+    "spread_factor",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,6 +80,9 @@ class LandmarkEvidence:
     """(d, d) its covariance (measurement and pose parts, not the reference's)."""
     n_obs: int
     """Observations fused."""
+    spread_factor: float = 1.0
+    """Factor the measurement part of :attr:`cov` was multiplied by because the
+    observations scatter more than their noise allows (:func:`spread_factor`)."""
 
 
 def observation_sets(
@@ -133,19 +144,42 @@ def observation_sets(
 
 def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence:
     """Fuse ``obs`` in the residual coordinates of ``reference`` (same kind, ``Wknown``)."""
-    info = None
-    vec = None
+    res = []
+    weights = []
     pose_part = None
     for f, C, D in zip(obs.features, obs.meas_covs, obs.pose_covs, strict=True):
         r, _, Jf = feature_residual(obs.kind, reference, f)
-        W = np.linalg.pinv(Jf @ C @ Jf.T, hermitian=True)
+        res.append(r)
+        weights.append(np.linalg.pinv(Jf @ C @ Jf.T, hermitian=True))
         Dp = Jf @ D @ Jf.T
-        info = W if info is None else info + W
-        vec = W @ r if vec is None else vec + W @ r
         pose_part = Dp if pose_part is None else pose_part + Dp
-    assert info is not None
-    assert vec is not None
     assert pose_part is not None
+    info = np.sum(weights, axis=0)
+    vec = np.sum([W @ r for W, r in zip(weights, res, strict=True)], axis=0)
     P = np.linalg.pinv(info, hermitian=True)
-    cov = P + pose_part / obs.n_obs
-    return LandmarkEvidence(residual=P @ vec, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs)
+    est = P @ vec
+    scale = spread_factor(res, weights, est)
+    cov = scale * P + pose_part / obs.n_obs
+    return LandmarkEvidence(
+        residual=est, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs, spread_factor=scale
+    )
+
+
+def spread_factor(res: list[FloatArray], weights: list[FloatArray], est: FloatArray) -> float:
+    """How much more the observations scatter about their fused value than their
+    measurement covariances allow: ``max(1, χ²/dof)`` with
+    ``χ² = Σ (r_j − r̂)ᵀ W_j (r_j − r̂)`` over ``d·(n − 1)`` degrees of freedom (1 for a
+    single observation).
+
+    The fused covariance is multiplied by it.  Observations that disagree with each
+    other beyond their noise (placed through poses that jump where the filter
+    anchors, or a fit whose centre and radius are correlated near ±1 and biased) make
+    the information-weighted mean unreliable, and can put it outside every observation;
+    a statistic built on the unscaled covariance would then call a feature moved on
+    the strength of that inconsistency alone."""
+    n = len(res)
+    if n < 2:
+        return 1.0
+    chi2 = sum(float((r - est) @ W @ (r - est)) for r, W in zip(res, weights, strict=True))
+    dof = est.shape[0] * (n - 1)
+    return float(max(1.0, chi2 / dof))

@@ -1,0 +1,97 @@
+"""The observation-only evidence of a landmark: the spread factor that keeps an
+internally inconsistent set of observations from deciding a move on its own."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import chi2
+
+from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against
+from mapfuse_core.geometry.features import FeatureKind
+
+REF = np.array([10.0, 5.0, 0.6])
+
+
+def _arc_cov(bearing: float, sigma: float = 0.05, rho: float = 0.98) -> np.ndarray:
+    """Covariance of a circle fitted to a short arc seen along ``bearing``: the centre
+    along the line of sight and the radius move together (correlation ``rho``)."""
+    c, s = math.cos(bearing), math.sin(bearing)
+    # (along, across, r) with along and r correlated, then rotated into (x, y, r).
+    local = np.array([[1.0, 0.0, rho], [0.0, 0.3, 0.0], [rho, 0.0, 1.0]]) * sigma**2
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R @ local @ R.T
+
+
+def _set(shift_second_half: float, seed: int) -> ObservationSet:
+    """30 observations of a tree at ``REF`` seen from bearings 0.6–1.4 rad, drawn from
+    their covariances; the second half displaced by ``shift_second_half`` m along x
+    (poses that jump where a filter anchors)."""
+    rng = np.random.default_rng(seed)
+    n = 30
+    covs = np.array([_arc_cov(b) for b in np.linspace(0.6, 1.4, n)])
+    feats = np.array([rng.multivariate_normal(REF, C) for C in covs])
+    feats[n // 2 :, 0] += shift_second_half
+    return ObservationSet(
+        landmark=0,
+        known_id=-1,
+        kind=FeatureKind.CIRCLE,
+        features=feats,
+        meas_covs=covs,
+        pose_covs=np.zeros((n, 3, 3)),
+        extents=np.full((n, 2), np.nan),
+        steps=np.arange(n),
+        true_id=-1,
+    )
+
+
+def test_consistent_observations_keep_their_covariance():
+    """Observations drawn from their own covariances: the factor stays below the
+    0.999 quantile of χ²/dof (87 dof), and the fused residual is within 4 σ of 0."""
+    bound = chi2.ppf(0.999, 87) / 87
+    for seed in range(5):
+        ev = fuse_against(_set(0.0, seed), REF)
+        assert 1.0 <= ev.spread_factor < bound
+        z = ev.residual / np.sqrt(np.diag(ev.cov))
+        assert np.all(np.abs(z) < 4.0)
+
+
+def test_a_jump_between_observations_scales_the_covariance_instead_of_making_a_move():
+    """Half the observations 1 m along x off the other half, with centre and radius
+    correlated at 0.98.  Their plain mean is off in x only; the information-weighted
+    mean is also off in y and in radius (by about 0.3 m each), where no observation
+    is.  Against the true place with the map's σ of 0.1 m, as the classifier tests it,
+    the unscaled covariance fails the χ² test at 0.999; scaled by the spread factor
+    (in the hundreds), it passes."""
+    obs = _set(1.0, seed=1)
+    ev = fuse_against(obs, REF)
+    assert ev.spread_factor > 100.0
+    assert abs(obs.features[:, 1].mean() - REF[1]) < 0.05
+    assert abs(obs.features[:, 2].mean() - REF[2]) < 0.05
+    assert abs(ev.residual[1]) > 0.2
+    assert abs(ev.residual[2]) > 0.2
+    known = np.eye(3) * 0.1**2
+    unscaled = ev.cov / ev.spread_factor + known  # no pose part here
+    scaled = ev.cov + known
+    threshold = chi2.ppf(0.999, 3)
+    assert float(ev.residual @ np.linalg.solve(unscaled, ev.residual)) > threshold
+    assert float(ev.residual @ np.linalg.solve(scaled, ev.residual)) < threshold
+
+
+def test_a_single_observation_has_no_spread():
+    obs = _set(0.0, seed=2)
+    one = ObservationSet(
+        landmark=0,
+        known_id=-1,
+        kind=FeatureKind.CIRCLE,
+        features=obs.features[:1],
+        meas_covs=obs.meas_covs[:1],
+        pose_covs=obs.pose_covs[:1],
+        extents=obs.extents[:1],
+        steps=obs.steps[:1],
+        true_id=-1,
+    )
+    ev = fuse_against(one, REF)
+    assert ev.spread_factor == 1.0
+    np.testing.assert_allclose(ev.residual, obs.features[0] - REF, atol=1e-12)
