@@ -109,20 +109,13 @@ def _most_in_view(log: MeasurementLog, kind: FeatureKind) -> int:
     return max(rows, key=lambda i: rep.known[i].scans_in_view)
 
 
-def _tree_surveyed_3m_off(log: MeasurementLog) -> tuple[MeasurementLog, int, int]:
-    """``log`` whose known map has its most viewed tree 3 m off along x, with its radius
-    surveyed to 1 mm so that the radius margin of the view rule leaves its view whole;
-    the tree's row and id."""
+def test_move_beyond_the_gate_links_the_unassociated_landmark():
+    log = _log()
     circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
     p = log.known_map.params.copy()
     p[circ, :2] += (3.0, 0.0)
-    covs = log.known_map.covs.copy()
-    covs[circ, 2, 2] = 1e-6
-    return _replace_known(log, params=p, covs=covs), circ, int(log.known_map.ids[circ])
-
-
-def test_move_beyond_the_gate_links_the_unassociated_landmark():
-    moved, circ, kid = _tree_surveyed_3m_off(_log())
+    moved = _replace_known(log, params=p)
     # The estimator did not associate it: its observations stay unlinked.
     rep = _classify(moved, unassociated=kid)
     c = rep.known[circ]
@@ -132,26 +125,6 @@ def test_move_beyond_the_gate_links_the_unassociated_landmark():
     assert not c.associated
     assert c.displacement[0] == pytest.approx(-3.0, abs=0.3)
     assert kid not in {n.true_id for n in rep.new}
-
-
-def test_tree_in_view_only_at_its_mapped_radius_is_not_linked_to_a_tree_nearby():
-    """The tree of the test above with its radius surveyed as loosely as the map draws
-    radii (σ 0.1 m): it is predicted in view at its mapped radius, but not at that
-    radius less the margin (3.09 σ at level 0.999), so its absence is not established
-    and the landmark 3 m away is a new tree, not its move.  Without the margin the
-    same landmark is taken for its move."""
-    moved, circ, kid = _tree_surveyed_3m_off(_log())
-    covs = moved.known_map.covs.copy()
-    covs[circ, 2, 2] = 0.1**2
-    loose = _replace_known(moved, covs=covs)
-    rep = _classify(loose, unassociated=kid)
-    c = rep.known[circ]
-    assert c.status == ChangeStatus.UNOBSERVED
-    assert kid in {n.true_id for n in rep.new}
-    no_margin = dataclasses.replace(PARAMS, missing_radius_sigmas=0.0)
-    bare = _classify(loose, no_margin, unassociated=kid)
-    assert bare.known[circ].status == ChangeStatus.MOVED
-    assert bare.known[circ].scans_in_view >= PARAMS.link_min_scans
 
 
 def _with_phantom(
@@ -290,7 +263,12 @@ def test_link_min_scans_above_k_links_whatever_is_seen_long_enough_to_be_missing
     """``link_min_scans`` larger than ``min_scans`` acts as ``min_scans``: a tree in
     view long enough to be called missing is always looked for, so its landmark 3 m
     away is its move."""
-    moved, circ, kid = _tree_surveyed_3m_off(_log())
+    log = _log()
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
     rep = _classify(moved, dataclasses.replace(PARAMS, link_min_scans=10**6), unassociated=kid)
     c = rep.known[circ]
     assert c.scans_in_view >= PARAMS.min_scans
@@ -302,8 +280,13 @@ def test_link_needs_only_link_min_scans_in_view_not_the_missing_rules_k():
     """A tree in view for fewer scans than ``K`` (here ``K`` is out of reach) and
     never associated: with ``link_min_scans`` of 1 its landmark 3 m away is its move,
     with ``link_min_scans=None`` (``K``) the tree is unobserved and the landmark new."""
+    log = _log()
     blind = dataclasses.replace(PARAMS, min_scans=10**6)
-    moved, circ, kid = _tree_surveyed_3m_off(_log())
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
     short = _classify(moved, dataclasses.replace(blind, link_min_scans=1), unassociated=kid)
     c = short.known[circ]
     assert 1 <= c.scans_in_view < blind.min_scans

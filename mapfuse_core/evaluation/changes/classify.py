@@ -6,8 +6,7 @@
 2. A known feature with an associated landmark is tested against that landmark's
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
-3. A known feature without one, predicted in view at its surveyed place (a circle: at
-   its mapped radius and at the smallest one its σ allows, as in 4), or seen empty
+3. A known feature without one, predicted in view at its surveyed place, or seen empty
    there, for at least :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
    :attr:`ChangeParams.link_unviewed_lines`; a tree: with
    :attr:`ChangeParams.link_unviewed_circles`), is
@@ -215,28 +214,12 @@ def classify_changes(
     # that feature (a duplicate): it may confirm this one too (two plan walls a wall's
     # thickness apart), but it is not this one's move.
     explained = {i for i, s in enumerate(free) if _duplicate(s, known, rows, params)}
-    need = min(params.link_min_scans or params.min_scans, params.min_scans)
-    # A circle counts as in view only if it would be at its mapped radius less the
-    # radius margin too: both a link (the feature is not here but there) and a missing
-    # call rest on its absence, which a trunk the map draws too thick fakes.  Only the
-    # circles that could pass are thinned: the others keep hiding what they hide.
-    sure = dict(in_view)
-    candidates = [
-        r
-        for r in unassociated
-        if in_view[int(known.ids[r])] >= need and int(known.kinds[r]) == int(FeatureKind.CIRCLE)
-    ]
-    if candidates:
-        thin = _thinned(known, candidates, params.radius_margin_sigmas())
-        again = scans_in_view(thin, poses_K, params, occluders)
-        for r in candidates:
-            kid = int(known.ids[r])
-            sure[kid] = min(in_view[kid], again[kid])
     pairs = []
     for r in unassociated:
         kind = FeatureKind(int(known.kinds[r]))
         kid = int(known.ids[r])
-        unviewed = sure[kid] < need and empty[kid] < need
+        need = min(params.link_min_scans or params.min_scans, params.min_scans)
+        unviewed = in_view[kid] < need and empty[kid] < need
         is_line = kind == FeatureKind.LINE
         linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles
         if unviewed and not linked:
@@ -269,6 +252,21 @@ def classify_changes(
         row = _row(known, r, free[i], False, in_view[kid], params)
         rows[r] = dataclasses.replace(row, scans_seen_empty=empty[kid])
     left = [r for r in unassociated if r not in rows]
+    sure = dict(in_view)
+    candidates = [
+        r
+        for r in left
+        if in_view[int(known.ids[r])] >= params.min_scans
+        and int(known.kinds[r]) == int(FeatureKind.CIRCLE)
+    ]
+    if candidates:
+        # One more view, with only the would-be missing circles thinned: the others keep
+        # hiding what they hide.
+        thin = _thinned(known, candidates, params.radius_margin_sigmas())
+        again = scans_in_view(thin, poses_K, params, occluders)
+        for r in candidates:
+            kid = int(known.ids[r])
+            sure[kid] = min(in_view[kid], again[kid])
     for r in left:
         kid = int(known.ids[r])
         seen = sure[kid] >= params.min_scans or empty[kid] >= params.min_scans
