@@ -41,8 +41,20 @@ def detect_changes(
             "and this run has none"
         )
     lm, kn = result.decisions.arrays
+    # A filtered track's poses before the match were estimated without the known map:
+    # their observations carry the anchor's uncertainty too.  A smoothed track's were
+    # estimated with it.
+    filtered = result.estimate == "filtered"
     return classify_changes(
-        log, lm, kn, result.poses, result.covs, result.anchor.x_Wknown_Wglobal, params
+        log,
+        lm,
+        kn,
+        result.poses,
+        result.covs,
+        result.anchor.x_Wknown_Wglobal,
+        params,
+        anchor_cov=result.anchor.cov if filtered else None,
+        anchored_from_step=result.anchor.accepted_at_step if filtered else 0,
     )
 
 

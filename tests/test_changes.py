@@ -687,3 +687,43 @@ def test_truth_names_the_moves_whose_surveyed_place_came_into_view():
     s = score_changes(report, truth).as_dict()
     assert (s["moved"]["tp"], s["moved"]["fn"]) == (1, 1)
     assert s["moved_surveyed_in_view"] == {"tp": 1, "fn": 0, "recall": 1.0}
+
+
+@pytest.mark.parametrize("estimate", ["filtered", "smoothed"])
+def test_detect_changes_gives_the_anchor_covariance_for_a_filtered_track_only(
+    monkeypatch, estimate
+):
+    """A filter's poses before its match carry the anchor's uncertainty; a smoother's
+    were estimated with the known map.  ``detect_changes`` passes the anchor's
+    covariance and match step for the first only."""
+    import types
+
+    import mapfuse.changes as mc
+
+    seen = {}
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return "report"
+
+    monkeypatch.setattr(mc, "classify_changes", spy)
+    anchor = types.SimpleNamespace(
+        x_Wknown_Wglobal=np.zeros(3), cov=np.eye(3) * 0.04, accepted_at_step=77
+    )
+    decisions = types.SimpleNamespace(arrays=(np.zeros(2, np.int64), np.zeros(2, np.int64)))
+    result = types.SimpleNamespace(
+        estimator="x",
+        fusion=True,
+        anchor=anchor,
+        decisions=decisions,
+        poses=np.zeros((5, 3)),
+        covs=np.zeros((5, 3, 3)),
+        estimate=estimate,
+    )
+    assert mc.detect_changes(result, _log()) == "report"  # type: ignore[arg-type]
+    if estimate == "filtered":
+        assert seen["anchored_from_step"] == 77
+        np.testing.assert_array_equal(seen["anchor_cov"], anchor.cov)
+    else:
+        assert seen["anchored_from_step"] == 0
+        assert seen["anchor_cov"] is None

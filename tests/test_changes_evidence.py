@@ -1,15 +1,23 @@
 """The observation-only evidence of a landmark: the spread factor that keeps an
-internally inconsistent set of observations from deciding a move on its own."""
+internally inconsistent set of observations from deciding a move on its own, and the
+anchor's covariance on a filter's observations from before its map match."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against
-from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.evaluation.changes.evidence import (
+    ObservationSet,
+    fuse_against,
+    observation_sets,
+)
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import compose, relative
+from tests.synthetic import synthetic_log
 
 REF = np.array([10.0, 5.0, 0.6])
 
@@ -95,3 +103,60 @@ def test_a_single_observation_has_no_spread():
     ev = fuse_against(one, REF)
     assert ev.spread_factor == 1.0
     np.testing.assert_allclose(ev.residual, obs.features[0] - REF, atol=1e-12)
+
+
+def test_observations_before_the_match_carry_the_anchors_covariance():
+    """A filtered track's observations made before ``anchored_from_step`` get the
+    anchor's covariance through the composition's Jacobian (checked against central
+    differences of the observation put in ``Wknown``); those made from it on do not."""
+    log = synthetic_log(steps=120, seed=3, known_fraction=0.7)
+    start = log.true_poses[0]
+    poses = np.array([relative(start, p)[0] for p in log.true_poses])
+    covs = np.tile(np.eye(3) * 1e-6, (poses.shape[0], 1, 1))
+    lm = log.feat_true_id.copy()
+    kn = np.full_like(lm, -1)
+    PA = np.diag([0.3**2, 0.2**2, 0.02**2])
+    split = 60
+    plain = observation_sets(log, lm, kn, poses, covs, start)
+    with_anchor = observation_sets(
+        log, lm, kn, poses, covs, start, anchor_cov=PA, anchored_from_step=split
+    )
+    checked_before = checked_after = 0
+    for a, b in zip(plain, with_anchor, strict=True):
+        idx = np.flatnonzero(lm == a.landmark)
+        for r, j in enumerate(idx.tolist()):
+            extra = b.pose_covs[r] - a.pose_covs[r]
+            if a.steps[r] >= split:
+                np.testing.assert_allclose(extra, 0.0, atol=1e-15)
+                checked_after += 1
+                continue
+
+            def put(anchor: np.ndarray, j: int = j, kind: FeatureKind = a.kind) -> np.ndarray:
+                x_K = compose(anchor, poses[int(log.feat_step[j])])
+                return transform_feature(kind, x_K, log.feat_params[j])[0]
+
+            J = np.zeros((3, 3))
+            for i in range(3):
+                h = np.zeros(3)
+                h[i] = 1e-6
+                J[:, i] = (put(start + h) - put(start - h)) / 2e-6
+            np.testing.assert_allclose(extra, J @ PA @ J.T, atol=1e-8)
+            checked_before += 1
+    assert checked_before > 20
+    assert checked_after > 20
+
+
+def test_anchor_covariance_must_be_a_finite_3x3_matrix():
+    log = synthetic_log(steps=20, seed=3, known_fraction=0.7)
+    poses = np.zeros((20, 3))
+    covs = np.zeros((20, 3, 3))
+    with pytest.raises(ValueError, match="anchor's covariance"):
+        observation_sets(
+            log,
+            log.feat_true_id,
+            np.full_like(log.feat_true_id, -1),
+            poses,
+            covs,
+            np.zeros(3),
+            anchor_cov=np.full((3, 3), np.nan),
+        )

@@ -170,18 +170,34 @@ def classify_changes(
     pose_covs: FloatArray,
     x_Wknown_Wglobal: FloatArray,
     params: ChangeParams | None = None,
+    *,
+    anchor_cov: FloatArray | None = None,
+    anchored_from_step: int = 0,
 ) -> ChangeReport:
     """Classify the known map of ``log`` given a run's decisions, trajectory and anchor.
 
     ``poses``/``pose_covs``: the run's ``x^Wglobal_R`` per step and their covariances;
-    ``x_Wknown_Wglobal``: its anchor.  See the module docstring for the rules.
+    ``x_Wknown_Wglobal``: its anchor.  ``anchor_cov``/``anchored_from_step``: a
+    filtered track's anchor covariance and match step; the observations made before
+    it carry the anchor's uncertainty too
+    (:func:`~mapfuse_core.evaluation.changes.evidence.observation_sets`).  See the
+    module docstring for the rules.
     """
     params = params or ChangeParams()
     anchor = np.asarray(x_Wknown_Wglobal, dtype=float)
     if anchor.shape != (3,) or not np.all(np.isfinite(anchor)):
         raise ValueError(f"the anchor must be a finite (3,) pose, got {anchor!r}")
     known = log.known_map
-    sets = observation_sets(log, obs_landmark, obs_known_id, poses, pose_covs, anchor)
+    sets = observation_sets(
+        log,
+        obs_landmark,
+        obs_known_id,
+        poses,
+        pose_covs,
+        anchor,
+        anchor_cov=anchor_cov,
+        anchored_from_step=anchored_from_step,
+    )
     by_known: dict[int, ObservationSet] = {}
     free: list[ObservationSet] = []
     for s in sets:

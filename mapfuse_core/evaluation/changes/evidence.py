@@ -12,12 +12,14 @@ Covariance: the measurement part is fused as independent (information sum); the
 pose part is averaged, not divided by the count, because the pose errors of nearby
 steps are almost fully correlated.  The pose covariance is the track's (in
 ``Wglobal``), an upper bound of the vehicle's uncertainty relative to the known map
-when the map is fused; the anchor's own covariance is left out because the track's
-already carries it.  The trajectory has itself been corrected with the known
-feature under test, which pulls the evidence towards it: the test is conservative
-(``docs/changes.md``).  When the observations scatter about their fused value more
-than their measurement noise allows, the fused covariance is scaled up by the excess
-(:func:`spread_factor`), so that an inconsistent set cannot make a move on its own.
+when the map is fused; the anchor's own covariance is left out there because the
+track's already carries it.  A filter's poses from before its map match do not: for
+those steps the anchor's covariance is added (:func:`observation_sets`).  The
+trajectory has itself been corrected with the known feature under test, which pulls
+the evidence towards it: the test is conservative (``docs/changes.md``).  When the
+observations scatter about their fused value more than their measurement noise
+allows, the fused covariance is scaled up by the excess (:func:`spread_factor`), so
+that an inconsistent set cannot make a move on its own.
 """
 
 from __future__ import annotations
@@ -92,11 +94,18 @@ def observation_sets(
     poses: FloatArray,
     pose_covs: FloatArray,
     x_Wknown_Wglobal: FloatArray,
+    anchor_cov: FloatArray | None = None,
+    anchored_from_step: int = 0,
 ) -> list[ObservationSet]:
     """Group the logged observations by landmark and put each in ``Wknown``.
 
     ``poses``/``pose_covs`` are the estimated ``x^Wglobal_R`` per step (a step beyond
-    them, or with a non-finite pose, contributes nothing).
+    them, or with a non-finite pose, contributes nothing).  ``anchor_cov``: the
+    anchor's covariance, added (through the composition's Jacobian) to the pose part of
+    every observation made before ``anchored_from_step``.  A filter's pose at such a
+    step was estimated before the map was matched: its covariance says how well the
+    pose is known in ``Wglobal``, not how well ``Wglobal`` is placed in ``Wknown``.
+    From the match on, the filter's track carries that through the known features.
     """
     lm = np.asarray(obs_landmark, dtype=np.int64)
     kn = np.asarray(obs_known_id, dtype=np.int64)
@@ -104,6 +113,9 @@ def observation_sets(
         raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
     n = poses.shape[0]
     covs = np.nan_to_num(np.asarray(pose_covs, dtype=float), nan=0.0)
+    PA = None if anchor_cov is None else np.asarray(anchor_cov, dtype=float)
+    if PA is not None and (PA.shape != (3, 3) or not np.all(np.isfinite(PA))):
+        raise ValueError(f"the anchor's covariance must be a finite 3×3 matrix, got {PA!r}")
     out = []
     for t in np.unique(lm[lm >= 0]).tolist():
         idx = np.nonzero(lm == t)[0]
@@ -119,11 +131,14 @@ def observation_sets(
         pc = np.zeros((idx.size, 3, 3))
         for r, j in enumerate(idx.tolist()):
             s = int(log.feat_step[j])
-            x_K, _, Jg = compose_jacobians(x_Wknown_Wglobal, poses[s])
+            x_K, Ja, Jg = compose_jacobians(x_Wknown_Wglobal, poses[s])
             feats[r], Jx, Jz = transform_feature(kind, x_K, log.feat_params[j])
             mc[r] = Jz @ log.feat_cov[j] @ Jz.T
             Jp = Jx @ Jg
             pc[r] = Jp @ covs[s] @ Jp.T
+            if PA is not None and s < anchored_from_step:
+                JA = Jx @ Ja
+                pc[r] += JA @ PA @ JA.T
         tids = log.feat_true_id[idx]
         tids = tids[tids >= 0]
         out.append(
