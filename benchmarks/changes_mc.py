@@ -11,9 +11,11 @@ its un-fuse step).  ``--map-sigma`` replaces the known map's σ (a better survey
 change smaller than the map's own noise cannot be told from it).  The ungated run is
 made only when the gate un-fused something: until then the two runs are the same.
 ``--assoc`` changes the EKF's association settings (the match's tests and re-runs,
-``docs/changes.md``, "Generated worlds").  ``--graph NAME`` also runs that graph
-backend (``batch``, ``isam2``, ``fixedlag``) on each gated EKF run's decisions and
-records its RMSE, NEES and change scores under ``<map>_graph_*``.  One JSON line per
+``docs/changes.md``, "Generated worlds").  ``--oracle`` also runs the changed map's
+log with its changed features struck from the known map: the RMSE a fusion that knew
+which entries are wrong would reach.  ``--graph NAME`` also runs that graph backend
+(``batch``, ``isam2``, ``fixedlag``) on each gated EKF run's decisions and records its
+RMSE, NEES and change scores under ``<map>_graph_*``.  One JSON line per
 seed is appended to ``--out``.
 
     PYTHONPATH=. python benchmarks/changes_mc.py --seeds 0 20 --out /tmp/changes.jsonl
@@ -33,7 +35,7 @@ from mapfuse.changes import detect_changes
 from mapfuse.figures import run_errors
 from mapfuse.result import EstimatorResult
 from mapfuse.run import Run, run
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
@@ -112,6 +114,8 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
                     }
                 )
         row[f"{name}_moves"] = moves
+        if args.oracle and name == "changed":
+            _oracle(row, log, sc, args)
         if args.graph:
             g = run(log, args.graph, fusion=True, upstream=r.result)
             row[f"{name}_graph_rmse_m"] = g.metrics["position_error_m"]["rmse"]
@@ -206,6 +210,35 @@ def _nees(r: Run) -> list[float | None]:
     return [None if not np.isfinite(v) else round(float(v), 4) for v in run_errors(r)[1]]
 
 
+def _oracle(row: dict[str, object], log: MeasurementLog, sc: Scenario, args: Any) -> None:
+    """The changed map's run again with the changed features struck from the known map:
+    what the unchanged part of the map alone gives, the best a robust fusion can do."""
+    wrong = _changed_ids(sc)
+    km = log.known_map
+    keep = np.array([int(i) not in wrong for i in km.ids.tolist()], dtype=bool)
+    struck = KnownMapArrays(
+        ids=km.ids[keep],
+        kinds=km.kinds[keep],
+        params=km.params[keep],
+        covs=km.covs[keep],
+        extents=None if km.extents is None else km.extents[keep],
+    )
+    olog = dataclasses.replace(log, known_map=struck)
+    o = run(olog, "ekf", fusion=True, known_map_gating=True, data_association=args.assoc)
+    row["oracle_struck"] = int(np.count_nonzero(~keep))
+    row["oracle_rmse_m"] = o.metrics["position_error_m"]["rmse"]
+    row["oracle_nees_mean"] = o.metrics["nees"]["mean"]
+    row["oracle_nees"] = _nees(o)
+    row["oracle_pos_err_mm"] = _pos_err_mm(o)
+    row["oracle_anchor"] = o.result.anchor is not None
+    if o.result.anchor is not None:
+        row["oracle_anchor_step"] = o.result.anchor.accepted_at_step
+    if args.graph:
+        g = run(olog, args.graph, fusion=True, upstream=o.result)
+        row["oracle_graph_rmse_m"] = g.metrics["position_error_m"]["rmse"]
+        row["oracle_graph_nees_mean"] = g.metrics["nees"]["mean"]
+
+
 def _pos_err_mm(r: Run) -> list[int]:
     """The run's position error per step in mm (the RMSE after a given step)."""
     dx = run_errors(r)[0]
@@ -294,6 +327,12 @@ def main() -> None:
         type=int,
         default=None,
         help="drawn beside the seed for the changes (give each world its own)",
+    )
+    p.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also run the changed map's log with the changed features struck from its "
+        "known map (keys 'oracle_*')",
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()

@@ -155,6 +155,7 @@ def main() -> None:
     _gate_table(rows)
     _anees_table(rows)
     _after_anchor(rows)
+    _oracle_table(rows)
     _graph_table(rows)
 
 
@@ -209,6 +210,42 @@ def _after_anchor(rows: list[dict[str, Any]]) -> None:
         print(
             f"EKF RMSE ratio after both anchors: {_ci(a, rng)}, within 10 % on "
             f"{int(np.sum(a <= 1.10))}/{a.size}"
+        )
+
+
+def _oracle_table(rows: list[dict[str, Any]]) -> None:
+    """The changed map's run against the same log with the changed features struck
+    from the map (``changes_mc.py --oracle``): how much of the RMSE ratio is the
+    information the changed features took away, and how much is their being wrong."""
+    ok = [r for r in rows if r.get("oracle_anchor") and r.get("unchanged_anchor")]
+    ok = [r for r in ok if r.get("changed_anchor")]
+    if not ok:
+        return
+    rng = np.random.default_rng(0)
+    u = np.array([r["unchanged_rmse_m"] for r in ok])
+    c = np.array([r["changed_rmse_m"] for r in ok])
+    o = np.array([r["oracle_rmse_m"] for r in ok])
+    print(f"\nEKF with the changed features struck from the map, {len(ok)} seeds:")
+    print(
+        f"struck per seed {np.mean([r['oracle_struck'] for r in ok]):.1f}; RMSE struck "
+        f"{_ci(o, rng)} m; struck/unchanged per seed {_ci(o / u, rng)}, within 10 % on "
+        f"{int(np.sum(o / u <= 1.10))}/{len(ok)}; changed/struck per seed "
+        f"{_ci(c / o, rng)}, within 10 % on {int(np.sum(c / o <= 1.10))}/{len(ok)}"
+    )
+    steps = [(r["oracle_anchor_step"], r["changed_anchor_step"]) for r in ok]
+    print(
+        "anchor step struck vs changed: same on "
+        f"{sum(a == b for a, b in steps)}, struck earlier on {sum(a < b for a, b in steps)}, "
+        f"later on {sum(a > b for a, b in steps)}"
+    )
+    if all("oracle_graph_rmse_m" in r and "changed_graph_rmse_m" in r for r in ok):
+        gu = np.array([r["unchanged_graph_rmse_m"] for r in ok])
+        gc = np.array([r["changed_graph_rmse_m"] for r in ok])
+        go = np.array([r["oracle_graph_rmse_m"] for r in ok])
+        print(
+            f"graph: struck/unchanged {_ci(go / gu, rng)}, within 10 % on "
+            f"{int(np.sum(go / gu <= 1.10))}/{len(ok)}; changed/struck {_ci(gc / go, rng)}, "
+            f"within 10 % on {int(np.sum(gc / go <= 1.10))}/{len(ok)}"
         )
 
 
