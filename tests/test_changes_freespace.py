@@ -4,17 +4,19 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
 
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeStatus
-from mapfuse_core.evaluation.changes.freespace import scans_seen_empty
+from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
 from mapfuse_core.evaluation.changes.visibility import map_world
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.sim.laser import LaserParams, cast_rays
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
-from tests.test_changes import PARAMS, _classify, _with_absent_trees
+from tests.test_changes import PARAMS, _classify, _log, _most_in_view, _with_absent_trees
 
 LASER = LaserParams()
 BEARINGS = LASER.bearings()
@@ -268,3 +270,80 @@ def test_no_wall_that_stands_where_surveyed_is_seen_empty_and_an_absent_one_is()
     rep = _classify(log)
     assert rep.status_of(9001) == ChangeStatus.MISSING
     assert rep.known[-1].scans_seen_empty >= PARAMS.min_scans
+
+
+def _occupied(known: KnownMapArrays, ranges: np.ndarray, params: ChangeParams = ONE) -> int:
+    return circles_seen_occupied(known, [0], POSES, COVS, BEARINGS, ranges, params)[7][0]
+
+
+def test_a_trunk_where_the_map_has_it_is_seen_standing_and_an_empty_place_is_not() -> None:
+    exact = World(segments=(BEHIND,), circles=(CircleObstacle(7, (8.0, 0.0), 0.3),))
+    assert _occupied(_tree(8.0, 0.3), _scans(exact, noise=0.01)) == N
+    counted, reach = circles_seen_occupied(
+        _tree(8.0, 0.3), [0], POSES, COVS, BEARINGS, _scans(exact), ONE
+    )[7]
+    assert counted == N
+    # The radius and 3.09 σ of the pose: 1e-6 m² in position, 1e-6 rad² times 8² m².
+    assert reach == pytest.approx(0.3 + 3.0902 * math.sqrt(1e-6 + 64e-6), abs=1e-4)
+    assert _occupied(_tree(8.0, 0.3), _scans(None)) == 0
+    assert _occupied(_tree(8.0, 0.3), _scans(World(segments=(BEHIND,), circles=()))) == 0
+
+
+def test_a_trunk_moved_out_of_reach_or_hidden_does_not_occupy_its_surveyed_place() -> None:
+    # Moved 3 m further along the beams: its returns are out of reach of the surveyed
+    # centre's range.  Hidden behind a trunk in front: the returns are short.
+    moved = World(segments=(BEHIND,), circles=(CircleObstacle(7, (11.0, 0.0), 0.3),))
+    assert _occupied(_tree(8.0, 0.3), _scans(moved)) == 0
+    front = World(segments=(BEHIND,), circles=(CircleObstacle(1, (4.0, 0.0), 0.6),))
+    assert _occupied(_tree(8.0, 0.3), _scans(front)) == 0
+    # Fewer beams on it than min_beams_present: no reading.
+    exact = World(segments=(BEHIND,), circles=(CircleObstacle(7, (8.0, 0.0), 0.3),))
+    few = dataclasses.replace(ONE, min_beams_present=10**6)
+    assert _occupied(_tree(8.0, 0.3), _scans(exact), few) == 0
+
+
+def test_a_tree_the_scans_find_standing_is_not_linked_to_another_tree_nearby() -> None:
+    """Known tree 9001 stands 3 m from tree W, in the scans, but the extractor never
+    returned it (no observation); W is not in the known map.  W's landmark is within
+    the move limits of 9001, and 9001's surveyed place was predicted in view: without
+    the occupancy reading W is taken for 9001's move.  The raw scans find 9001
+    standing, out of reach of W, so W is new and 9001 is not moved."""
+    log = _log()
+    row = _most_in_view(log, FeatureKind.CIRCLE)
+    k = log.known_map
+    w_id = int(k.ids[row])
+    t = k.params[row] + np.array([0.0, 3.0, 0.0])
+    keep = np.arange(len(k)) != row
+    known = KnownMapArrays(
+        ids=np.append(k.ids[keep], 9001),
+        kinds=np.append(k.kinds[keep], 1).astype(np.int8),
+        params=np.vstack([k.params[keep], t]),
+        covs=np.concatenate([k.covs[keep], k.covs[row][None]]),
+        extents=np.vstack([k.extents[keep], [np.nan, np.nan]]),
+    )
+    assert log.world is not None
+    assert log.true_poses is not None
+    w = log.world
+    with_t = KnownMapArrays(
+        ids=np.append(w.ids, 9001),
+        kinds=np.append(w.kinds, 1).astype(np.int8),
+        params=np.vstack([w.params, t]),
+        covs=np.concatenate([w.covs, w.covs[:1]]),
+        extents=np.vstack([w.extents, [np.nan, np.nan]]),
+    )
+    world = map_world(with_t)
+    assert world is not None
+    ranges = [cast_rays(world, p, p[2] + BEARINGS, LASER.max_range_m)[0] for p in log.true_poses]
+    scanned = dataclasses.replace(
+        log, known_map=known, scan_bearings=BEARINGS, scan_ranges=np.array(ranges, np.float32)
+    )
+    rep = _classify(scanned)
+    tree = rep.known[-1]
+    assert tree.known_id == 9001
+    assert tree.status == ChangeStatus.UNOBSERVED
+    assert tree.scans_seen_occupied >= PARAMS.link_min_scans
+    assert w_id in {n.true_id for n in rep.new}
+    blind = _classify(scanned, dataclasses.replace(PARAMS, min_beams_present=10**6))
+    assert blind.known[-1].status == ChangeStatus.MOVED
+    assert blind.known[-1].scans_seen_occupied == 0
+    assert w_id not in {n.true_id for n in blind.new}

@@ -15,7 +15,9 @@
    after a move beyond the association gate, and is tested the same way (a consistent
    one is a landmark the estimator did not merge: the feature is confirmed).  A
    landmark that an observed known feature already explains (a duplicate, see 5) may
-   confirm the feature but is never taken for its move.  A wall is confirmed (or
+   confirm the feature but is never taken for its move, and neither is a landmark out
+   of reach of a tree whose surveyed place the raw scans found occupied for as many
+   scans (the tree still stands there, unextracted).  A wall is confirmed (or
    explained) only by a landmark that overlaps the wall itself, its extent widened by
    three of the wall's and the landmark's position σ: one that fits the line beyond
    the wall's ends is another stretch of the line.  A wall moved keeps its length: a
@@ -40,7 +42,7 @@ import numpy as np
 
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against, observation_sets
-from mapfuse_core.evaluation.changes.freespace import scans_seen_empty
+from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import (
     ChangeReport,
@@ -221,10 +223,11 @@ def classify_changes(
         else:
             unassociated.append(r)
     empty = {int(known.ids[r]): 0 for r in unassociated}
+    occupied: dict[int, tuple[int, float]] = {}
     if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
-        empty = scans_seen_empty(
-            known, unassociated, poses_K, pose_covs, log.scan_bearings, log.scan_ranges, params
-        )
+        scans = (poses_K, pose_covs, log.scan_bearings, log.scan_ranges, params)
+        empty = scans_seen_empty(known, unassociated, *scans)
+        occupied = circles_seen_occupied(known, unassociated, *scans)
     # Moves beyond the association gate: nearest unassociated landmark, one to one.  A
     # landmark consistent with a known feature already observed is another track of
     # that feature (a duplicate): it may confirm this one too (two plan walls a wall's
@@ -243,11 +246,16 @@ def classify_changes(
             # says it moved, and a landmark near a tree is as likely a tree the map
             # lacks as this one moved (ChangeParams.link_unviewed_circles).
             continue
+        standing, reach = occupied.get(kid, (0, 0.0))
         for i, s in enumerate(free):
             if s.kind != kind:
                 continue
             d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
             if not math.isfinite(d):
+                continue
+            if standing >= need and _beyond(s, known.params[r], reach):
+                # The raw scans found a trunk standing at the surveyed place, and this
+                # landmark is too far to be what they hit: another tree, not its move.
                 continue
             consistent = _consistent(s, known, r, params)
             if consistent and kind == FeatureKind.LINE and not _same_piece(s, known, r):
@@ -266,7 +274,9 @@ def classify_changes(
         used.add(i)
         kid = int(known.ids[r])
         row = _row(known, r, free[i], False, in_view[kid], params)
-        rows[r] = dataclasses.replace(row, scans_seen_empty=empty[kid])
+        rows[r] = dataclasses.replace(
+            row, scans_seen_empty=empty[kid], scans_seen_occupied=occupied.get(kid, (0, 0.0))[0]
+        )
     left = [r for r in unassociated if r not in rows]
     sure = dict(in_view)
     candidates = [
@@ -303,6 +313,7 @@ def classify_changes(
             associated=False,
             landmark=-1,
             scans_seen_empty=empty[kid],
+            scans_seen_occupied=occupied.get(kid, (0, 0.0))[0],
         )
     # New features: unassociated landmarks no known feature accounts for.
     new: list[NewFeature] = []
@@ -335,6 +346,14 @@ def classify_changes(
         level=params.level,
         x_Wknown_Wglobal=anchor,
     )
+
+
+def _beyond(obs: ObservationSet, known: FloatArray, reach: float) -> bool:
+    """Whether circle landmark ``obs`` stands too far from the known circle's centre for
+    a beam hitting it to return within ``reach`` of that centre's range."""
+    centre = np.mean(obs.features[:, :2], axis=0)
+    radius = float(np.median(obs.features[:, 2]))
+    return float(np.hypot(*(centre - known[:2]))) > reach + max(radius, 0.0)
 
 
 def _row(

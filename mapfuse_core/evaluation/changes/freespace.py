@@ -23,6 +23,13 @@ wherever those errors put it.  Only such *core* beams are read:
 A scan sees the place empty when at least one core beam passes and none hits.  A trunk
 too thin for any core beam at that range (``r ≤ q·σ``) gives no evidence either way.
 
+The same beams say the converse (:func:`circles_seen_occupied`): a trunk that still
+stands where the map has it returns the beams aimed at its mapped disc (within the
+mapped radius of the centre, core or not) from within reach of the centre's range.
+A scan sees the place occupied when at least ``min_beams_present`` of those beams do.
+This reads a trunk the extractor missed (hidden in part by another, or thinner than
+mapped), which the view rules cannot tell from an absent one.
+
 Walls (known lines with extents) are read the same way along each beam.  A beam meets
 the mapped wall's line at range ``t``; it is a core beam when it meets it inside the
 wall's extent by more than ``q·σ_s`` at both ends, ``σ_s`` the first-order error of
@@ -49,7 +56,7 @@ from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["scans_seen_empty"]
+__all__ = ["circles_seen_occupied", "scans_seen_empty"]
 
 
 def scans_seen_empty(
@@ -119,6 +126,64 @@ def scans_seen_empty(
             hits = (seen >= d - reach) & ~passes
             if np.any(passes) and not np.any(hits):
                 out[int(features.ids[r])] += params.view_stride
+    return out
+
+
+def circles_seen_occupied(
+    features: KnownMapArrays,
+    rows: list[int],
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    bearings: FloatArray,
+    ranges: FloatArray,
+    params: ChangeParams,
+) -> dict[int, tuple[int, float]]:
+    """Per circle of ``features`` at ``rows``: the scans in which its surveyed place was
+    seen occupied (see the module docstring), counted like :func:`scans_seen_empty`,
+    and the largest reach (m) a hit was counted within, from the mapped centre.
+
+    Only circles are read; the arguments are those of :func:`scans_seen_empty`.
+    """
+    circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
+    out = {int(features.ids[r]): (0, 0.0) for r in circles}
+    if not circles:
+        return out
+    P = np.asarray(poses, dtype=float)
+    C = np.asarray(pose_covs, dtype=float)
+    b = np.asarray(bearings, dtype=float)
+    q = float(norm.ppf(params.level))
+    sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
+    centres = features.params[circles, :2]
+    radii = features.params[circles, 2]
+    map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
+    radius_var = np.clip(features.covs[circles, 2, 2], 0.0, None)
+    counts = np.zeros(len(circles), dtype=np.int64)
+    reach_max = np.zeros(len(circles))
+    for k in range(0, P.shape[0], params.view_stride):
+        x = P[k]
+        if not np.all(np.isfinite(x)) or not np.all(np.isfinite(C[k])):
+            continue
+        pos_var = _largest_position_variance(C[k])
+        head_var = max(float(C[k][2, 2]), 0.0)
+        rho = np.asarray(ranges[k], dtype=float)
+        for j in range(len(circles)):
+            v = centres[j] - x[:2]
+            d = math.hypot(float(v[0]), float(v[1]))
+            if d > params.max_range_m or d <= radii[j]:
+                continue
+            rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
+            sel = (np.abs(d * np.sin(rel)) < radii[j]) & (np.cos(rel) > 0.0)
+            if np.count_nonzero(sel) < params.min_beams_present:
+                continue
+            lateral = map_var[j] + pos_var + d * d * head_var
+            reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
+            seen = rho[sel]
+            hits = np.count_nonzero((seen >= d - reach) & (seen <= d + reach))
+            if hits >= params.min_beams_present:
+                counts[j] += params.view_stride
+                reach_max[j] = max(reach_max[j], reach)
+    for j, r in enumerate(circles):
+        out[int(features.ids[r])] = (int(counts[j]), float(reach_max[j]))
     return out
 
 

@@ -44,6 +44,13 @@ class ChangeParams:
     for the wall to count as in view in a scan (the extractor's least line support)."""
     min_beams_circle: int = 12
     """Beams that must hit a circle for it to count as in view in a scan."""
+    min_beams_present: int = 3
+    """Raw-scan beams aimed at a known circle's mapped disc that must return from within
+    reach of it for a scan to see the circle still standing there
+    (:func:`~mapfuse_core.evaluation.changes.freespace.circles_seen_occupied`).  A
+    circle seen so in :attr:`link_min_scans` scans is not linked to a landmark beyond
+    that reach: the trunk the extractor missed still stands, and the landmark is
+    another tree."""
     max_incidence_rad: float = 1.3
     """Beams hitting a wall farther than this from its normal do not count (grazing
     beams give no extractable line)."""
@@ -116,6 +123,7 @@ class ChangeParams:
             "view_stride",
             "min_beams_line",
             "min_beams_circle",
+            "min_beams_present",
             "n_beams",
         ):
             v = getattr(self, name)

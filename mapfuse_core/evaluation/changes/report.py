@@ -64,6 +64,9 @@ class FeatureChange:
     scans_seen_empty: int = 0
     """Scans whose raw beams went through the feature's surveyed place (circles of a
     log with raw scans; :mod:`mapfuse_core.evaluation.changes.freespace`), 0 otherwise."""
+    scans_seen_occupied: int = 0
+    """Scans whose raw beams found a circle still standing at its surveyed place (read
+    for circles without an associated landmark, in a log with raw scans), 0 otherwise."""
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -82,6 +85,7 @@ class FeatureChange:
             "associated": self.associated,
             "landmark": self.landmark,
             "scans_seen_empty": self.scans_seen_empty,
+            "scans_seen_occupied": self.scans_seen_occupied,
         }
 
 
