@@ -336,6 +336,8 @@ def main() -> None:
     )
     p.add_argument("--out", required=True)
     args = p.parse_args()
+    if args.change_salt is not None and args.change_salt < 0:
+        p.error(f"--change-salt must be >= 0, got {args.change_salt}")
     tags = [tag for tag, _ in args.variant]
     if len(set(tags)) != len(tags):
         p.error(f"--variant tags must differ, got {tags}")

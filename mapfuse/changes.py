@@ -41,10 +41,12 @@ def detect_changes(
             "and this run has none"
         )
     lm, kn = result.decisions.arrays
-    # A filtered track's poses before the match were estimated without the known map:
-    # their observations carry the anchor's uncertainty too.  A smoothed track's were
-    # estimated with it.
-    filtered = result.estimate == "filtered"
+    # A filter's poses up to its match step (the match follows that step's update) were
+    # estimated without the known map, and so were a fixed-lag smoother's poses that
+    # left its window before the match: their observations carry the anchor's
+    # uncertainty too (for the fixed-lag smoother, conservatively, every pose up to the
+    # match).  A batch or iSAM2 track was smoothed with the map.
+    before_map = result.estimate == "filtered" or result.estimator == "fixedlag"
     return classify_changes(
         log,
         lm,
@@ -53,8 +55,8 @@ def detect_changes(
         result.covs,
         result.anchor.x_Wknown_Wglobal,
         params,
-        anchor_cov=result.anchor.cov if filtered else None,
-        anchored_from_step=result.anchor.accepted_at_step if filtered else 0,
+        anchor_cov=result.anchor.cov if before_map else None,
+        anchored_from_step=result.anchor.accepted_at_step + 1 if before_map else 0,
     )
 
 

@@ -689,13 +689,18 @@ def test_truth_names_the_moves_whose_surveyed_place_came_into_view():
     assert s["moved_surveyed_in_view"] == {"tp": 1, "fn": 0, "recall": 1.0}
 
 
-@pytest.mark.parametrize("estimate", ["filtered", "smoothed"])
-def test_detect_changes_gives_the_anchor_covariance_for_a_filtered_track_only(
-    monkeypatch, estimate
+@pytest.mark.parametrize(
+    ("estimator", "estimate", "before_map"),
+    [("ekf", "filtered", True), ("fixedlag", "smoothed", True), ("batch", "smoothed", False)],
+)
+def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_match(
+    monkeypatch, estimator, estimate, before_map
 ):
-    """A filter's poses before its match carry the anchor's uncertainty; a smoother's
-    were estimated with the known map.  ``detect_changes`` passes the anchor's
-    covariance and match step for the first only."""
+    """A filter's poses up to its match step (the match follows that step's update),
+    and a fixed-lag smoother's that left its window before the match, carry the
+    anchor's uncertainty; a batch smoother's were estimated with the known map.
+    ``detect_changes`` passes the anchor's covariance, and the first step after the
+    match, for the first two only."""
     import types
 
     import mapfuse.changes as mc
@@ -712,7 +717,7 @@ def test_detect_changes_gives_the_anchor_covariance_for_a_filtered_track_only(
     )
     decisions = types.SimpleNamespace(arrays=(np.zeros(2, np.int64), np.zeros(2, np.int64)))
     result = types.SimpleNamespace(
-        estimator="x",
+        estimator=estimator,
         fusion=True,
         anchor=anchor,
         decisions=decisions,
@@ -721,9 +726,15 @@ def test_detect_changes_gives_the_anchor_covariance_for_a_filtered_track_only(
         estimate=estimate,
     )
     assert mc.detect_changes(result, _log()) == "report"  # type: ignore[arg-type]
-    if estimate == "filtered":
-        assert seen["anchored_from_step"] == 77
+    if before_map:
+        assert seen["anchored_from_step"] == 78
         np.testing.assert_array_equal(seen["anchor_cov"], anchor.cov)
     else:
         assert seen["anchored_from_step"] == 0
         assert seen["anchor_cov"] is None
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True])
+def test_min_beams_present_must_be_a_positive_int(bad):
+    with pytest.raises(ValueError, match="min_beams_present"):
+        ChangeParams(min_beams_present=bad)

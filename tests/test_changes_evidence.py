@@ -68,10 +68,9 @@ def test_consistent_observations_keep_their_covariance():
 def test_a_jump_between_observations_scales_the_covariance_instead_of_making_a_move():
     """Half the observations 1 m along x off the other half, with centre and radius
     correlated at 0.98.  Their plain mean is off in x only; the information-weighted
-    mean is also off in y and in radius (by about 0.3 m each), where no observation
-    is.  Against the true place with the map's σ of 0.1 m, as the classifier tests it,
-    the unscaled covariance fails the χ² test at 0.999; scaled by the spread factor
-    (in the hundreds), it passes."""
+    mean is also off in y and in radius, where no observation is.  Against the true
+    place with the map's σ of 0.1 m, as the classifier tests it, the unscaled
+    covariance fails the χ² test at 0.999; scaled by the spread factor, it passes."""
     obs = _set(1.0, seed=1)
     ev = fuse_against(obs, REF)
     assert ev.spread_factor > 100.0

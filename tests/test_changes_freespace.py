@@ -302,18 +302,18 @@ def test_a_trunk_moved_out_of_reach_or_hidden_does_not_occupy_its_surveyed_place
     assert _occupied(_tree(8.0, 0.3), _scans(exact), few) == 0
 
 
-def test_a_tree_the_scans_find_standing_is_not_linked_to_another_tree_nearby() -> None:
-    """Known tree 9001 stands 3 m from tree W, in the scans, but the extractor never
-    returned it (no observation); W is not in the known map.  W's landmark is within
-    the move limits of 9001, and 9001's surveyed place was predicted in view: without
-    the occupancy reading W is taken for 9001's move.  The raw scans find 9001
-    standing, out of reach of W, so W is new and 9001 is not moved."""
+def _standing_unextracted(keep_w: bool) -> tuple[MeasurementLog, int]:
+    """The test log with known tree 9001 standing 3 m from tree W (in the world and in
+    the raw scans) but never observed, as if the extractor missed it; with
+    ``keep_w=False`` W is struck from the known map, so its landmark is unassociated.
+    Returns the log and W's id."""
     log = _log()
     row = _most_in_view(log, FeatureKind.CIRCLE)
     k = log.known_map
     w_id = int(k.ids[row])
     t = k.params[row] + np.array([0.0, 3.0, 0.0])
-    keep = np.arange(len(k)) != row
+    keep = np.ones(len(k), dtype=bool)
+    keep[row] = keep_w
     known = KnownMapArrays(
         ids=np.append(k.ids[keep], 9001),
         kinds=np.append(k.kinds[keep], 1).astype(np.int8),
@@ -337,13 +337,47 @@ def test_a_tree_the_scans_find_standing_is_not_linked_to_another_tree_nearby() -
     scanned = dataclasses.replace(
         log, known_map=known, scan_bearings=BEARINGS, scan_ranges=np.array(ranges, np.float32)
     )
+    return scanned, w_id
+
+
+def test_a_tree_the_scans_find_standing_is_not_linked_to_another_tree_nearby() -> None:
+    """W is not in the known map, and its landmark is within the move limits of 9001,
+    whose surveyed place was predicted in view: without the occupancy reading W is
+    taken for 9001's move.  The raw scans find 9001 standing, out of reach of W, so W
+    is new and 9001 is not moved."""
+    scanned, w_id = _standing_unextracted(keep_w=False)
     rep = _classify(scanned)
     tree = rep.known[-1]
     assert tree.known_id == 9001
     assert tree.status == ChangeStatus.UNOBSERVED
     assert tree.scans_seen_occupied >= PARAMS.link_min_scans
+    assert tree.scans_seen_occupied > tree.scans_seen_empty
     assert w_id in {n.true_id for n in rep.new}
     blind = _classify(scanned, dataclasses.replace(PARAMS, min_beams_present=10**6))
     assert blind.known[-1].status == ChangeStatus.MOVED
     assert blind.known[-1].scans_seen_occupied == 0
     assert w_id not in {n.true_id for n in blind.new}
+
+
+def test_a_tree_the_scans_find_standing_is_not_called_missing() -> None:
+    """W stays in the known map (so its landmark is W's, not a move of 9001), and the
+    view rule is made to call 9001 missing (K of 8 scans, no radius margin): the raw
+    scans find it standing in more scans than K, so it is unobserved, not missing."""
+    scanned, _ = _standing_unextracted(keep_w=True)
+    eager = dataclasses.replace(PARAMS, min_scans=8, missing_radius_sigmas=0.0)
+    tree = _classify(scanned, eager).known[-1]
+    assert tree.known_id == 9001
+    assert tree.scans_seen_occupied >= eager.min_scans
+    assert tree.status == ChangeStatus.UNOBSERVED
+    blind = dataclasses.replace(eager, min_beams_present=10**6)
+    assert _classify(scanned, blind).known[-1].status == ChangeStatus.MISSING
+
+
+def test_something_just_behind_an_empty_surveyed_place_does_not_occupy_it() -> None:
+    """A wall 0.2 m behind the surveyed centre of a 0.3 m trunk that is gone, and a
+    trunk 0.4 m behind it: a standing trunk returns from its near face, never from
+    behind its centre, so neither reads as the trunk standing."""
+    wall = WallSegment(50, (8.2, -3.0), (8.2, 3.0))
+    assert _occupied(_tree(8.0, 0.3), _scans(World(segments=(wall,), circles=()))) == 0
+    behind = World(segments=(BEHIND,), circles=(CircleObstacle(3, (8.4, 0.0), 0.3),))
+    assert _occupied(_tree(8.0, 0.3), _scans(behind)) == 0

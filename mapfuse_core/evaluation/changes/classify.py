@@ -53,15 +53,16 @@ from mapfuse_core.evaluation.changes.report import (
 from mapfuse_core.evaluation.changes.residual import feature_residual, residual_dof
 from mapfuse_core.evaluation.changes.visibility import scans_in_view
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.geometry.se2 import FloatArray, compose
+from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
 
 __all__ = ["classify_changes"]
 
 
 def _test(
     obs: ObservationSet, known: FloatArray, known_cov: FloatArray, params: ChangeParams
-) -> tuple[FloatArray, FloatArray, float, FloatArray]:
-    """Residual, its covariance, the χ² statistic and the displacement (dx, dy, d3)."""
+) -> tuple[FloatArray, FloatArray, float, FloatArray, float]:
+    """Residual, its covariance, the χ² statistic, the displacement (dx, dy, d3) and
+    the evidence's spread factor."""
     ev = fuse_against(obs, known)
     _, Jk, _ = feature_residual(obs.kind, known, known)
     S = ev.cov + Jk @ known_cov @ Jk.T
@@ -72,7 +73,7 @@ def _test(
         disp = np.array([*(r[0] * normal), r[1]])
     else:
         disp = r.copy()
-    return r, S, stat, disp
+    return r, S, stat, disp, ev.spread_factor
 
 
 def _near(
@@ -209,8 +210,9 @@ def classify_changes(
                 by_known[s.known_id] = s
         elif s.n_obs >= params.min_obs:
             free.append(s)
-    poses_K = np.array([compose(anchor, p) for p in np.asarray(poses, dtype=float)])
-    poses_K = poses_K.reshape(-1, 3)
+    poses_K, covs_K = _in_known_frame(
+        anchor, np.asarray(poses, dtype=float), pose_covs, anchor_cov, anchored_from_step
+    )
     occluders = _occluders(free, known)
     in_view = scans_in_view(known, poses_K, params, occluders)
 
@@ -225,7 +227,7 @@ def classify_changes(
     empty = {int(known.ids[r]): 0 for r in unassociated}
     occupied: dict[int, tuple[int, float]] = {}
     if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
-        scans = (poses_K, pose_covs, log.scan_bearings, log.scan_ranges, params)
+        scans = (poses_K, covs_K, log.scan_bearings, log.scan_ranges, params)
         empty = scans_seen_empty(known, unassociated, *scans)
         occupied = circles_seen_occupied(known, unassociated, *scans)
     # Moves beyond the association gate: nearest unassociated landmark, one to one.  A
@@ -253,7 +255,7 @@ def classify_changes(
             d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
             if not math.isfinite(d):
                 continue
-            if standing >= need and _beyond(s, known.params[r], reach):
+            if standing >= need and standing > empty[kid] and _beyond(s, known.params[r], reach):
                 # The raw scans found a trunk standing at the surveyed place, and this
                 # landmark is too far to be what they hit: another tree, not its move.
                 continue
@@ -296,6 +298,10 @@ def classify_changes(
     for r in left:
         kid = int(known.ids[r])
         seen = sure[kid] >= params.min_scans or empty[kid] >= params.min_scans
+        standing = occupied.get(kid, (0, 0.0))[0]
+        if standing >= params.min_scans and standing > empty[kid]:
+            # The raw scans found it where the map has it: not seen absent.
+            seen = False
         status = ChangeStatus.MISSING if seen else ChangeStatus.UNOBSERVED
         kind = FeatureKind(int(known.kinds[r]))
         rows[r] = FeatureChange(
@@ -348,12 +354,37 @@ def classify_changes(
     )
 
 
+def _in_known_frame(
+    anchor: FloatArray,
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    anchor_cov: FloatArray | None,
+    anchored_from_step: int,
+) -> tuple[FloatArray, FloatArray]:
+    """The poses in ``Wknown`` and their covariances; before ``anchored_from_step`` the
+    anchor's covariance is added (a filter's poses from before its match, as for the
+    evidence)."""
+    n = poses.shape[0]
+    out = np.zeros((n, 3))
+    covs = np.zeros((n, 3, 3))
+    C = np.asarray(pose_covs, dtype=float)
+    for k in range(n):
+        out[k], Ja, Jx = compose_jacobians(anchor, poses[k])
+        covs[k] = Jx @ C[k] @ Jx.T
+        if anchor_cov is not None and k < anchored_from_step:
+            covs[k] += Ja @ np.asarray(anchor_cov, dtype=float) @ Ja.T
+    return out, covs
+
+
 def _beyond(obs: ObservationSet, known: FloatArray, reach: float) -> bool:
     """Whether circle landmark ``obs`` stands too far from the known circle's centre for
-    a beam hitting it to return within ``reach`` of that centre's range."""
+    a beam it returns to have been read as a hit there: such a beam is aimed within the
+    mapped radius of the centre (across the beam) and returns within ``reach`` of the
+    centre's range (along it)."""
     centre = np.mean(obs.features[:, :2], axis=0)
-    radius = float(np.median(obs.features[:, 2]))
-    return float(np.hypot(*(centre - known[:2]))) > reach + max(radius, 0.0)
+    radius = max(float(np.median(obs.features[:, 2])), 0.0)
+    window = math.hypot(reach, float(known[2]))
+    return float(np.hypot(*(centre - known[:2]))) > window + radius
 
 
 def _row(
@@ -366,7 +397,7 @@ def _row(
 ) -> FeatureChange:
     kp = known.params[r]
     kc = known.covs[r]
-    res, S, stat, disp = _test(obs, kp, kc, params)
+    res, S, stat, disp, spread = _test(obs, kp, kc, params)
     dof = residual_dof(obs.kind)
     thr = params.threshold(dof)
     return FeatureChange(
@@ -383,12 +414,13 @@ def _row(
         scans_in_view=in_view,
         associated=associated,
         landmark=obs.landmark,
+        spread_factor=spread,
     )
 
 
 def _consistent(s: ObservationSet, known: KnownMapArrays, r: int, params: ChangeParams) -> bool:
     """Whether ``s`` passes the moved test of known feature ``r`` (is that feature)."""
-    _, _, stat, _ = _test(s, known.params[r], known.covs[r], params)
+    stat = _test(s, known.params[r], known.covs[r], params)[2]
     return stat <= params.threshold(residual_dof(s.kind))
 
 

@@ -25,7 +25,9 @@ too thin for any core beam at that range (``r ≤ q·σ``) gives no evidence eit
 
 The same beams say the converse (:func:`circles_seen_occupied`): a trunk that still
 stands where the map has it returns the beams aimed at its mapped disc (within the
-mapped radius of the centre, core or not) from within reach of the centre's range.
+mapped radius of the centre, core or not) from its near face: within reach in front
+of the centre's range, and no further behind it than the position and range errors
+allow.
 A scan sees the place occupied when at least ``min_beams_present`` of those beams do.
 This reads a trunk the extractor missed (hidden in part by another, or thinner than
 mapped), which the view rules cannot tell from an absent one.
@@ -140,7 +142,7 @@ def circles_seen_occupied(
 ) -> dict[int, tuple[int, float]]:
     """Per circle of ``features`` at ``rows``: the scans in which its surveyed place was
     seen occupied (see the module docstring), counted like :func:`scans_seen_empty`,
-    and the largest reach (m) a hit was counted within, from the mapped centre.
+    and the largest reach (m) in front of the mapped centre a hit was counted within.
 
     Only circles are read; the arguments are those of :func:`scans_seen_empty`.
     """
@@ -177,8 +179,11 @@ def circles_seen_occupied(
                 continue
             lateral = map_var[j] + pos_var + d * d * head_var
             reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
+            # A standing trunk returns from its near face: never from beyond its centre
+            # by more than the position and range errors allow.
+            behind = q * math.sqrt(lateral + sig_range**2)
             seen = rho[sel]
-            hits = np.count_nonzero((seen >= d - reach) & (seen <= d + reach))
+            hits = np.count_nonzero((seen >= d - reach) & (seen <= d + behind))
             if hits >= params.min_beams_present:
                 counts[j] += params.view_stride
                 reach_max[j] = max(reach_max[j], reach)

@@ -64,6 +64,9 @@ class FeatureChange:
     scans_seen_empty: int = 0
     """Scans whose raw beams went through the feature's surveyed place (circles of a
     log with raw scans; :mod:`mapfuse_core.evaluation.changes.freespace`), 0 otherwise."""
+    spread_factor: float = 1.0
+    """Factor the evidence's measurement covariance was scaled by because its
+    observations disagree beyond their noise (1: they agree; 1 when not observed)."""
     scans_seen_occupied: int = 0
     """Scans whose raw beams found a circle still standing at its surveyed place (read
     for circles without an associated landmark, in a log with raw scans), 0 otherwise."""
@@ -86,6 +89,7 @@ class FeatureChange:
             "landmark": self.landmark,
             "scans_seen_empty": self.scans_seen_empty,
             "scans_seen_occupied": self.scans_seen_occupied,
+            "spread_factor": _num(self.spread_factor),
         }
 
 
