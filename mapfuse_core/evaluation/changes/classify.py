@@ -42,7 +42,7 @@ import numpy as np
 
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against, observation_sets
-from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
+from mapfuse_core.evaluation.changes.freespace import read_surveyed_places
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import (
     ChangeReport,
@@ -227,9 +227,10 @@ def classify_changes(
     empty = {int(known.ids[r]): 0 for r in unassociated}
     occupied: dict[int, tuple[int, float]] = {}
     if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
-        scans = (poses_K, covs_K, log.scan_bearings, log.scan_ranges, params)
-        empty = scans_seen_empty(known, unassociated, *scans)
-        occupied = circles_seen_occupied(known, unassociated, *scans)
+        reading = read_surveyed_places(
+            known, unassociated, poses_K, covs_K, log.scan_bearings, log.scan_ranges, params
+        )
+        empty, occupied = reading.empty, reading.occupied
     # Moves beyond the association gate: nearest unassociated landmark, one to one.  A
     # landmark consistent with a known feature already observed is another track of
     # that feature (a duplicate): it may confirm this one too (two plan walls a wall's

@@ -1,4 +1,5 @@
-"""Where the laser saw through a mapped circle or wall: :func:`scans_seen_empty`.
+"""Where the laser saw through a mapped circle or wall, or found a mapped circle
+standing: :func:`read_surveyed_places`.
 
 :func:`~mapfuse_core.evaluation.changes.visibility.scans_in_view` asks whether the
 extractor *would* have returned a feature; that is indirect evidence of absence, and
@@ -49,6 +50,7 @@ extents gives no evidence.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import norm
@@ -58,10 +60,21 @@ from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["circles_seen_occupied", "scans_seen_empty"]
+__all__ = ["PlaceReading", "circles_seen_occupied", "read_surveyed_places", "scans_seen_empty"]
 
 
-def scans_seen_empty(
+@dataclass(frozen=True)
+class PlaceReading:
+    """What the raw scans say of the surveyed places of some known features."""
+
+    empty: dict[int, int]
+    """Known id → scans in which its place was seen empty (circles and walls)."""
+    occupied: dict[int, tuple[int, float]]
+    """Known id of a circle → scans in which it was seen standing there, and the
+    largest reach (m) in front of the mapped centre a hit was counted within."""
+
+
+def read_surveyed_places(
     features: KnownMapArrays,
     rows: list[int],
     poses: FloatArray,
@@ -69,17 +82,17 @@ def scans_seen_empty(
     bearings: FloatArray,
     ranges: FloatArray,
     params: ChangeParams,
-) -> dict[int, int]:
-    """Scans in which the circles and walls of ``features`` at ``rows`` were seen empty
-    (see the module docstring), counted at every ``view_stride``-th step times the
-    stride.
+) -> PlaceReading:
+    """Read the raw scans at the surveyed places of ``features`` at ``rows`` (see the
+    module docstring): the scans that saw each place empty and, for circles, those
+    that saw it occupied, counted at every ``view_stride``-th step times the stride.
 
     ``poses``/``pose_covs``: the sensor pose of every step in the map's frame and its
     covariance (only its largest position variance and its heading variance are used,
     so the frame it is expressed in does not matter); ``bearings``/``ranges``: the raw
     scans, (B,) and (N, B).
     """
-    out = {int(features.ids[r]): 0 for r in rows}
+    empty = {int(features.ids[r]): 0 for r in rows}
     P = np.asarray(poses, dtype=float)
     C = np.asarray(pose_covs, dtype=float)
     b = np.asarray(bearings, dtype=float)
@@ -93,42 +106,27 @@ def scans_seen_empty(
         and np.all(np.isfinite(features.extents[r]))
     ]
     if walls:
-        _walls_seen_empty(features, walls, P, C, b, ranges, q, sig_range, params, out)
+        _walls_seen_empty(features, walls, P, C, b, ranges, q, sig_range, params, empty)
     circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
-    if not circles:
-        return out
-    centres = features.params[circles, :2]
-    radii = features.params[circles, 2]
-    map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
-    radius_var = np.clip(features.covs[circles, 2, 2], 0.0, None)
-    for k in range(0, P.shape[0], params.view_stride):
-        x = P[k]
-        if not np.all(np.isfinite(x)) or not np.all(np.isfinite(C[k])):
-            continue
-        pos_var = _largest_position_variance(C[k])
-        head_var = max(float(C[k][2, 2]), 0.0)
-        rho = np.asarray(ranges[k], dtype=float)
-        for j, r in enumerate(circles):
-            v = centres[j] - x[:2]
-            d = math.hypot(float(v[0]), float(v[1]))
-            if d > params.max_range_m or d <= radii[j]:
-                continue
-            lateral = map_var[j] + pos_var + d * d * head_var
-            spread = q * math.sqrt(lateral + radius_var[j])
-            core = radii[j] - spread
-            if core <= 0.0:
-                continue
-            rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
-            sel = (np.abs(d * np.sin(rel)) < core) & (np.cos(rel) > 0.0)
-            if not np.any(sel):
-                continue
-            seen = rho[sel]
-            reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
-            passes = seen > d + reach
-            hits = (seen >= d - reach) & ~passes
-            if np.any(passes) and not np.any(hits):
-                out[int(features.ids[r])] += params.view_stride
-    return out
+    occupied = {int(features.ids[r]): (0, 0.0) for r in circles}
+    if circles:
+        _read_circles(features, circles, P, C, b, ranges, q, sig_range, params, empty, occupied)
+    return PlaceReading(empty=empty, occupied=occupied)
+
+
+def scans_seen_empty(
+    features: KnownMapArrays,
+    rows: list[int],
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    bearings: FloatArray,
+    ranges: FloatArray,
+    params: ChangeParams,
+) -> dict[int, int]:
+    """Scans in which the circles and walls of ``features`` at ``rows`` were seen empty
+    (:func:`read_surveyed_places`'s ``empty``)."""
+    reading = read_surveyed_places(features, rows, poses, pose_covs, bearings, ranges, params)
+    return reading.empty
 
 
 def circles_seen_occupied(
@@ -141,25 +139,34 @@ def circles_seen_occupied(
     params: ChangeParams,
 ) -> dict[int, tuple[int, float]]:
     """Per circle of ``features`` at ``rows``: the scans in which its surveyed place was
-    seen occupied (see the module docstring), counted like :func:`scans_seen_empty`,
-    and the largest reach (m) in front of the mapped centre a hit was counted within.
-
-    Only circles are read; the arguments are those of :func:`scans_seen_empty`.
-    """
+    seen occupied, and the largest reach of a hit (:func:`read_surveyed_places`'s
+    ``occupied``)."""
     circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
-    out = {int(features.ids[r]): (0, 0.0) for r in circles}
-    if not circles:
-        return out
-    P = np.asarray(poses, dtype=float)
-    C = np.asarray(pose_covs, dtype=float)
-    b = np.asarray(bearings, dtype=float)
-    q = float(norm.ppf(params.level))
-    sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
+    reading = read_surveyed_places(features, circles, poses, pose_covs, bearings, ranges, params)
+    return reading.occupied
+
+
+def _read_circles(
+    features: KnownMapArrays,
+    circles: list[int],
+    P: FloatArray,
+    C: FloatArray,
+    b: FloatArray,
+    ranges: FloatArray,
+    q: float,
+    sig_range: float,
+    params: ChangeParams,
+    empty: dict[int, int],
+    occupied: dict[int, tuple[int, float]],
+) -> None:
+    """Both readings of the circles at ``circles``, in one pass over the scans, added
+    into ``empty`` and ``occupied``."""
     centres = features.params[circles, :2]
     radii = features.params[circles, 2]
     map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
     radius_var = np.clip(features.covs[circles, 2, 2], 0.0, None)
-    counts = np.zeros(len(circles), dtype=np.int64)
+    n_empty = np.zeros(len(circles), dtype=np.int64)
+    n_occupied = np.zeros(len(circles), dtype=np.int64)
     reach_max = np.zeros(len(circles))
     for k in range(0, P.shape[0], params.view_stride):
         x = P[k]
@@ -173,23 +180,34 @@ def circles_seen_occupied(
             d = math.hypot(float(v[0]), float(v[1]))
             if d > params.max_range_m or d <= radii[j]:
                 continue
-            rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
-            sel = (np.abs(d * np.sin(rel)) < radii[j]) & (np.cos(rel) > 0.0)
-            if np.count_nonzero(sel) < params.min_beams_present:
-                continue
             lateral = map_var[j] + pos_var + d * d * head_var
             reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
-            # A standing trunk returns from its near face: never from beyond its centre
-            # by more than the position and range errors allow.
-            behind = q * math.sqrt(lateral + sig_range**2)
-            seen = rho[sel]
-            hits = np.count_nonzero((seen >= d - reach) & (seen <= d + behind))
-            if hits >= params.min_beams_present:
-                counts[j] += params.view_stride
-                reach_max[j] = max(reach_max[j], reach)
+            rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
+            across = np.abs(d * np.sin(rel))
+            ahead = np.cos(rel) > 0.0
+            # Empty: core beams (sure to hit the trunk wherever its errors put it) pass.
+            core = radii[j] - q * math.sqrt(lateral + radius_var[j])
+            if core > 0.0:
+                seen = rho[(across < core) & ahead]
+                if seen.size:
+                    passes = seen > d + reach
+                    hits = (seen >= d - reach) & ~passes
+                    if np.any(passes) and not np.any(hits):
+                        n_empty[j] += params.view_stride
+            # Occupied: beams on the mapped disc return from a near face.  A standing
+            # trunk never returns from beyond its centre by more than the position and
+            # range errors allow.
+            seen = rho[(across < radii[j]) & ahead]
+            if seen.size >= params.min_beams_present:
+                behind = q * math.sqrt(lateral + sig_range**2)
+                hits_n = np.count_nonzero((seen >= d - reach) & (seen <= d + behind))
+                if hits_n >= params.min_beams_present:
+                    n_occupied[j] += params.view_stride
+                    reach_max[j] = max(reach_max[j], reach)
     for j, r in enumerate(circles):
-        out[int(features.ids[r])] = (int(counts[j]), float(reach_max[j]))
-    return out
+        kid = int(features.ids[r])
+        empty[kid] += int(n_empty[j])
+        occupied[kid] = (int(n_occupied[j]), float(reach_max[j]))
 
 
 def _walls_seen_empty(
