@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.changes_mc import change_rng
-from mapfuse.campaign.stats import anees_series
+from mapfuse.campaign.stats import AneesSeries, anees_series
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.sim.scenario import Scenario, load_scenario
@@ -174,13 +174,19 @@ def _anees_table(rows: list[dict[str, Any]]) -> None:
         ("changed", "on", "changed_nees"),
         ("changed", "off", "changed_off_nees"),
     ):
-        n = min(len(r[key]) for r in ok)
-        x = np.array([[np.nan if v is None else v for v in r[key][:n]] for r in ok])
-        a = anees_series(x)
+        a = _anees(ok, key)
         print(
             f"| {pre} | {gate} | {a.overall:.3f} | {a.fraction_inside:.3f} "
             f"| {a.fraction_above:.3f} |"
         )
+
+
+def _anees(rows: list[dict[str, Any]], key: str) -> AneesSeries:
+    """ANEES over the rows' per-step NEES lists under ``key`` (None: undefined), cut to
+    the shortest run."""
+    n = min(len(r[key]) for r in rows)
+    x = np.array([[np.nan if v is None else v for v in r[key][:n]] for r in rows])
+    return anees_series(x)
 
 
 def _after_anchor(rows: list[dict[str, Any]]) -> None:
@@ -269,9 +275,7 @@ def _graph_table(rows: list[dict[str, Any]]) -> None:
     for pre in ("unchanged", "changed"):
         key = f"{pre}_graph_nees"
         if all(key in r for r in ok):
-            n = min(len(r[key]) for r in ok)
-            x = np.array([[np.nan if v is None else v for v in r[key][:n]] for r in ok])
-            a = anees_series(x)
+            a = _anees(ok, key)
             print(
                 f"{pre}: ANEES {a.overall:.3f}, steps inside the bounds "
                 f"{a.fraction_inside:.3f}, above {a.fraction_above:.3f}"
