@@ -41,7 +41,12 @@ import math
 import numpy as np
 
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
-from mapfuse_core.evaluation.changes.evidence import ObservationSet, fuse_against, observation_sets
+from mapfuse_core.evaluation.changes.evidence import (
+    ObservationSet,
+    fuse_against,
+    observation_sets_in_known,
+    poses_in_known,
+)
 from mapfuse_core.evaluation.changes.freespace import read_surveyed_places
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import (
@@ -53,7 +58,7 @@ from mapfuse_core.evaluation.changes.report import (
 from mapfuse_core.evaluation.changes.residual import feature_residual, residual_dof
 from mapfuse_core.evaluation.changes.visibility import scans_in_view
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
+from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = ["classify_changes"]
 
@@ -183,7 +188,7 @@ def classify_changes(
     ``x_Wknown_Wglobal``: its anchor.  ``anchor_cov``/``anchored_from_step``: a
     filtered track's anchor covariance and match step; the observations made before
     it carry the anchor's uncertainty too
-    (:func:`~mapfuse_core.evaluation.changes.evidence.observation_sets`).  See the
+    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).  See the
     module docstring for the rules.
     """
     params = params or ChangeParams()
@@ -191,16 +196,8 @@ def classify_changes(
     if anchor.shape != (3,) or not np.all(np.isfinite(anchor)):
         raise ValueError(f"the anchor must be a finite (3,) pose, got {anchor!r}")
     known = log.known_map
-    sets = observation_sets(
-        log,
-        obs_landmark,
-        obs_known_id,
-        poses,
-        pose_covs,
-        anchor,
-        anchor_cov=anchor_cov,
-        anchored_from_step=anchored_from_step,
-    )
+    poses_K, covs_K = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
+    sets = observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
     by_known: dict[int, ObservationSet] = {}
     free: list[ObservationSet] = []
     for s in sets:
@@ -210,9 +207,6 @@ def classify_changes(
                 by_known[s.known_id] = s
         elif s.n_obs >= params.min_obs:
             free.append(s)
-    poses_K, covs_K = _in_known_frame(
-        anchor, np.asarray(poses, dtype=float), pose_covs, anchor_cov, anchored_from_step
-    )
     occluders = _occluders(free, known)
     in_view = scans_in_view(known, poses_K, params, occluders)
 
@@ -353,28 +347,6 @@ def classify_changes(
         level=params.level,
         x_Wknown_Wglobal=anchor,
     )
-
-
-def _in_known_frame(
-    anchor: FloatArray,
-    poses: FloatArray,
-    pose_covs: FloatArray,
-    anchor_cov: FloatArray | None,
-    anchored_from_step: int,
-) -> tuple[FloatArray, FloatArray]:
-    """The poses in ``Wknown`` and their covariances; before ``anchored_from_step`` the
-    anchor's covariance is added (a filter's poses from before its match, as for the
-    evidence)."""
-    n = poses.shape[0]
-    out = np.zeros((n, 3))
-    covs = np.zeros((n, 3, 3))
-    C = np.asarray(pose_covs, dtype=float)
-    for k in range(n):
-        out[k], Ja, Jx = compose_jacobians(anchor, poses[k])
-        covs[k] = Jx @ C[k] @ Jx.T
-        if anchor_cov is not None and k < anchored_from_step:
-            covs[k] += Ja @ np.asarray(anchor_cov, dtype=float) @ Ja.T
-    return out, covs
 
 
 def _beyond(obs: ObservationSet, known: FloatArray, reach: float) -> bool:

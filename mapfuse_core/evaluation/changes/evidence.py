@@ -14,7 +14,7 @@ steps are almost fully correlated.  The pose covariance is the track's (in
 ``Wglobal``), an upper bound of the vehicle's uncertainty relative to the known map
 when the map is fused; the anchor's own covariance is left out there because the
 track's already carries it.  A filter's poses from before its map match do not: for
-those steps the anchor's covariance is added (:func:`observation_sets`).  The
+those steps the anchor's covariance is added (:func:`poses_in_known`).  The
 trajectory has itself been corrected with the known feature under test, which pulls
 the evidence towards it: the test is conservative (``docs/changes.md``).  When the
 observations scatter about their fused value more than their measurement noise
@@ -38,6 +38,8 @@ __all__ = [
     "ObservationSet",
     "fuse_against",
     "observation_sets",
+    "observation_sets_in_known",
+    "poses_in_known",
     "spread_factor",
 ]
 
@@ -87,6 +89,37 @@ class LandmarkEvidence:
     observations scatter more than their noise allows (:func:`spread_factor`)."""
 
 
+def poses_in_known(
+    x_Wknown_Wglobal: FloatArray,
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    anchor_cov: FloatArray | None = None,
+    anchored_from_step: int = 0,
+) -> tuple[FloatArray, FloatArray]:
+    """A run's poses ``x^Wglobal_R`` put in ``Wknown`` through its anchor, with their
+    covariances (NaN where the pose's is).
+
+    ``anchor_cov``: the anchor's covariance, added through the composition's Jacobian
+    to the poses before ``anchored_from_step``.  A filter's pose at such a step was
+    estimated before the map was matched: its covariance says how well the pose is
+    known in ``Wglobal``, not how well ``Wglobal`` is placed in ``Wknown``.  From the
+    match on, the filter's track carries that through the known features.
+    """
+    PA = None if anchor_cov is None else np.asarray(anchor_cov, dtype=float)
+    if PA is not None and (PA.shape != (3, 3) or not np.all(np.isfinite(PA))):
+        raise ValueError(f"the anchor's covariance must be a finite 3×3 matrix, got {PA!r}")
+    P = np.asarray(poses, dtype=float).reshape(-1, 3)
+    C = np.asarray(pose_covs, dtype=float)
+    out = np.zeros_like(P)
+    covs = np.zeros((P.shape[0], 3, 3))
+    for k in range(P.shape[0]):
+        out[k], Ja, Jx = compose_jacobians(x_Wknown_Wglobal, P[k])
+        covs[k] = Jx @ C[k] @ Jx.T
+        if PA is not None and k < anchored_from_step:
+            covs[k] += Ja @ PA @ Ja.T
+    return out, covs
+
+
 def observation_sets(
     log: MeasurementLog,
     obs_landmark: np.ndarray,
@@ -100,22 +133,31 @@ def observation_sets(
     """Group the logged observations by landmark and put each in ``Wknown``.
 
     ``poses``/``pose_covs`` are the estimated ``x^Wglobal_R`` per step (a step beyond
-    them, or with a non-finite pose, contributes nothing).  ``anchor_cov``: the
-    anchor's covariance, added (through the composition's Jacobian) to the pose part of
-    every observation made before ``anchored_from_step``.  A filter's pose at such a
-    step was estimated before the map was matched: its covariance says how well the
-    pose is known in ``Wglobal``, not how well ``Wglobal`` is placed in ``Wknown``.
-    From the match on, the filter's track carries that through the known features.
+    them, or with a non-finite pose, contributes nothing); ``anchor_cov`` and
+    ``anchored_from_step`` as in :func:`poses_in_known`.
     """
+    poses_K, covs_K = poses_in_known(
+        x_Wknown_Wglobal, poses, pose_covs, anchor_cov, anchored_from_step
+    )
+    return observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
+
+
+def observation_sets_in_known(
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses_known: FloatArray,
+    pose_covs_known: FloatArray,
+) -> list[ObservationSet]:
+    """:func:`observation_sets` from poses already in ``Wknown``
+    (:func:`poses_in_known`); a non-finite pose covariance counts as zero."""
     lm = np.asarray(obs_landmark, dtype=np.int64)
     kn = np.asarray(obs_known_id, dtype=np.int64)
     if lm.shape != (log.n_features,) or kn.shape != lm.shape:
         raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
+    poses = np.asarray(poses_known, dtype=float)
     n = poses.shape[0]
-    covs = np.nan_to_num(np.asarray(pose_covs, dtype=float), nan=0.0)
-    PA = None if anchor_cov is None else np.asarray(anchor_cov, dtype=float)
-    if PA is not None and (PA.shape != (3, 3) or not np.all(np.isfinite(PA))):
-        raise ValueError(f"the anchor's covariance must be a finite 3×3 matrix, got {PA!r}")
+    covs = np.nan_to_num(np.asarray(pose_covs_known, dtype=float), nan=0.0)
     out = []
     for t in np.unique(lm[lm >= 0]).tolist():
         idx = np.nonzero(lm == t)[0]
@@ -131,14 +173,9 @@ def observation_sets(
         pc = np.zeros((idx.size, 3, 3))
         for r, j in enumerate(idx.tolist()):
             s = int(log.feat_step[j])
-            x_K, Ja, Jg = compose_jacobians(x_Wknown_Wglobal, poses[s])
-            feats[r], Jx, Jz = transform_feature(kind, x_K, log.feat_params[j])
+            feats[r], Jx, Jz = transform_feature(kind, poses[s], log.feat_params[j])
             mc[r] = Jz @ log.feat_cov[j] @ Jz.T
-            Jp = Jx @ Jg
-            pc[r] = Jp @ covs[s] @ Jp.T
-            if PA is not None and s < anchored_from_step:
-                JA = Jx @ Ja
-                pc[r] += JA @ PA @ JA.T
+            pc[r] = Jx @ covs[s] @ Jx.T
         tids = log.feat_true_id[idx]
         tids = tids[tids >= 0]
         out.append(
