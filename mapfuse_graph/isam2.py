@@ -99,12 +99,12 @@ class ISAM2Options:
       information moves (the newest poses, the landmarks in view, a loop closure's old
       landmark) sits at the top of the tree, and the final Gauss–Newton step
       (:attr:`final_gauss_newton`) relinearises everything.  The filtered estimates stay
-      within a few hundredths of a σ of the full check's, for a shorter
-      ``ISAM2.update`` (``docs/performance.md``).
+      close to the full check's, for a shorter ``ISAM2.update`` (measured in
+      ``docs/performance.md``).
     * Fixed-lag smoother: marginalising a variable freezes the linearisation of every
       factor it leaves behind, so a pose should not leave the window with a stale
       linearisation point; the full check costs the smoother no measurable time and
-      keeps its NEES 1–4 % lower (``docs/fixedlag.md``)."""
+      keeps its NEES lower (measured in ``docs/fixedlag.md``)."""
 
     factorization: str = "CHOLESKY"
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
@@ -116,10 +116,10 @@ class ISAM2Options:
     final_gauss_newton: bool = True
     """After the final updates, one Gauss–Newton step on the whole graph linearised at
     iSAM2's estimate.  iSAM2 keeps each variable's linearisation point until its delta
-    passes the relinearisation threshold, so its estimate stops short of the optimum by a
-    few hundredths of a σ (with the partial check, a variable deep in the tree can be
-    further: 22 cm on a known wall's ρ in ``tests/test_graph.py``); one step from
-    there, where the problem is nearly linear, lands on the batch optimum.  With
+    passes the relinearisation threshold, so its estimate stops short of the optimum
+    (further with the partial check, for a variable deep in the tree:
+    ``docs/performance.md``); one step from there, where the problem is nearly linear,
+    lands on the batch optimum.  With
     ``final_marginals="relinearized"`` the step reuses the marginals' elimination, so it
     costs one back-substitution.  The filtered (per-step) estimates are iSAM2's alone
     either way."""
