@@ -2,7 +2,9 @@
 
 1. The logged observations are grouped by the estimator's landmark decisions and put
    in ``Wknown`` through the estimated trajectory and anchor
-   (:mod:`mapfuse_core.evaluation.changes.evidence`).
+   (:mod:`mapfuse_core.evaluation.changes.evidence`); a filter's poses from before
+   its map match are first re-placed on the known map
+   (:mod:`mapfuse_core.evaluation.changes.relocalize`).
 2. A known feature with an associated landmark is tested against that landmark's
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
@@ -49,6 +51,7 @@ from mapfuse_core.evaluation.changes.evidence import (
 )
 from mapfuse_core.evaluation.changes.freespace import read_surveyed_places
 from mapfuse_core.evaluation.changes.params import ChangeParams
+from mapfuse_core.evaluation.changes.relocalize import relocalize_before_match
 from mapfuse_core.evaluation.changes.report import (
     ChangeReport,
     ChangeStatus,
@@ -197,6 +200,12 @@ def classify_changes(
         raise ValueError(f"the anchor must be a finite (3,) pose, got {anchor!r}")
     known = log.known_map
     poses_K, covs_K = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
+    reloc = None
+    if params.relocalize and anchored_from_step > 0:
+        reloc = relocalize_before_match(
+            log, obs_landmark, obs_known_id, poses_K, covs_K, anchored_from_step, params.level
+        )
+        poses_K, covs_K = reloc.poses, reloc.covs
     sets = observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
     by_known: dict[int, ObservationSet] = {}
     free: list[ObservationSet] = []
@@ -346,6 +355,9 @@ def classify_changes(
         duplicates=duplicates,
         level=params.level,
         x_Wknown_Wglobal=anchor,
+        relocalized_steps=0 if reloc is None else reloc.relocalized,
+        bridged_steps=0 if reloc is None else reloc.bridged,
+        relocalize_refused=0 if reloc is None else reloc.refused,
     )
 
 

@@ -115,6 +115,14 @@ class ChangeParams:
     :attr:`min_scans` it is otherwise called missing.  ``False``: the extractor's (or
     beam-count) rule alone."""
 
+    relocalize: bool = True
+    """Re-place a filter's poses from before its map match on the known map, from their
+    steps' observations of landmarks the run merged with known features
+    (:mod:`mapfuse_core.evaluation.changes.relocalize`), before testing and predicting
+    the view through them.  Only the steps a caller marks as estimated before the match
+    are touched (a smoothed track has none).  ``False``: those poses enter with the
+    anchor's covariance added, as filtered."""
+
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
             raise ValueError(f"ChangeParams.level must be in (0, 1), got {self.level}")
@@ -133,7 +141,12 @@ class ChangeParams:
         lm = self.link_min_scans
         if lm is not None and (isinstance(lm, bool) or not isinstance(lm, int) or lm < 1):
             raise ValueError(f"ChangeParams.link_min_scans must be None or an int >= 1, got {lm!r}")
-        for name in ("link_unviewed_lines", "link_unviewed_circles", "free_space"):
+        for name in (
+            "link_unviewed_lines",
+            "link_unviewed_circles",
+            "free_space",
+            "relocalize",
+        ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ChangeParams.{name} must be a bool, got {getattr(self, name)!r}")
         m = self.missing_radius_sigmas

@@ -136,6 +136,15 @@ class ChangeReport:
     """Probability of the χ² tests."""
     x_Wknown_Wglobal: FloatArray
     """(3,) the anchor the evidence was put in ``Wknown`` with."""
+    relocalized_steps: int = 0
+    """Steps before the run's map match whose pose was re-placed on the known map
+    (:mod:`mapfuse_core.evaluation.changes.relocalize`)."""
+    bridged_steps: int = 0
+    """Steps before the match placed from the nearest re-placed step through the
+    logged odometry."""
+    relocalize_refused: int = 0
+    """Steps before the match with three or more merged features whose re-placement was
+    refused; their poses enter as filtered."""
 
     def of(self, status: ChangeStatus) -> list[FeatureChange]:
         """Known features of one class."""
@@ -161,6 +170,9 @@ class ChangeReport:
             "level": self.level,
             "x_Wknown_Wglobal": [float(v) for v in self.x_Wknown_Wglobal],
             "counts": self.counts(),
+            "relocalized_steps": self.relocalized_steps,
+            "bridged_steps": self.bridged_steps,
+            "relocalize_refused": self.relocalize_refused,
             "known": [c.as_dict() for c in self.known],
             "new": [n.as_dict() for n in self.new],
         }

@@ -1,0 +1,347 @@
+"""A filter's poses from before its map match, re-placed on the known map:
+:func:`relocalize_before_match`.
+
+A filter estimates each pose once, with what it has seen so far.  Before its map
+match that is its own map: the pose is known in ``Wglobal``, and through the anchor
+found later it lands in ``Wknown`` with the anchor's covariance on top
+(:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`), a metre or more
+after a long unanchored stretch.  A feature seen only in that stretch is then tested
+through a pose too loose to tell a move of a couple of metres from noise, and a
+known feature's surveyed place is predicted in view from the wrong place.
+
+Yet the run's own decisions say which observations of those steps are of features
+the known map holds: their landmarks were merged with known features at or after the
+match.  Those observations place the pose on the known map directly, step by step,
+as a smoother would with the whole log.  Each pose before the match is re-estimated
+by Gauss–Newton from its step's observations of merged landmarks against their known
+features, each residual weighed with the observation's noise and the known feature's
+own covariance, then fused with the filtered pose (in ``Wknown``, anchor covariance
+included) as a prior.
+
+A merged landmark can still be a changed feature the estimator took for right.  The
+placement is therefore tested: when its χ² exceeds the level, the observation that
+contributes most is set aside and the pose solved again, while three features remain;
+a placement that stays inconsistent, or disagrees with the filtered pose beyond its
+covariance, or does not fix all three degrees of freedom, leaves the pose as it was.
+A circle enters with its centre only: a short arc biases the fitted radius, which
+says nothing about the pose.
+
+A step that sees too few merged features is placed from the nearest placed step
+before or after it, through the logged odometry and its covariance (dead reckoning
+over a few steps drifts far less than the whole unanchored stretch), when that is
+tighter than the filtered pose and agrees with it.  The filter's first pose from the
+match on counts as placed: the steps just before the match, where a feature seen
+only before it is most often seen, are dead-reckoned back from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.evaluation.changes.residual import feature_residual
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
+from mapfuse_core.geometry.se2 import (
+    FloatArray,
+    compose_jacobians,
+    inverse_jacobian,
+    wrap_scalar,
+)
+
+__all__ = ["Relocalization", "relocalize_before_match"]
+
+_MAX_ITER = 10
+_STEP_TOL = 1e-9
+_MIN_EIG = 1e-12
+_MIN_TIES = 3
+"""Merged features a step needs to be re-placed.  Two fix a pose with one degree of
+freedom to spare, which a single changed feature among them can hide in; three leave
+three to test it with."""
+_POSE_ROWS = slice(0, 2)
+"""Residual rows that depend on the pose: a line's two, a circle's centre (its radius
+residual does not)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Relocalization:
+    """Poses in ``Wknown`` after re-placing those before the match on the known map."""
+
+    poses: FloatArray
+    """(N, 3) the poses; those not re-placed are the input's."""
+    covs: FloatArray
+    """(N, 3, 3) their covariances."""
+    relocalized: int
+    """Steps before the match whose pose was re-placed."""
+    refused: int
+    """Steps before the match with three or more merged features whose placement was
+    refused (inconsistent, disagreeing with the filtered pose, or under-determined)."""
+    set_aside: int
+    """Observations set aside as inconsistent in the placements that were kept."""
+    bridged: int = 0
+    """Steps before the match without a placement of their own, placed instead from
+    the nearest placed step through the logged odometry."""
+
+
+@dataclass(frozen=True, eq=False)
+class _Tie:
+    kind: FeatureKind
+    z: FloatArray
+    cov_z: FloatArray
+    known: FloatArray
+    known_cov: FloatArray
+
+
+def _linearize(tie: _Tie, x: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Residual of the observation placed through ``x`` from its known feature, its
+    Jacobian in ``x`` and its covariance (observation noise and known feature)."""
+    f, Jx, Jz = transform_feature(tie.kind, x, tie.z)
+    r, Jk, Jf = feature_residual(tie.kind, tie.known, f)
+    rows = _POSE_ROWS
+    H = (Jf @ Jx)[rows]
+    A = (Jf @ Jz)[rows]
+    B = Jk[rows]
+    S = A @ tie.cov_z @ A.T + B @ tie.known_cov @ B.T
+    return r[rows], H, 0.5 * (S + S.T)
+
+
+def _solve(ties: list[_Tie], x0: FloatArray) -> tuple[FloatArray, FloatArray, list[float]] | None:
+    """Gauss–Newton placement from the ties alone: the pose, its information and each
+    tie's χ² at the solution; ``None`` when the ties leave a direction free."""
+    x = np.asarray(x0, dtype=float).copy()
+    for _ in range(_MAX_ITER):
+        info = np.zeros((3, 3))
+        g = np.zeros(3)
+        for t in ties:
+            r, H, S = _linearize(t, x)
+            W = np.linalg.inv(S)
+            info += H.T @ W @ H
+            g += H.T @ W @ r
+        if np.linalg.eigvalsh(info)[0] <= _MIN_EIG * max(1.0, float(np.trace(info))):
+            return None
+        dx = -np.linalg.solve(info, g)
+        x = x + dx
+        x[2] = wrap_scalar(float(x[2]))
+        if float(np.max(np.abs(dx))) < _STEP_TOL:
+            break
+    info = np.zeros((3, 3))
+    nis = []
+    for t in ties:
+        r, H, S = _linearize(t, x)
+        W = np.linalg.inv(S)
+        info += H.T @ W @ H
+        nis.append(float(r @ W @ r))
+    if np.linalg.eigvalsh(info)[0] <= _MIN_EIG * max(1.0, float(np.trace(info))):
+        return None
+    return x, info, nis
+
+
+def _place(
+    ties: list[_Tie], x0: FloatArray, level: float
+) -> tuple[FloatArray, FloatArray, int] | None:
+    """The consistent placement: the worst tie set aside until the χ² passes, while
+    :data:`_MIN_TIES` remain.  Returns the pose, its information and the ties set aside."""
+    ties = list(ties)
+    aside = 0
+    while len(ties) >= _MIN_TIES:
+        sol = _solve(ties, x0)
+        if sol is None:
+            return None
+        x, info, nis = sol
+        dof = 2 * len(ties) - 3
+        if sum(nis) <= float(chi2.ppf(level, dof)):
+            return x, info, aside
+        ties.pop(int(np.argmax(nis)))
+        aside += 1
+    return None
+
+
+def relocalize_before_match(
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses_known: FloatArray,
+    pose_covs_known: FloatArray,
+    until_step: int,
+    level: float,
+) -> Relocalization:
+    """Re-place the poses of steps ``0 … until_step − 1`` on the known map.
+
+    ``poses_known``/``pose_covs_known``: the run's poses in ``Wknown`` with their
+    covariances, the anchor's included for the steps before the match
+    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).
+    ``obs_landmark``/``obs_known_id``: the run's decisions; an observation ties its
+    step to a known feature when its landmark was merged with one.  ``level``: the
+    probability of the placement's χ² tests.  See the module docstring.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    poses = np.asarray(poses_known, dtype=float).copy()
+    covs = np.asarray(pose_covs_known, dtype=float).copy()
+    if poses.ndim != 2 or poses.shape[1] != 3 or covs.shape != (poses.shape[0], 3, 3):
+        raise ValueError(
+            f"poses must be (N, 3) and their covariances (N, 3, 3), got {poses.shape} "
+            f"and {covs.shape}"
+        )
+    lm = np.asarray(obs_landmark, dtype=np.int64)
+    kn = np.asarray(obs_known_id, dtype=np.int64)
+    if lm.shape != (log.n_features,) or kn.shape != lm.shape:
+        raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
+    known = log.known_map
+    row_of = {int(k): r for r, k in enumerate(known.ids.tolist())}
+    last = min(int(until_step), poses.shape[0], log.n_steps)
+    done = refused = aside_total = 0
+    placed_at = np.zeros(poses.shape[0], dtype=bool)
+    gate3 = float(chi2.ppf(level, 3))
+    for k in range(last):
+        if not np.all(np.isfinite(poses[k])):
+            continue
+        ties = _ties_at(log, k, lm, kn, known, row_of)
+        if len(ties) < _MIN_TIES:
+            continue
+        placed = _place(ties, poses[k], level)
+        if placed is None:
+            refused += 1
+            continue
+        x, info, aside = placed
+        P = np.linalg.inv(info)
+        prior = covs[k]
+        if np.all(np.isfinite(prior)) and np.linalg.eigvalsh(prior)[0] > 0.0:
+            d = x - poses[k]
+            d[2] = wrap_scalar(float(d[2]))
+            if float(d @ np.linalg.solve(prior + P, d)) > gate3:
+                refused += 1
+                continue
+            # Information fusion of the placement with the filtered pose.
+            W0 = np.linalg.inv(prior)
+            P = np.linalg.inv(W0 + info)
+            x = poses[k] + P @ (info @ d)
+            x[2] = wrap_scalar(float(x[2]))
+        poses[k] = x
+        covs[k] = 0.5 * (P + P.T)
+        placed_at[k] = True
+        done += 1
+        aside_total += aside
+    if (
+        last < poses.shape[0]
+        and np.all(np.isfinite(poses[last]))
+        and np.all(np.isfinite(covs[last]))
+    ):
+        # The first pose from the match on is the filter's, anchored: a source too.
+        placed_at[last] = True
+    bridged = _bridge(log, poses, covs, placed_at, last, gate3) if placed_at.any() else 0
+    return Relocalization(
+        poses=poses,
+        covs=covs,
+        relocalized=done,
+        refused=refused,
+        set_aside=aside_total,
+        bridged=bridged,
+    )
+
+
+def _bridge(
+    log: MeasurementLog,
+    poses: FloatArray,
+    covs: FloatArray,
+    placed_at: np.ndarray,
+    last: int,
+    gate: float,
+) -> int:
+    """Place the steps before ``last`` that are not placed from the nearest placed step
+    (step ``last`` itself, the first from the match on, counts as placed when marked),
+    forwards or backwards through the logged odometry, whichever gives the
+    smaller position covariance; kept where that is smaller than the pose's own and
+    the two agree within ``gate``.  Modifies ``poses``/``covs``; returns the count."""
+    end = min(last + 1, poses.shape[0])
+    fwd = _sweep(log, poses, covs, placed_at, range(end), forward=True)
+    bwd = _sweep(log, poses, covs, placed_at, range(end - 1, -1, -1), forward=False)
+    n = 0
+    for k in range(last):
+        if placed_at[k] or not np.all(np.isfinite(poses[k])):
+            continue
+        cands = [c for c in (fwd.get(k), bwd.get(k)) if c is not None]
+        if not cands:
+            continue
+        x, P = min(cands, key=lambda c: float(np.trace(c[1][:2, :2])))
+        own = covs[k]
+        if np.all(np.isfinite(own)):
+            if float(np.trace(P[:2, :2])) >= float(np.trace(own[:2, :2])):
+                continue
+            d = x - poses[k]
+            d[2] = wrap_scalar(float(d[2]))
+            if float(d @ np.linalg.pinv(own + P, hermitian=True) @ d) > gate:
+                continue
+        poses[k] = x
+        covs[k] = 0.5 * (P + P.T)
+        n += 1
+    return n
+
+
+def _sweep(
+    log: MeasurementLog,
+    poses: FloatArray,
+    covs: FloatArray,
+    placed_at: np.ndarray,
+    order: range,
+    forward: bool,
+) -> dict[int, tuple[FloatArray, FloatArray]]:
+    """Dead reckoning from the last placed step met along ``order``: each unplaced step's
+    pose and covariance, reset at every placed step and lost at an odometry row that
+    is not finite."""
+    out: dict[int, tuple[FloatArray, FloatArray]] = {}
+    x: FloatArray | None = None
+    P = np.zeros((3, 3))
+    prev = -1
+    for k in order:
+        if x is not None:
+            # The increment between steps prev and k: row k forwards, row prev inverted
+            # backwards.
+            row = k if forward else prev
+            u = np.asarray(log.odometry[row], dtype=float)
+            Q = np.asarray(log.odometry_cov[row], dtype=float)
+            if not (np.all(np.isfinite(u)) and np.all(np.isfinite(Q))):
+                x = None
+            else:
+                if not forward:
+                    u, Ji = inverse_jacobian(u)
+                    Q = Ji @ Q @ Ji.T
+                x, Ja, Jb = compose_jacobians(x, u)
+                P = Ja @ P @ Ja.T + Jb @ Q @ Jb.T
+        if placed_at[k]:
+            x, P = poses[k].copy(), covs[k].copy()
+        elif x is not None:
+            out[k] = (x.copy(), P.copy())
+        prev = k
+    return out
+
+
+def _ties_at(
+    log: MeasurementLog,
+    k: int,
+    lm: np.ndarray,
+    kn: np.ndarray,
+    known: KnownMapArrays,
+    row_of: dict[int, int],
+) -> list[_Tie]:
+    """Step ``k``'s observations of landmarks merged with a known feature of their kind."""
+    ties = []
+    sl = log.feature_slice(k)
+    for j in range(sl.start, sl.stop):
+        if lm[j] < 0 or kn[j] < 0:
+            continue
+        r = row_of.get(int(kn[j]))
+        if r is None or int(known.kinds[r]) != int(log.feat_kind[j]):
+            continue
+        ties.append(
+            _Tie(
+                kind=FeatureKind(int(log.feat_kind[j])),
+                z=np.asarray(log.feat_params[j], dtype=float),
+                cov_z=np.asarray(log.feat_cov[j], dtype=float),
+                known=np.asarray(known.params[r], dtype=float),
+                known_cov=np.asarray(known.covs[r], dtype=float),
+            )
+        )
+    return ties
