@@ -9,7 +9,8 @@
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
 3. A known feature without one, predicted in view at its surveyed place, or seen empty
-   there, for at least :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
+   there (a tree: or seen occupied there), for at least
+   :attr:`ChangeParams.link_min_scans` scans (a wall: whether or not,
    :attr:`ChangeParams.link_unviewed_lines`; a tree: with
    :attr:`ChangeParams.link_unviewed_circles`), is
    compared with the unassociated landmarks of its kind within
@@ -244,7 +245,11 @@ def classify_changes(
         kind = FeatureKind(int(known.kinds[r]))
         kid = int(known.ids[r])
         need = min(params.link_min_scans or params.min_scans, params.min_scans)
-        unviewed = in_view[kid] < need and empty[kid] < need
+        standing, reach = occupied.get(kid, (0, 0.0))
+        # Seen occupied is seen too: the trunk that the beams hit at the surveyed place
+        # (a tree moved by less than its reach, which hides its own surveyed place
+        # from the view model) is linked to the landmark within that reach below.
+        unviewed = in_view[kid] < need and empty[kid] < need and standing < need
         is_line = kind == FeatureKind.LINE
         linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles
         if unviewed and not linked:
@@ -252,7 +257,6 @@ def classify_changes(
             # says it moved, and a landmark near a tree is as likely a tree the map
             # lacks as this one moved (ChangeParams.link_unviewed_circles).
             continue
-        standing, reach = occupied.get(kid, (0, 0.0))
         for i, s in enumerate(free):
             if s.kind != kind:
                 continue

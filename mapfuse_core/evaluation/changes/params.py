@@ -49,9 +49,12 @@ class ChangeParams:
     reach of it for a scan to see the circle still standing there
     (:func:`~mapfuse_core.evaluation.changes.freespace.circles_seen_occupied`).  A
     circle seen so in more scans than seen empty, and in as many as a link needs
-    (:attr:`link_min_scans`, at most :attr:`min_scans`), is not linked to a landmark
-    out of that reach: the trunk the extractor missed still stands, and the landmark
-    is another tree.  Seen so in :attr:`min_scans` scans, it is not called missing."""
+    (:attr:`link_min_scans`, at most :attr:`min_scans`), counts as seen for a link
+    and is not linked to a landmark out of that reach: the trunk the beams hit is the
+    tree itself, standing where surveyed (the extractor missed it; the landmark out of
+    reach is another tree) or moved by less than the reach (and then hiding its own
+    surveyed place from the view model).  Seen so in :attr:`min_scans` scans, it is
+    not called missing."""
     max_incidence_rad: float = 1.3
     """Beams hitting a wall farther than this from its normal do not count (grazing
     beams give no extractable line)."""
