@@ -52,7 +52,7 @@ from mapfuse_core.evaluation.changes.evidence import (
 )
 from mapfuse_core.evaluation.changes.freespace import read_surveyed_places
 from mapfuse_core.evaluation.changes.params import ChangeParams
-from mapfuse_core.evaluation.changes.relocalize import relocalize_before_match
+from mapfuse_core.evaluation.changes.relocalize import Relocalization, relocalize_before_match
 from mapfuse_core.evaluation.changes.report import (
     ChangeReport,
     ChangeStatus,
@@ -202,12 +202,20 @@ def classify_changes(
     known = log.known_map
     poses_K, covs_K = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
     reloc = None
+    poses_in = (poses_K, covs_K, anchored_from_step)
     if params.relocalize and anchored_from_step > 0:
         reloc = relocalize_before_match(
             log, obs_landmark, obs_known_id, poses_K, covs_K, anchored_from_step, params.level
         )
         poses_K, covs_K = reloc.poses, reloc.covs
     sets = observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
+    if reloc is not None and reloc.tied_known:
+        sets = [
+            _own_ties_left_out(s, log, obs_landmark, obs_known_id, poses_in, reloc, params)
+            if s.known_id in reloc.tied_known and np.any(s.steps < anchored_from_step)
+            else s
+            for s in sets
+        ]
     by_known: dict[int, ObservationSet] = {}
     free: list[ObservationSet] = []
     for s in sets:
@@ -363,6 +371,34 @@ def classify_changes(
         bridged_steps=0 if reloc is None else reloc.bridged,
         relocalize_refused=0 if reloc is None else reloc.refused,
     )
+
+
+def _own_ties_left_out(
+    s: ObservationSet,
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses_in: tuple[FloatArray, FloatArray, int],
+    reloc: Relocalization,
+    params: ChangeParams,
+) -> ObservationSet:
+    """``s`` read through poses re-placed without its own known feature's ties: the
+    feature under test does not place the poses its evidence is read through."""
+    poses, covs, until = poses_in
+    alt = relocalize_before_match(
+        log,
+        obs_landmark,
+        obs_known_id,
+        poses,
+        covs,
+        until,
+        params.level,
+        exclude_known=s.known_id,
+        base=reloc,
+    )
+    only = np.where(np.asarray(obs_landmark) == s.landmark, obs_landmark, -1)
+    again = observation_sets_in_known(log, only, obs_known_id, alt.poses, alt.covs)
+    return again[0] if again else s
 
 
 def _beyond(obs: ObservationSet, known: FloatArray, reach: float) -> bool:

@@ -21,15 +21,23 @@ included) as a prior.
 A merged landmark can still be a changed feature the estimator took for right.  The
 placement is therefore tested: when its χ² exceeds the level, the observation that
 contributes most is set aside and the pose solved again, while three features remain;
-a placement that stays inconsistent, or disagrees with the filtered pose beyond its
-covariance, or does not fix all three degrees of freedom, leaves the pose as it was.
-A circle enters with its centre only: a short arc biases the fitted radius, which
-says nothing about the pose.
+a placement that stays inconsistent, disagrees with the filtered pose beyond their
+joint covariance, does not fix all three degrees of freedom or does not converge is
+refused, and the step is treated as one without features.  A circle enters with its
+centre only: a short arc biases the fitted radius, which says nothing about the pose.
+A tie whose covariance is not positive definite (an exact observation of an exact
+map feature) cannot be weighed and is left out.
+
+The known feature under test must not place the poses its own evidence is read
+through: that would pull the evidence towards where the feature was surveyed.  For a
+feature whose ties entered a placement, the placements are redone without them
+(``exclude_known``), reusing every placement it took no part in.
 
 A step that sees too few merged features is placed from the nearest placed step
 before or after it, through the logged odometry and its covariance (dead reckoning
 over a few steps drifts far less than the whole unanchored stretch), when that is
-tighter than the filtered pose and agrees with it.  The filter's first pose from the
+tighter than the filtered pose and agrees with it (the other direction is tried when
+the tighter one does not agree).  The filter's first pose from the
 match on counts as placed: the steps just before the match, where a feature seen
 only before it is most often seen, are dead-reckoned back from it.
 """
@@ -53,8 +61,8 @@ from mapfuse_core.geometry.se2 import (
 
 __all__ = ["Relocalization", "relocalize_before_match"]
 
-_MAX_ITER = 10
-_STEP_TOL = 1e-9
+_MAX_ITER = 20
+_STEP_TOL = 1e-8
 _MIN_EIG = 1e-12
 _MIN_TIES = 3
 """Merged features a step needs to be re-placed.  Two fix a pose with one degree of
@@ -70,19 +78,25 @@ class Relocalization:
     """Poses in ``Wknown`` after re-placing those before the match on the known map."""
 
     poses: FloatArray
-    """(N, 3) the poses; those not re-placed are the input's."""
+    """(N, 3) the poses; those neither placed nor bridged are the input's."""
     covs: FloatArray
     """(N, 3, 3) their covariances."""
     relocalized: int
-    """Steps before the match whose pose was re-placed."""
+    """Steps before the match whose pose was placed from its own merged features."""
     refused: int
     """Steps before the match with three or more merged features whose placement was
-    refused (inconsistent, disagreeing with the filtered pose, or under-determined)."""
+    refused (inconsistent, disagreeing with the filtered pose, under-determined or not
+    converging); they are bridged like the steps without features."""
     set_aside: int
     """Observations set aside as inconsistent in the placements that were kept."""
     bridged: int = 0
     """Steps before the match without a placement of their own, placed instead from
     the nearest placed step through the logged odometry."""
+    placed: np.ndarray | None = None
+    """(N,) bool: the steps placed from their own features (reused by a run with
+    ``exclude_known``)."""
+    tied_known: frozenset[int] = frozenset()
+    """Known ids whose ties entered a kept placement."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,6 +106,11 @@ class _Tie:
     cov_z: FloatArray
     known: FloatArray
     known_cov: FloatArray
+    known_id: int
+
+
+class _DegenerateError(Exception):
+    """A tie's covariance stopped being positive definite during the solve."""
 
 
 def _linearize(tie: _Tie, x: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -107,44 +126,76 @@ def _linearize(tie: _Tie, x: FloatArray) -> tuple[FloatArray, FloatArray, FloatA
     return r[rows], H, 0.5 * (S + S.T)
 
 
-def _solve(ties: list[_Tie], x0: FloatArray) -> tuple[FloatArray, FloatArray, list[float]] | None:
-    """Gauss–Newton placement from the ties alone: the pose, its information and each
-    tie's χ² at the solution; ``None`` when the ties leave a direction free."""
-    x = np.asarray(x0, dtype=float).copy()
-    for _ in range(_MAX_ITER):
-        info = np.zeros((3, 3))
-        g = np.zeros(3)
-        for t in ties:
-            r, H, S = _linearize(t, x)
-            W = np.linalg.inv(S)
-            info += H.T @ W @ H
-            g += H.T @ W @ r
-        if np.linalg.eigvalsh(info)[0] <= _MIN_EIG * max(1.0, float(np.trace(info))):
-            return None
-        dx = -np.linalg.solve(info, g)
-        x = x + dx
-        x[2] = wrap_scalar(float(x[2]))
-        if float(np.max(np.abs(dx))) < _STEP_TOL:
-            break
+def _weight(S: FloatArray) -> FloatArray:
+    """``S⁻¹`` through its Cholesky factor; :class:`_DegenerateError` when ``S`` is not
+    positive definite."""
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError as e:
+        raise _DegenerateError from e
+    Li = np.linalg.inv(L)
+    return np.asarray(Li.T @ Li, dtype=float)
+
+
+def _normal_equations(
+    ties: list[_Tie], x: FloatArray
+) -> tuple[FloatArray, FloatArray, list[float]]:
     info = np.zeros((3, 3))
+    g = np.zeros(3)
     nis = []
     for t in ties:
         r, H, S = _linearize(t, x)
-        W = np.linalg.inv(S)
+        W = _weight(S)
         info += H.T @ W @ H
+        g += H.T @ W @ r
         nis.append(float(r @ W @ r))
-    if np.linalg.eigvalsh(info)[0] <= _MIN_EIG * max(1.0, float(np.trace(info))):
+    return info, g, nis
+
+
+def _weighable(tie: _Tie, x: FloatArray) -> bool:
+    """Whether ``tie``'s covariance at ``x`` is positive definite."""
+    try:
+        _weight(_linearize(tie, x)[2])
+    except _DegenerateError:
+        return False
+    return True
+
+
+def _determined(info: FloatArray) -> bool:
+    return bool(np.linalg.eigvalsh(info)[0] > _MIN_EIG * max(1.0, float(np.trace(info))))
+
+
+def _solve(ties: list[_Tie], x0: FloatArray) -> tuple[FloatArray, FloatArray, list[float]] | None:
+    """Gauss–Newton placement from the ties alone: the pose, its information and each
+    tie's χ² at the solution; ``None`` when the ties leave a direction free, a tie's
+    covariance degenerates, or the iteration does not converge."""
+    x = np.asarray(x0, dtype=float).copy()
+    try:
+        for _ in range(_MAX_ITER):
+            info, g, _ = _normal_equations(ties, x)
+            if not _determined(info):
+                return None
+            dx = -np.linalg.solve(info, g)
+            x = x + dx
+            x[2] = wrap_scalar(float(x[2]))
+            if float(np.max(np.abs(dx))) < _STEP_TOL:
+                break
+        else:
+            return None
+        info, _, nis = _normal_equations(ties, x)
+    except _DegenerateError:
+        return None
+    if not _determined(info):
         return None
     return x, info, nis
 
 
 def _place(
     ties: list[_Tie], x0: FloatArray, level: float
-) -> tuple[FloatArray, FloatArray, int] | None:
+) -> tuple[FloatArray, FloatArray, list[_Tie]] | None:
     """The consistent placement: the worst tie set aside until the χ² passes, while
-    :data:`_MIN_TIES` remain.  Returns the pose, its information and the ties set aside."""
+    :data:`_MIN_TIES` remain.  Returns the pose, its information and the ties kept."""
     ties = list(ties)
-    aside = 0
     while len(ties) >= _MIN_TIES:
         sol = _solve(ties, x0)
         if sol is None:
@@ -152,10 +203,29 @@ def _place(
         x, info, nis = sol
         dof = 2 * len(ties) - 3
         if sum(nis) <= float(chi2.ppf(level, dof)):
-            return x, info, aside
+            return x, info, ties
         ties.pop(int(np.argmax(nis)))
-        aside += 1
     return None
+
+
+def _with_prior(
+    x0: FloatArray, P0: FloatArray, x: FloatArray, P: FloatArray, gate: float
+) -> tuple[FloatArray, FloatArray] | None:
+    """The placement ``(x, P)`` fused with the filtered pose ``(x0, P0)`` in covariance
+    form (a zero ``P0`` keeps ``x0``); ``None`` when the two disagree beyond ``gate``.
+    A non-finite ``P0`` is no prior: the placement stands alone."""
+    if not np.all(np.isfinite(P0)):
+        return x, P
+    d = x - x0
+    d[2] = wrap_scalar(float(d[2]))
+    Sinv = np.linalg.pinv(P0 + P, hermitian=True)
+    if float(d @ Sinv @ d) > gate:
+        return None
+    K = P0 @ Sinv
+    xf = x0 + K @ d
+    xf[2] = wrap_scalar(float(xf[2]))
+    Pf = P0 - K @ P0
+    return xf, 0.5 * (Pf + Pf.T)
 
 
 def relocalize_before_match(
@@ -166,6 +236,9 @@ def relocalize_before_match(
     pose_covs_known: FloatArray,
     until_step: int,
     level: float,
+    *,
+    exclude_known: int | None = None,
+    base: Relocalization | None = None,
 ) -> Relocalization:
     """Re-place the poses of steps ``0 … until_step − 1`` on the known map.
 
@@ -174,7 +247,10 @@ def relocalize_before_match(
     (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).
     ``obs_landmark``/``obs_known_id``: the run's decisions; an observation ties its
     step to a known feature when its landmark was merged with one.  ``level``: the
-    probability of the placement's χ² tests.  See the module docstring.
+    probability of the placement's χ² tests.  ``exclude_known``: a known id whose ties
+    are left out; ``base``: this function's result on the same inputs without
+    exclusion, whose placements are reused at the steps without that feature's ties.
+    See the module docstring.
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
@@ -189,49 +265,48 @@ def relocalize_before_match(
     kn = np.asarray(obs_known_id, dtype=np.int64)
     if lm.shape != (log.n_features,) or kn.shape != lm.shape:
         raise ValueError(f"the decisions hold {lm.shape[0]} observations, the log {log.n_features}")
+    reused = base.placed if base is not None and exclude_known is not None else None
     known = log.known_map
     row_of = {int(k): r for r, k in enumerate(known.ids.tolist())}
-    last = min(int(until_step), poses.shape[0], log.n_steps)
+    n = min(poses.shape[0], log.n_steps)
+    last = max(0, min(int(until_step), n))
     done = refused = aside_total = 0
     placed_at = np.zeros(poses.shape[0], dtype=bool)
+    tied: set[int] = set()
     gate3 = float(chi2.ppf(level, 3))
     for k in range(last):
         if not np.all(np.isfinite(poses[k])):
             continue
         ties = _ties_at(log, k, lm, kn, known, row_of)
+        if exclude_known is not None:
+            if reused is not None and not any(t.known_id == exclude_known for t in ties):
+                if reused[k] and base is not None:
+                    poses[k], covs[k] = base.poses[k], base.covs[k]
+                    placed_at[k] = True
+                continue
+            ties = [t for t in ties if t.known_id != exclude_known]
+        ties = [t for t in ties if _weighable(t, poses[k])]
         if len(ties) < _MIN_TIES:
             continue
         placed = _place(ties, poses[k], level)
-        if placed is None:
+        fused = None
+        if placed is not None:
+            x, info, kept = placed
+            fused = _with_prior(poses[k], covs[k], x, np.asarray(np.linalg.inv(info), float), gate3)
+        if placed is None or fused is None:
             refused += 1
             continue
-        x, info, aside = placed
-        P = np.linalg.inv(info)
-        prior = covs[k]
-        if np.all(np.isfinite(prior)) and np.linalg.eigvalsh(prior)[0] > 0.0:
-            d = x - poses[k]
-            d[2] = wrap_scalar(float(d[2]))
-            if float(d @ np.linalg.solve(prior + P, d)) > gate3:
-                refused += 1
-                continue
-            # Information fusion of the placement with the filtered pose.
-            W0 = np.linalg.inv(prior)
-            P = np.linalg.inv(W0 + info)
-            x = poses[k] + P @ (info @ d)
-            x[2] = wrap_scalar(float(x[2]))
-        poses[k] = x
-        covs[k] = 0.5 * (P + P.T)
+        poses[k], covs[k] = fused
         placed_at[k] = True
         done += 1
-        aside_total += aside
-    if (
-        last < poses.shape[0]
-        and np.all(np.isfinite(poses[last]))
-        and np.all(np.isfinite(covs[last]))
-    ):
+        aside_total += len(ties) - len(kept)
+        tied.update(t.known_id for t in kept)
+    if last < n and np.all(np.isfinite(poses[last])) and np.all(np.isfinite(covs[last])):
         # The first pose from the match on is the filter's, anchored: a source too.
         placed_at[last] = True
     bridged = _bridge(log, poses, covs, placed_at, last, gate3) if placed_at.any() else 0
+    if last < n:
+        placed_at[last] = False
     return Relocalization(
         poses=poses,
         covs=covs,
@@ -239,6 +314,8 @@ def relocalize_before_match(
         refused=refused,
         set_aside=aside_total,
         bridged=bridged,
+        placed=placed_at,
+        tied_known=frozenset(tied),
     )
 
 
@@ -252,32 +329,35 @@ def _bridge(
 ) -> int:
     """Place the steps before ``last`` that are not placed from the nearest placed step
     (step ``last`` itself, the first from the match on, counts as placed when marked),
-    forwards or backwards through the logged odometry, whichever gives the
-    smaller position covariance; kept where that is smaller than the pose's own and
-    the two agree within ``gate``.  Modifies ``poses``/``covs``; returns the count."""
-    end = min(last + 1, poses.shape[0])
+    forwards or backwards through the logged odometry: the candidate with the smaller
+    position covariance first, the other when that one disagrees with the pose; kept
+    where it is tighter than the pose's own covariance and the two agree within
+    ``gate``.  Modifies ``poses``/``covs``; returns the count."""
+    end = min(last + 1, poses.shape[0], log.n_steps)
     fwd = _sweep(log, poses, covs, placed_at, range(end), forward=True)
     bwd = _sweep(log, poses, covs, placed_at, range(end - 1, -1, -1), forward=False)
-    n = 0
+    count = 0
     for k in range(last):
         if placed_at[k] or not np.all(np.isfinite(poses[k])):
             continue
-        cands = [c for c in (fwd.get(k), bwd.get(k)) if c is not None]
-        if not cands:
-            continue
-        x, P = min(cands, key=lambda c: float(np.trace(c[1][:2, :2])))
+        cands = sorted(
+            (c for c in (fwd.get(k), bwd.get(k)) if c is not None),
+            key=lambda c: float(np.trace(c[1][:2, :2])),
+        )
         own = covs[k]
-        if np.all(np.isfinite(own)):
-            if float(np.trace(P[:2, :2])) >= float(np.trace(own[:2, :2])):
-                continue
-            d = x - poses[k]
-            d[2] = wrap_scalar(float(d[2]))
-            if float(d @ np.linalg.pinv(own + P, hermitian=True) @ d) > gate:
-                continue
-        poses[k] = x
-        covs[k] = 0.5 * (P + P.T)
-        n += 1
-    return n
+        for x, P in cands:
+            if np.all(np.isfinite(own)):
+                if float(np.trace(P[:2, :2])) >= float(np.trace(own[:2, :2])):
+                    continue
+                d = x - poses[k]
+                d[2] = wrap_scalar(float(d[2]))
+                if float(d @ np.linalg.pinv(own + P, hermitian=True) @ d) > gate:
+                    continue
+            poses[k] = x
+            covs[k] = 0.5 * (P + P.T)
+            count += 1
+            break
+    return count
 
 
 def _sweep(
@@ -326,7 +406,8 @@ def _ties_at(
     known: KnownMapArrays,
     row_of: dict[int, int],
 ) -> list[_Tie]:
-    """Step ``k``'s observations of landmarks merged with a known feature of their kind."""
+    """Step ``k``'s observations of landmarks merged with a known feature of their kind,
+    those with a finite covariance."""
     ties = []
     sl = log.feature_slice(k)
     for j in range(sl.start, sl.stop):
@@ -335,13 +416,18 @@ def _ties_at(
         r = row_of.get(int(kn[j]))
         if r is None or int(known.kinds[r]) != int(log.feat_kind[j]):
             continue
+        cz = np.asarray(log.feat_cov[j], dtype=float)
+        ck = np.asarray(known.covs[r], dtype=float)
+        if not (np.all(np.isfinite(cz)) and np.all(np.isfinite(ck))):
+            continue
         ties.append(
             _Tie(
                 kind=FeatureKind(int(log.feat_kind[j])),
                 z=np.asarray(log.feat_params[j], dtype=float),
-                cov_z=np.asarray(log.feat_cov[j], dtype=float),
+                cov_z=cz,
                 known=np.asarray(known.params[r], dtype=float),
-                known_cov=np.asarray(known.covs[r], dtype=float),
+                known_cov=ck,
+                known_id=int(kn[j]),
             )
         )
     return ties

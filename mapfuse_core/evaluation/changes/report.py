@@ -144,7 +144,7 @@ class ChangeReport:
     logged odometry."""
     relocalize_refused: int = 0
     """Steps before the match with three or more merged features whose re-placement was
-    refused; their poses enter as filtered."""
+    refused; they are bridged like the steps without features, or enter as filtered."""
 
     def of(self, status: ChangeStatus) -> list[FeatureChange]:
         """Known features of one class."""
