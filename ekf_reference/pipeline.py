@@ -24,6 +24,7 @@ from ekf_reference.association import (
     predict_all_targets,
 )
 from ekf_reference.config import EKFConfig
+from ekf_reference.final_map import final_map
 from ekf_reference.known_frame import centred_known_map, uncentred
 from ekf_reference.known_gating import KnownGate, Targets
 from ekf_reference.loops import LoopClosureParams, accepted, register_circles
@@ -40,13 +41,12 @@ from ekf_reference.maps import (
     shared_in_global_frame,
     vehicle_in_global,
 )
-from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
+from ekf_reference.result import AnchorResult, EKFResult, LoopClosure
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.tracks import Tracks
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.labels import landmark_labels
-from mapfuse_core.geometry.features import transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult, ccda_match
@@ -543,27 +543,6 @@ def _result(
             accepted_at_step=int(run.anchor_step),
             pairings=tuple(run.anchor_pairings),
         )
-    feats = [i for i, e in enumerate(g.elements) if e.role in (Role.FEATURE, Role.KNOWN)]
-    gb = g.find(Role.BASE)
-    # Final map in Wglobal: x^Wglobal_F = ⊖x^Wlocal_Wglobal ⊕ x^Wlocal_F (known ones via anchor).
-    map_params = np.zeros((len(feats), 3))
-    map_covs = np.zeros((len(feats), 3, 3))
-    inv_b, Jinv = inverse_jacobian(g.mean[gb])
-    for r, i in enumerate(feats):
-        e = g.elements[i]
-        fk = e.kind.feature_kind()
-        if e.role == Role.KNOWN:
-            a = g.find(Role.ANCHOR)
-            f_wl, Ja, Je = transform_feature(fk, g.mean[a], g.mean[i])
-            val, J1, J2 = transform_feature(fk, inv_b, f_wl)
-            J = np.hstack([J1 @ Jinv, J2 @ Ja, J2 @ Je])
-            P = g.marginal([gb, a, i])
-        else:
-            val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
-            J = np.hstack([J1 @ Jinv, J2])
-            P = g.marginal([gb, i])
-        map_params[r] = val
-        map_covs[r] = J @ P @ J.T
     roots = run.tracks.roots(run.obs_track)
     obs_known = np.array(
         [run.tracks.known.get(int(r), -1) if r >= 0 else -1 for r in roots], dtype=np.int64
@@ -578,17 +557,7 @@ def _result(
         covs_in_known=covs_known,
         step_time_s=times,
         anchor=anchor,
-        global_map=MapResult(
-            kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
-            params=map_params,
-            covs=map_covs,
-            known_ids=np.array(
-                [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
-                dtype=np.int64,
-            ),
-            true_ids=np.array([g.elements[i].true_id for i in feats], dtype=np.int64),
-            n_obs=np.array([g.elements[i].n_obs for i in feats], dtype=np.int64),
-        ),
+        global_map=final_map(g, run.tracks, run.known_centre),
         obs_landmark=roots.astype(np.int64),
         obs_known_id=obs_known,
         ccda_attempts=run.ccda_attempts,

@@ -51,6 +51,15 @@ class MapResult:
     """(F,) world id of the first observation (simulation; −1 unknown)."""
     n_obs: np.ndarray
     """(F,) number of observations fused."""
+    tracks: np.ndarray | None = None
+    """(F,) the landmark (track) id of each feature, as the decisions'
+    ``obs_landmark`` give it; −1 for a known feature the filter only carries."""
+    params_known: FloatArray | None = None
+    """(F, 3) each feature kept apart from the known map, in ``Wknown`` (NaN for the
+    known features, and everywhere without a match)."""
+    covs_known: FloatArray | None = None
+    """(F, 3, 3) their covariances, from each feature's joint marginal with the anchor
+    (NaN where :attr:`params_known` is)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -16,10 +16,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from mapfuse.result import EstimatorResult
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport, classify_changes
 from mapfuse_core.evaluation.changes.truth import ChangeTruth, change_truth, score_changes
+from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.sim.scenario import Scenario
 
 __all__ = ["change_report_lines", "change_section", "detect_changes"]
@@ -57,7 +60,22 @@ def detect_changes(
         params,
         anchor_cov=result.anchor.cov if before_map else None,
         anchored_from_step=result.anchor.accepted_at_step + 1 if before_map else 0,
+        landmark_estimates=_landmark_estimates(result),
     )
+
+
+def _landmark_estimates(result: EstimatorResult) -> dict[int, tuple[FloatArray, FloatArray]]:
+    """The run's final estimates of the landmarks it kept apart from the known map, in
+    ``Wknown`` with their joint covariance, by landmark id (empty when the estimator
+    does not give them)."""
+    m = result.map
+    if m.tracks is None or m.params_known is None or m.covs_known is None:
+        return {}
+    out = {}
+    for t, p, c, k in zip(m.tracks, m.params_known, m.covs_known, m.known_ids, strict=True):
+        if t >= 0 and k < 0 and np.all(np.isfinite(p)) and np.all(np.isfinite(c)):
+            out[int(t)] = (np.asarray(p, dtype=float), np.asarray(c, dtype=float))
+    return out
 
 
 def change_section(

@@ -53,6 +53,28 @@ class MapEstimate:
     """(F,) world id of the feature's first observation (simulation), −1 if unknown."""
     n_obs: np.ndarray
     """(F,) observations of each feature (0: a known feature never observed)."""
+    tracks: np.ndarray | None = None
+    """(F,) landmark (track) id of each feature as the run's decisions name it, −1 for
+    a known feature only carried; ``None`` when the estimator does not say."""
+    params_known: FloatArray | None = None
+    """(F, 3) the features kept apart from the known map, in ``Wknown`` (NaN elsewhere);
+    ``None`` when the estimator does not give them."""
+    covs_known: FloatArray | None = None
+    """(F, 3, 3) their covariances in ``Wknown``, the anchor's uncertainty included
+    jointly (NaN where :attr:`params_known` is)."""
+
+    def __post_init__(self) -> None:
+        f = np.asarray(self.kinds).shape[0]
+        for name, shape in (
+            ("tracks", (f,)),
+            ("params_known", (f, 3)),
+            ("covs_known", (f, 3, 3)),
+        ):
+            v = getattr(self, name)
+            if v is not None and np.asarray(v).shape != shape:
+                raise ValueError(
+                    f"MapEstimate.{name} must have shape {shape}, got {np.asarray(v).shape}"
+                )
 
     @classmethod
     def empty(cls) -> MapEstimate:

@@ -724,8 +724,17 @@ def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_matc
         poses=np.zeros((5, 3)),
         covs=np.zeros((5, 3, 3)),
         estimate=estimate,
+        map=types.SimpleNamespace(
+            tracks=np.array([5, 6, 7, -1]),
+            known_ids=np.array([-1, 2, -1, 3]),
+            params_known=np.array([[1.0, 2.0, 0.3], [np.nan] * 3, [np.nan] * 3, [np.nan] * 3]),
+            covs_known=np.array([np.eye(3) * 0.01] + [np.full((3, 3), np.nan)] * 3),
+        ),
     )
     assert mc.detect_changes(result, _log()) == "report"  # type: ignore[arg-type]
+    # Only the landmark kept apart from the known map with a finite estimate is passed.
+    assert set(seen["landmark_estimates"]) == {5}
+    np.testing.assert_array_equal(seen["landmark_estimates"][5][0], [1.0, 2.0, 0.3])
     if before_map:
         assert seen["anchored_from_step"] == 78
         np.testing.assert_array_equal(seen["anchor_cov"], anchor.cov)
@@ -738,3 +747,46 @@ def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_matc
 def test_min_beams_present_must_be_a_positive_int(bad):
     with pytest.raises(ValueError, match="min_beams_present"):
         ChangeParams(min_beams_present=bad)
+
+
+def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_estimate():
+    """The tree most in view moved 3 m, its landmark kept apart.  Given the estimator's
+    final estimate of that landmark as 2 cm off the moved place, σ 5 cm, it is tested
+    through it when every observation precedes the match (the displacement is the
+    estimate's, to 1e-9); when the landmark is also seen after the match its
+    observations decide, as without an estimate."""
+    log = _log()
+    circ = _most_in_view(log, FeatureKind.CIRCLE)
+    kid = int(log.known_map.ids[circ])
+    p = log.known_map.params.copy()
+    p[circ, :2] += (3.0, 0.0)
+    moved = _replace_known(log, params=p)
+    known = set(moved.known_map.ids.tolist()) - {kid}
+    lm = moved.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    start, poses, covs = _true_trajectory(moved)
+    value = log.known_map.params[circ] + np.array([0.02, 0.0, 0.0])
+    estimates = {kid: (value, np.diag([0.05**2, 0.05**2, 0.02**2]))}
+    last = int(moved.feat_step[moved.feat_true_id == kid].max())
+
+    def classify(until: int):
+        return classify_changes(
+            moved,
+            lm,
+            kn,
+            poses,
+            covs,
+            start,
+            dataclasses.replace(PARAMS, relocalize=False),
+            anchor_cov=np.zeros((3, 3)),
+            anchored_from_step=until,
+            landmark_estimates=estimates,
+        ).known[circ]
+
+    before = classify(last + 1)
+    assert before.status == ChangeStatus.MOVED
+    np.testing.assert_allclose(before.displacement[:2], value[:2] - p[circ, :2], atol=1e-9)
+    after = classify(last)
+    assert after.status == ChangeStatus.MOVED
+    assert abs(after.displacement[0] - (value[0] - p[circ, 0])) > 1e-4
+    assert after.displacement[0] == pytest.approx(-3.0, abs=0.3)

@@ -4,6 +4,7 @@ anchor's covariance on a filter's observations from before its map match."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -159,3 +160,17 @@ def test_anchor_covariance_must_be_a_finite_3x3_matrix():
             np.zeros(3),
             anchor_cov=np.full((3, 3), np.nan),
         )
+
+
+def test_an_estimators_own_estimate_replaces_the_observations_as_evidence():
+    """A set carrying the estimator's final estimate is tested through it: the residual
+    is the estimate less the reference and the covariance its own, whatever the
+    observations say (here 1 m off, spread far beyond their noise)."""
+    obs = _set(1.0, seed=1)
+    C = np.diag([0.01, 0.02, 0.003])
+    value = REF + np.array([0.3, -0.2, 0.05])
+    ev = fuse_against(dataclasses.replace(obs, estimate=(value, C)), REF)
+    np.testing.assert_allclose(ev.residual, [0.3, -0.2, 0.05], atol=1e-12)
+    np.testing.assert_allclose(ev.cov, C, atol=1e-15)
+    assert ev.spread_factor == 1.0
+    assert ev.n_obs == obs.n_obs

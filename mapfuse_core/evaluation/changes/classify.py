@@ -4,7 +4,10 @@
    in ``Wknown`` through the estimated trajectory and anchor
    (:mod:`mapfuse_core.evaluation.changes.evidence`); a filter's poses from before
    its map match are first re-placed on the known map
-   (:mod:`mapfuse_core.evaluation.changes.relocalize`).
+   (:mod:`mapfuse_core.evaluation.changes.relocalize`).  A landmark the estimator
+   kept apart from the known map and saw only before the match is read through the
+   estimator's final estimate of it when it gives one in ``Wknown`` (the anchor's
+   uncertainty included jointly).
 2. A known feature with an associated landmark is tested against that landmark's
    observation-only estimate: ``r = residual(known, evidence)``,
    ``S = cov(evidence) + J P_known Jᵀ``, moved when ``rᵀS⁻¹r > χ²_d(level)``.
@@ -40,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -185,6 +189,7 @@ def classify_changes(
     *,
     anchor_cov: FloatArray | None = None,
     anchored_from_step: int = 0,
+    landmark_estimates: Mapping[int, tuple[FloatArray, FloatArray]] | None = None,
 ) -> ChangeReport:
     """Classify the known map of ``log`` given a run's decisions, trajectory and anchor.
 
@@ -192,7 +197,11 @@ def classify_changes(
     ``x_Wknown_Wglobal``: its anchor.  ``anchor_cov``/``anchored_from_step``: a
     filtered track's anchor covariance and match step; the observations made before
     it carry the anchor's uncertainty too
-    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).  See the
+    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).
+    ``landmark_estimates``: landmark id → the estimator's final estimate of a landmark
+    it kept apart from the known map, in ``Wknown`` with its covariance; such a
+    landmark seen only before ``anchored_from_step`` is tested through it instead of
+    through its observations.  See the
     module docstring for the rules.
     """
     params = params or ChangeParams()
@@ -224,7 +233,12 @@ def classify_changes(
             if best is None or s.n_obs > best.n_obs:
                 by_known[s.known_id] = s
         elif s.n_obs >= params.min_obs:
-            free.append(s)
+            own = None
+            if landmark_estimates is not None and int(s.steps.max()) < anchored_from_step:
+                # Seen only before the match: read through the estimator's final
+                # estimate, not through the poses the filter had then.
+                own = landmark_estimates.get(s.landmark)
+            free.append(s if own is None else dataclasses.replace(s, estimate=own))
     occluders = _occluders(free, known)
     in_view = scans_in_view(known, poses_K, params, occluders)
 

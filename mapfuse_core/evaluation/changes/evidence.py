@@ -66,6 +66,10 @@ class ObservationSet:
     """(n,) steps of the observations."""
     true_id: int
     """Most frequent world id among the observations (−1 if none is known)."""
+    estimate: tuple[FloatArray, FloatArray] | None = None
+    """The estimator's own final estimate of this landmark in ``Wknown`` and its
+    covariance (the anchor's uncertainty included jointly), used as the evidence
+    instead of the observations when given (:func:`fuse_against`)."""
 
     @property
     def n_obs(self) -> int:
@@ -195,7 +199,19 @@ def observation_sets_in_known(
 
 
 def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence:
-    """Fuse ``obs`` in the residual coordinates of ``reference`` (same kind, ``Wknown``)."""
+    """Fuse ``obs`` in the residual coordinates of ``reference`` (same kind, ``Wknown``).
+
+    With :attr:`ObservationSet.estimate` the evidence is that estimate instead: a
+    filter's final estimate of a landmark it kept apart from the known map was
+    corrected, through its correlations, by everything the filter saw after, the map
+    match included, where the observations can only be read through the poses the
+    filter had when it made them.
+    """
+    if obs.estimate is not None:
+        value, C = obs.estimate
+        r, _, Jf = feature_residual(obs.kind, reference, np.asarray(value, dtype=float))
+        cov = Jf @ np.asarray(C, dtype=float) @ Jf.T
+        return LandmarkEvidence(residual=r, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs)
     res = []
     weights = []
     pose_part = None

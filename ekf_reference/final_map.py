@@ -1,0 +1,80 @@
+"""The EKF's final map as a :class:`~ekf_reference.result.MapResult`: :func:`final_map`.
+
+Every feature is given in ``Wglobal`` with its marginal covariance.  When the map was
+matched, each feature the EKF kept apart from the known map is also given in
+``Wknown``, with the covariance computed from its joint marginal with the anchor.
+Composed from the two marginals separately, that covariance would count twice what
+the match taught both at once: after the match a landmark seen long before it is
+placed by the known features around it, while its place in ``Wglobal`` and the
+anchor each keep the whole unanchored drift, in opposite directions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ekf_reference.known_frame import uncentred
+from ekf_reference.result import MapResult
+from ekf_reference.state import GaussianMap, Role
+from ekf_reference.tracks import Tracks
+from mapfuse_core.geometry.features import express_in, transform_feature
+from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
+
+__all__ = ["final_map"]
+
+
+def final_map(g: GaussianMap, tracks: Tracks, known_centre: FloatArray) -> MapResult:
+    """The final map of global map ``g``; ``tracks`` merge the landmarks' track ids,
+    ``known_centre`` is the offset of the centred known frame the filter works in."""
+    feats = [i for i, e in enumerate(g.elements) if e.role in (Role.FEATURE, Role.KNOWN)]
+    gb = g.find(Role.BASE)
+    a = g.find(Role.ANCHOR) if g.has(Role.ANCHOR) else None
+    n = len(feats)
+    params = np.zeros((n, 3))
+    covs = np.zeros((n, 3, 3))
+    params_known = np.full((n, 3), np.nan)
+    covs_known = np.full((n, 3, 3), np.nan)
+    # Final map in Wglobal: x^Wglobal_F = ⊖x^Wlocal_Wglobal ⊕ x^Wlocal_F (known ones via anchor).
+    inv_b, Jinv = inverse_jacobian(g.mean[gb])
+    for r, i in enumerate(feats):
+        e = g.elements[i]
+        fk = e.kind.feature_kind()
+        if e.role == Role.KNOWN:
+            # Known features enter the map with the anchor, so it is there.
+            ak = g.find(Role.ANCHOR)
+            f_wl, Ja, Je = transform_feature(fk, g.mean[ak], g.mean[i])
+            val, J1, J2 = transform_feature(fk, inv_b, f_wl)
+            J = np.hstack([J1 @ Jinv, J2 @ Ja, J2 @ Je])
+            P = g.marginal([gb, ak, i])
+        else:
+            val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
+            J = np.hstack([J1 @ Jinv, J2])
+            P = g.marginal([gb, i])
+            if a is not None:
+                # x^Wknown'_F = ⊖x^Wlocal_Wknown' ⊕ x^Wlocal_F, then uncentred.
+                fk_val, Ka, Kf = express_in(fk, g.mean[a], g.mean[i])
+                K = np.hstack([Ka, Kf])
+                params_known[r] = uncentred(fk_val, known_centre)
+                covs_known[r] = K @ g.marginal([a, i]) @ K.T
+        params[r] = val
+        covs[r] = J @ P @ J.T
+    return MapResult(
+        kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
+        params=params,
+        covs=covs,
+        known_ids=np.array(
+            [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
+            dtype=np.int64,
+        ),
+        true_ids=np.array([g.elements[i].true_id for i in feats], dtype=np.int64),
+        n_obs=np.array([g.elements[i].n_obs for i in feats], dtype=np.int64),
+        tracks=np.array(
+            [
+                tracks.root(int(g.elements[i].track)) if g.elements[i].track >= 0 else -1
+                for i in feats
+            ],
+            dtype=np.int64,
+        ),
+        params_known=params_known,
+        covs_known=covs_known,
+    )
