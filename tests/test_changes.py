@@ -753,8 +753,8 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
     """The tree most in view moved 3 m, its landmark kept apart.  Given the estimator's
     final estimate of that landmark as 2 cm off the moved place, σ 5 cm, it is tested
     through it when every observation precedes the match (the displacement is the
-    estimate's, to 1e-9); when the landmark is also seen after the match its
-    observations decide, as without an estimate."""
+    estimate's, to 1e-9); when the landmark is also seen after the match, or with
+    ``filter_estimates`` off, its observations decide."""
     log = _log()
     circ = _most_in_view(log, FeatureKind.CIRCLE)
     kid = int(log.known_map.ids[circ])
@@ -790,3 +790,18 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
     assert after.status == ChangeStatus.MOVED
     assert abs(after.displacement[0] - (value[0] - p[circ, 0])) > 1e-4
     assert after.displacement[0] == pytest.approx(-3.0, abs=0.3)
+    # Switched off, the observations decide even for a landmark seen only before.
+    params_off = dataclasses.replace(PARAMS, relocalize=False, filter_estimates=False)
+    off = classify_changes(
+        moved,
+        lm,
+        kn,
+        poses,
+        covs,
+        start,
+        params_off,
+        anchor_cov=np.zeros((3, 3)),
+        anchored_from_step=last + 1,
+        landmark_estimates=estimates,
+    ).known[circ]
+    np.testing.assert_allclose(off.displacement, after.displacement, atol=1e-9)

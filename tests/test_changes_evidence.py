@@ -164,13 +164,19 @@ def test_anchor_covariance_must_be_a_finite_3x3_matrix():
 
 def test_an_estimators_own_estimate_replaces_the_observations_as_evidence():
     """A set carrying the estimator's final estimate is tested through it: the residual
-    is the estimate less the reference and the covariance its own, whatever the
-    observations say (here 1 m off, spread far beyond their noise)."""
-    obs = _set(1.0, seed=1)
+    is the estimate less the reference, whatever the observations say, and the
+    covariance its own times the observations' spread factor: 1 for observations
+    drawn from their noise, far more for a set with a 1 m jump, whose scatter the
+    estimate (fused from the same observations) inherits."""
     C = np.diag([0.01, 0.02, 0.003])
     value = REF + np.array([0.3, -0.2, 0.05])
-    ev = fuse_against(dataclasses.replace(obs, estimate=(value, C)), REF)
+    calm = _set(0.0, seed=1)
+    ev = fuse_against(dataclasses.replace(calm, estimate=(value, C)), REF)
     np.testing.assert_allclose(ev.residual, [0.3, -0.2, 0.05], atol=1e-12)
-    np.testing.assert_allclose(ev.cov, C, atol=1e-15)
-    assert ev.spread_factor == 1.0
-    assert ev.n_obs == obs.n_obs
+    plain = fuse_against(calm, REF)
+    assert ev.spread_factor == plain.spread_factor
+    np.testing.assert_allclose(ev.cov, plain.spread_factor * C, atol=1e-15)
+    assert ev.n_obs == calm.n_obs
+    jump = fuse_against(dataclasses.replace(_set(1.0, seed=1), estimate=(value, C)), REF)
+    assert jump.spread_factor > 100.0
+    np.testing.assert_allclose(jump.cov, jump.spread_factor * C, rtol=1e-12)

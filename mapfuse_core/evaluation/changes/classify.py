@@ -234,7 +234,8 @@ def classify_changes(
                 by_known[s.known_id] = s
         elif s.n_obs >= params.min_obs:
             own = None
-            if landmark_estimates is not None and int(s.steps.max()) < anchored_from_step:
+            seen_before = int(s.steps.max()) < anchored_from_step
+            if params.filter_estimates and landmark_estimates is not None and seen_before:
                 # Seen only before the match: read through the estimator's final
                 # estimate, not through the poses the filter had then.
                 own = landmark_estimates.get(s.landmark)

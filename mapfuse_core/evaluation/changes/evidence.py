@@ -205,13 +205,10 @@ def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence
     filter's final estimate of a landmark it kept apart from the known map was
     corrected, through its correlations, by everything the filter saw after, the map
     match included, where the observations can only be read through the poses the
-    filter had when it made them.
+    filter had when it made them.  Its covariance is scaled by the observations' own
+    spread factor: the estimate fused those observations trusting their noise, and
+    when they scatter beyond it (a drifting, inconsistent run) so does the estimate.
     """
-    if obs.estimate is not None:
-        value, C = obs.estimate
-        r, _, Jf = feature_residual(obs.kind, reference, np.asarray(value, dtype=float))
-        cov = Jf @ np.asarray(C, dtype=float) @ Jf.T
-        return LandmarkEvidence(residual=r, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs)
     res = []
     weights = []
     pose_part = None
@@ -227,7 +224,12 @@ def fuse_against(obs: ObservationSet, reference: FloatArray) -> LandmarkEvidence
     P = np.linalg.pinv(info, hermitian=True)
     est = P @ vec
     scale = spread_factor(res, weights, est)
-    cov = scale * P + pose_part / obs.n_obs
+    if obs.estimate is not None:
+        value, Ce = obs.estimate
+        est, _, Jf = feature_residual(obs.kind, reference, np.asarray(value, dtype=float))
+        cov = scale * (Jf @ np.asarray(Ce, dtype=float) @ Jf.T)
+    else:
+        cov = scale * P + pose_part / obs.n_obs
     return LandmarkEvidence(
         residual=est, cov=0.5 * (cov + cov.T), n_obs=obs.n_obs, spread_factor=scale
     )

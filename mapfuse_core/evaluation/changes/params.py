@@ -126,6 +126,14 @@ class ChangeParams:
     are touched (a smoothed track has none).  ``False``: those poses enter with the
     anchor's covariance added, as filtered."""
 
+    filter_estimates: bool = True
+    """Test a landmark the estimator kept apart from the known map, and saw only before
+    its match, through the estimator's own final estimate of it when one is given
+    (``classify_changes(..., landmark_estimates=)``), its covariance scaled by the
+    observations' spread factor.  ``False``: through its observations, as any other.
+    The estimate is as trustworthy as the run is consistent: on a run metres off with
+    NEES far above its dimension it adds false moves (``docs/changes.md``)."""
+
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:
             raise ValueError(f"ChangeParams.level must be in (0, 1), got {self.level}")
@@ -149,6 +157,7 @@ class ChangeParams:
             "link_unviewed_circles",
             "free_space",
             "relocalize",
+            "filter_estimates",
         ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ChangeParams.{name} must be a bool, got {getattr(self, name)!r}")
