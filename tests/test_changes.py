@@ -41,12 +41,19 @@ def _classify(
 
     ``unassociated``: a known id the estimator never associated, so that its
     observations form an unlinked landmark."""
-    known = set(log.known_map.ids.tolist()) - {unassociated}
-    lm = log.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    lm, kn = _true_decisions(log, unassociated)
     start, poses, covs = _true_trajectory(log)
     anchor = start if anchor_offset is None else compose(anchor_offset, start)
     return classify_changes(log, lm, kn, poses, covs, anchor, params)
+
+
+def _true_decisions(log: MeasurementLog, unassociated: int | None = None):
+    """The true decisions: every observation its world feature's landmark, merged with
+    the known feature of that id unless it is ``unassociated``."""
+    known = set(log.known_map.ids.tolist()) - {unassociated}
+    lm = log.feat_true_id.copy()
+    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    return lm, kn
 
 
 def _true_trajectory(log: MeasurementLog):
@@ -109,13 +116,18 @@ def _most_in_view(log: MeasurementLog, kind: FeatureKind) -> int:
     return max(rows, key=lambda i: rep.known[i].scans_in_view)
 
 
-def test_move_beyond_the_gate_links_the_unassociated_landmark():
+def _most_viewed_tree_surveyed_3m_off() -> tuple[MeasurementLog, int, int]:
+    """The test log with the known tree most in view surveyed 3 m off along x: the log,
+    the tree's row and its id."""
     log = _log()
     circ = _most_in_view(log, FeatureKind.CIRCLE)
-    kid = int(log.known_map.ids[circ])
     p = log.known_map.params.copy()
     p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
+    return _replace_known(log, params=p), circ, int(log.known_map.ids[circ])
+
+
+def test_move_beyond_the_gate_links_the_unassociated_landmark():
+    moved, circ, kid = _most_viewed_tree_surveyed_3m_off()
     # The estimator did not associate it: its observations stay unlinked.
     rep = _classify(moved, unassociated=kid)
     c = rep.known[circ]
@@ -263,12 +275,7 @@ def test_link_min_scans_above_k_links_whatever_is_seen_long_enough_to_be_missing
     """``link_min_scans`` larger than ``min_scans`` acts as ``min_scans``: a tree in
     view long enough to be called missing is always looked for, so its landmark 3 m
     away is its move."""
-    log = _log()
-    circ = _most_in_view(log, FeatureKind.CIRCLE)
-    kid = int(log.known_map.ids[circ])
-    p = log.known_map.params.copy()
-    p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
+    moved, circ, kid = _most_viewed_tree_surveyed_3m_off()
     rep = _classify(moved, dataclasses.replace(PARAMS, link_min_scans=10**6), unassociated=kid)
     c = rep.known[circ]
     assert c.scans_in_view >= PARAMS.min_scans
@@ -280,13 +287,8 @@ def test_link_needs_only_link_min_scans_in_view_not_the_missing_rules_k():
     """A tree in view for fewer scans than ``K`` (here ``K`` is out of reach) and
     never associated: with ``link_min_scans`` of 1 its landmark 3 m away is its move,
     with ``link_min_scans=None`` (``K``) the tree is unobserved and the landmark new."""
-    log = _log()
     blind = dataclasses.replace(PARAMS, min_scans=10**6)
-    circ = _most_in_view(log, FeatureKind.CIRCLE)
-    kid = int(log.known_map.ids[circ])
-    p = log.known_map.params.copy()
-    p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
+    moved, circ, kid = _most_viewed_tree_surveyed_3m_off()
     short = _classify(moved, dataclasses.replace(blind, link_min_scans=1), unassociated=kid)
     c = short.known[circ]
     assert 1 <= c.scans_in_view < blind.min_scans
@@ -755,17 +757,11 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
     through it when every observation precedes the match (the displacement is the
     estimate's, to 1e-9); when the landmark is also seen after the match, or with
     ``filter_estimates`` off, its observations decide."""
-    log = _log()
-    circ = _most_in_view(log, FeatureKind.CIRCLE)
-    kid = int(log.known_map.ids[circ])
-    p = log.known_map.params.copy()
-    p[circ, :2] += (3.0, 0.0)
-    moved = _replace_known(log, params=p)
-    known = set(moved.known_map.ids.tolist()) - {kid}
-    lm = moved.feat_true_id.copy()
-    kn = np.array([i if i in known else -1 for i in lm.tolist()], dtype=np.int64)
+    moved, circ, kid = _most_viewed_tree_surveyed_3m_off()
+    lm, kn = _true_decisions(moved, kid)
     start, poses, covs = _true_trajectory(moved)
-    value = log.known_map.params[circ] + np.array([0.02, 0.0, 0.0])
+    p = moved.known_map.params
+    value = p[circ] - np.array([2.98, 0.0, 0.0])
     estimates = {kid: (value, np.diag([0.05**2, 0.05**2, 0.02**2]))}
     last = int(moved.feat_step[moved.feat_true_id == kid].max())
 
