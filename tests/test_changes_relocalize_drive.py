@@ -13,11 +13,9 @@ from scipy.stats import chi2
 from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.relocalize import _place, _solve, _Tie, relocalize_before_match
 from mapfuse_core.geometry.features import FeatureKind, express_in
-from mapfuse_core.geometry.se2 import compose, wrap_scalar
+from mapfuse_core.geometry.se2 import compose
+from tests.test_changes_relocalize import LEVEL, LOOSE, _err, _filtered
 
-LEVEL = 0.999
-OFFSET = np.array([1.5, -1.0, 0.05])
-LOOSE = np.diag([2.0**2, 2.0**2, 0.1**2])
 Q = np.diag([0.02**2, 0.01**2, 0.003**2])
 """Odometry covariance per step."""
 TREES = np.array([[6.0, 3.0, 0.3], [4.0, -5.0, 0.4], [-3.0, 2.0, 0.2], [8.0, -1.0, 0.35]])
@@ -70,18 +68,6 @@ def _drive(n: int, seen_at: list[int], seed: int = 0) -> MeasurementLog:
         world=known,
         true_poses=true,
     )
-
-
-def _filtered(log: MeasurementLog, cov: np.ndarray = LOOSE) -> tuple[np.ndarray, np.ndarray]:
-    assert log.true_poses is not None
-    poses = np.array([compose(p, OFFSET) for p in log.true_poses])
-    return poses, np.repeat(cov[None], poses.shape[0], axis=0)
-
-
-def _err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = a - b
-    d[2] = wrap_scalar(float(d[2]))
-    return d
 
 
 def _ids(log: MeasurementLog) -> np.ndarray:
