@@ -211,7 +211,7 @@ def classify_changes(
     known = log.known_map
     poses_K, covs_K = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
     reloc = None
-    poses_in = (poses_K, covs_K, anchored_from_step)
+    filtered_K, filtered_covs_K = poses_K, covs_K
     if params.relocalize and anchored_from_step > 0:
         reloc = relocalize_before_match(
             log, obs_landmark, obs_known_id, poses_K, covs_K, anchored_from_step, params.level
@@ -220,7 +220,17 @@ def classify_changes(
     sets = observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
     if reloc is not None and reloc.tied_known:
         sets = [
-            _own_ties_left_out(s, log, obs_landmark, obs_known_id, poses_in, reloc, params)
+            _own_ties_left_out(
+                s,
+                log,
+                obs_landmark,
+                obs_known_id,
+                filtered_K,
+                filtered_covs_K,
+                anchored_from_step,
+                reloc,
+                params,
+            )
             if s.known_id in reloc.tied_known and np.any(s.steps < anchored_from_step)
             else s
             for s in sets
@@ -393,19 +403,23 @@ def _own_ties_left_out(
     log: MeasurementLog,
     obs_landmark: np.ndarray,
     obs_known_id: np.ndarray,
-    poses_in: tuple[FloatArray, FloatArray, int],
+    poses_K: FloatArray,
+    covs_K: FloatArray,
+    until: int,
     reloc: Relocalization,
     params: ChangeParams,
 ) -> ObservationSet:
     """``s`` read through poses re-placed without its own known feature's ties: the
-    feature under test does not place the poses its evidence is read through."""
-    poses, covs, until = poses_in
+    feature under test does not place the poses its evidence is read through.
+    ``poses_K``/``covs_K``: the poses in ``Wknown`` before any re-placing, ``until``
+    the first step from the match on; ``reloc``: the re-placing with every tie, whose
+    placements are reused."""
     alt = relocalize_before_match(
         log,
         obs_landmark,
         obs_known_id,
-        poses,
-        covs,
+        poses_K,
+        covs_K,
         until,
         params.level,
         exclude_known=s.known_id,
