@@ -77,13 +77,34 @@ def test_a_place_hidden_behind_something_else_says_nothing() -> None:
     assert _empty(_tree(8.0, 0.3), _scans(front)) == 0
 
 
-def test_a_trunk_thinner_than_its_position_uncertainty_gives_no_evidence() -> None:
-    # r = 0.3 m against a lateral σ of 0.1 m: 3.09 σ leaves no beam sure to hit it.
-    assert _empty(_tree(8.0, 0.3, sigma_xy=0.1), _scans(None)) == 0
-    # The heading error counts too: 0.02 rad at 8 m is 0.16 m.
+def test_a_trunk_thinner_than_its_position_uncertainty_is_seen_empty_when_swept() -> None:
+    # r = 0.3 m against a lateral σ of 0.1 m: 3.09 σ leaves no beam sure to hit it, but
+    # the beams 0.5° apart go through every place within 0.31 m where it could stand.
+    assert _empty(_tree(8.0, 0.3, sigma_xy=0.1), _scans(None)) == N
+    # The heading error counts too: 0.02 rad at 8 m is 0.16 m, swept the same way.
     covs = np.tile(np.diag([1e-6, 1e-6, 0.02**2]), (N, 1, 1))
     got = scans_seen_empty(_tree(8.0, 0.3), [0], POSES, covs, BEARINGS, _scans(None), ONE)
-    assert got[7] == 0
+    assert got[7] == N
+
+
+def test_a_trunk_inside_its_position_uncertainty_is_never_seen_empty() -> None:
+    # Off by 2.5 σ (0.25 m), or by 0.45 m, beyond the 3.09 σ reach but still in the
+    # beams' way: either way a beam returns from it.
+    known = _tree(8.0, 0.3, sigma_xy=0.1)
+    for off in (0.25, -0.25, 0.45):
+        real = World(segments=(BEHIND,), circles=(CircleObstacle(7, (8.0, off), 0.3),))
+        assert _empty(known, _scans(real, noise=0.05)) == 0, off
+
+
+def test_a_swept_place_partly_hidden_or_too_thin_for_the_beams_gives_no_evidence() -> None:
+    # A post at 4 m hides the places left of the mapped centre where the trunk, 8 m
+    # away, could stand: a trunk there would be behind it, so nothing is said.
+    front = World(segments=(BEHIND,), circles=(CircleObstacle(1, (4.0, 0.2), 0.25),))
+    assert _empty(_tree(8.0, 0.3, sigma_xy=0.1), _scans(front)) == 0
+    # A 6 cm trunk at 25 m fits between two beams 0.5° (22 cm) apart.
+    assert _empty(_tree(25.0, 0.06, sigma_xy=0.1), _scans(None)) == 0
+    # Thinner than its own radius σ allows for: no evidence at all.
+    assert _empty(_tree(8.0, 0.3, sigma_xy=0.1, sigma_r=0.1), _scans(None)) == 0
 
 
 def test_only_circles_within_max_range_are_read_and_counts_follow_the_stride() -> None:
@@ -371,6 +392,30 @@ def test_a_tree_the_scans_find_standing_is_not_called_missing() -> None:
     assert tree.status == ChangeStatus.UNOBSERVED
     blind = dataclasses.replace(eager, min_beams_present=10**6)
     assert _classify(scanned, blind).known[-1].status == ChangeStatus.MISSING
+
+
+def test_a_tree_found_standing_in_k_scans_is_not_missing_though_more_saw_it_empty() -> None:
+    """9001 comes into view in the drive's last 50 scans.  The last 20 are replaced by
+    those of a world without it, as a pose further off than its σ would read them: the
+    place is seen empty more often than standing, and standing in K scans.  Evidence
+    both ways is not evidence of absence: unobserved, not missing."""
+    scanned, _ = _standing_unextracted(keep_w=True)
+    assert scanned.world is not None
+    assert scanned.true_poses is not None
+    assert scanned.scan_ranges is not None
+    world = map_world(scanned.world)
+    assert world is not None
+    cut = scanned.n_steps - 20
+    ranges = scanned.scan_ranges.copy()
+    ranges[cut:] = [
+        cast_rays(world, p, p[2] + BEARINGS, LASER.max_range_m)[0] for p in scanned.true_poses[cut:]
+    ]
+    eager = dataclasses.replace(PARAMS, min_scans=8, missing_radius_sigmas=0.0)
+    tree = _classify(dataclasses.replace(scanned, scan_ranges=ranges), eager).known[-1]
+    assert tree.known_id == 9001
+    assert tree.scans_seen_occupied >= eager.min_scans
+    assert tree.scans_seen_empty > tree.scans_seen_occupied
+    assert tree.status == ChangeStatus.UNOBSERVED
 
 
 def test_something_just_behind_an_empty_surveyed_place_does_not_occupy_it() -> None:

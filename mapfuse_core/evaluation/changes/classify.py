@@ -340,8 +340,9 @@ def classify_changes(
         kid = int(known.ids[r])
         seen = sure[kid] >= params.min_scans or empty[kid] >= params.min_scans
         standing = occupied.get(kid, (0, 0.0))[0]
-        if standing >= params.min_scans and standing > empty[kid]:
-            # The raw scans found it where the map has it: not seen absent.
+        if standing >= params.min_scans:
+            # The raw scans found it where the map has it: not seen absent, however
+            # many scans saw the place empty (from a pose further off than its σ).
             seen = False
         status = ChangeStatus.MISSING if seen else ChangeStatus.UNOBSERVED
         kind = FeatureKind(int(known.kinds[r]))

@@ -21,8 +21,20 @@ wherever those errors put it.  Only such *core* beams are read:
 * a return within ``r + q·σ`` of the centre's range: something stands there; it *hits*;
 * a shorter return: something in front hides the place; the beam says nothing.
 
-A scan sees the place empty when at least one core beam passes and none hits.  A trunk
-too thin for any core beam at that range (``r ≤ q·σ``) gives no evidence either way.
+A scan sees the place empty when at least one core beam passes and none hits.
+
+A trunk thinner than its position's reach (``r ≤ q·σ``) has no core beam, but its
+absence can still be read from the beams *swept* across the places it could stand:
+its centre lies within ``q·σ`` of the mapped one (position errors only), and it is at
+least ``r − q·σ_r`` thick (``σ_r`` the radius σ).  Wherever in that disc it stands, it
+stops the beams passing within that thickness of its centre; if the passing beams
+leave no gap it fits in, and no beam that could meet it there returns near the
+centre's range, nothing of that thickness stands anywhere in the disc.  A beam
+returning shorter leaves a gap, so a place hidden in part says nothing.  Both readings
+rest on the poses' σ: a pose further off than its σ can read a standing trunk's place
+empty.  Such a trunk is also read standing in the scans from better poses, and a
+trunk read standing in ``K`` scans is never called missing, whatever the count of
+empty scans.
 
 The same beams say the converse (:func:`circles_seen_occupied`): a trunk that still
 stands where the map has it returns the beams aimed at its mapped disc (within the
@@ -187,13 +199,20 @@ def _read_circles(
             ahead = np.cos(rel) > 0.0
             # Empty: core beams (sure to hit the trunk wherever its errors put it) pass.
             core = radii[j] - q * math.sqrt(lateral + radius_var[j])
+            through = False
             if core > 0.0:
                 seen = rho[(across < core) & ahead]
                 if seen.size:
                     passes = seen > d + reach
                     hits = (seen >= d - reach) & ~passes
-                    if np.any(passes) and not np.any(hits):
-                        n_empty[j] += params.view_stride
+                    through = bool(np.any(passes) and not np.any(hits))
+            if not through:
+                # Empty too: the passing beams sweep every place the trunk could stand.
+                thin = radii[j] - q * math.sqrt(radius_var[j])
+                spread = q * math.sqrt(lateral)
+                through = _swept(rel, rho, d, spread, thin, radii[j], reach)
+            if through:
+                n_empty[j] += params.view_stride
             # Occupied: beams on the mapped disc return from a near face.  A standing
             # trunk never returns from beyond its centre by more than the position and
             # range errors allow.
@@ -208,6 +227,44 @@ def _read_circles(
         kid = int(features.ids[r])
         empty[kid] += int(n_empty[j])
         occupied[kid] = (int(n_occupied[j]), float(reach_max[j]))
+
+
+def _swept(
+    rel: FloatArray,
+    rho: FloatArray,
+    d: float,
+    spread: float,
+    thin: float,
+    radius: float,
+    reach: float,
+) -> bool:
+    """Whether one scan's beams went through every place where a trunk at least
+    ``thin`` in radius could stand within ``spread`` of a mapped centre ``d`` ahead.
+
+    ``rel``: each beam's bearing from the direction of the mapped centre; ``rho``: its
+    range.  A trunk of radius ``thin`` whose centre lies in that disc stops every beam
+    passing within ``thin`` of its centre, an angle of at least ``asin(thin / (d +
+    spread))`` either side of it; the disc spans ``asin(spread / d)`` either side of
+    the mapped centre.  The place is seen through when the beams that pass (return
+    beyond ``d + reach``, or nothing) leave no gap a trunk fits in, and no beam that
+    could meet a trunk of the mapped ``radius`` anywhere in the disc returns within
+    ``reach`` of ``d`` (a hit).  A beam that returns shorter hides the place from
+    itself and leaves a gap.
+    """
+    if thin <= 0.0 or spread >= d or d - spread <= radius:
+        return False
+    half = math.asin(spread / d)
+    cover = math.asin(min(1.0, thin / (d + spread)))
+    wide = half + math.asin(min(1.0, radius / (d - spread)))
+    band = np.abs(rel) < wide
+    seen = rho[band]
+    passes = seen > d + reach
+    if np.any((seen >= d - reach) & ~passes):
+        return False
+    a = np.sort(rel[band][passes])
+    if a.size == 0 or a[0] - cover >= -half or a[-1] + cover <= half:
+        return False
+    return bool(a.size == 1 or np.max(np.diff(a)) < 2.0 * cover)
 
 
 def _walls_seen_empty(
