@@ -71,6 +71,7 @@ def main() -> None:
     split = {True: [0, 0], False: [0, 0]}  # surveyed place in view → [detected, missed]
     mfp = {"unchanged": 0, "changed": 0}
     rem = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
+    beyond = {"unchanged": 0, "changed": 0}
     add = {"unchanged": [0, 0, 0], "changed": [0, 0, 0]}
     for r, base in zip(rows, bases, strict=True):
         sc = with_changes(
@@ -98,6 +99,7 @@ def main() -> None:
                         rem[pre][2] += 1
             else:
                 rem[pre] = [rem[pre][i] + s["removed"][k] for i, k in enumerate(("tp", "fp", "fn"))]
+                beyond[pre] += s["removed"].get("beyond_view_tp", 0)
         for m in r.get("changed_moves", []):
             move = next(x for x in sc.known_map.moved if x.id == m["id"])
             kind, p = sc.world.feature(m["id"])
@@ -131,7 +133,14 @@ def main() -> None:
             where = "came into view" if in_view else "never came into view"
             print(f"  significant moves whose surveyed place {where}: {tp} of {tp + fn} detected")
     for pre in ("changed", "unchanged"):
-        print(f"removed ({pre}):", _pr(*rem[pre]))
+        tp, fp, fn = rem[pre]
+        b = beyond[pre]
+        p = f"{(tp + b) / (tp + b + fp):.3f}" if tp + b + fp else "–"
+        r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
+        print(
+            f"removed ({pre}): P {p} R in view {r} (in view found {tp}, missed {fn}; "
+            f"found out of view {b}; false {fp})"
+        )
         print(f"added ({pre}):", _pr(*add[pre]))
     for lo, hi in ((0.0, 0.3), (0.3, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 99.0)):
         s = [x for x in size if lo <= x[0] < hi]
@@ -284,7 +293,11 @@ def _graph_table(rows: list[dict[str, Any]]) -> None:
         scores = [r[f"{pre}_graph_score"] for r in ok if f"{pre}_graph_score" in r]
         for cls in ("moved", "removed", "added"):
             tp, fp, fn = (sum(s[cls][k] for s in scores) for k in ("tp", "fp", "fn"))
-            print(f"graph {cls} ({pre}):", _pr(tp, fp, fn))
+            b = sum(s[cls].get("beyond_view_tp", 0) for s in scores)
+            p = f"{(tp + b) / (tp + b + fp):.3f}" if tp + b + fp else "–"
+            r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
+            extra = f", {b} found out of view" if b else ""
+            print(f"graph {cls} ({pre}): P {p} R {r} (tp {tp}, fp {fp}, fn {fn}{extra})")
 
 
 def _ci(x: np.ndarray, rng: np.random.Generator) -> str:

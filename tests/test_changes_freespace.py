@@ -244,6 +244,38 @@ def test_a_moved_tree_never_seen_where_it_went_counts_neither_way_when_missing()
     assert (s.moved_tp, s.moved_fn) == (0, 1)
 
 
+def test_a_removed_tree_out_of_view_found_missing_counts_for_precision_not_recall() -> None:
+    """Trees 4 and 5 were removed, only 4 came into view; 6 stands.  Called missing,
+    5 is right but outside the recall's population: recall 1 of 1 in view, precision
+    2 of 3 calls."""
+    from mapfuse_core.evaluation.changes.report import ChangeReport
+    from mapfuse_core.evaluation.changes.truth import ChangeTruth, score_changes
+    from tests.test_changes import _change
+
+    truth = ChangeTruth(
+        moved={},
+        lateral={},
+        removed=(4, 5),
+        removed_in_view=(4,),
+        added=(),
+        added_observed=(),
+        observed=(6,),
+    )
+    report = ChangeReport(
+        known=tuple(_change(k, ChangeStatus.MISSING) for k in (4, 5, 6)),  # type: ignore[misc]
+        new=(),
+        duplicates=0,
+        level=0.999,
+        x_Wknown_Wglobal=np.zeros(3),
+    )
+    s = score_changes(report, truth)
+    assert (s.removed_tp, s.removed_beyond_view_tp, s.removed_fp, s.removed_fn) == (1, 1, 1, 0)
+    d = s.as_dict()["removed"]
+    assert d["recall"] == 1.0
+    assert d["precision"] == pytest.approx(2 / 3)
+    assert d["beyond_view_tp"] == 1
+
+
 def _with_absent_wall() -> MeasurementLog:
     """The test log with a 4 m wall 9001 in its known map and not in its world, across
     the start pose's view 8 m ahead (σ 5 cm, 5 mrad)."""

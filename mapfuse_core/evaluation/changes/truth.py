@@ -185,6 +185,10 @@ class ChangeScore:
     (:attr:`ChangeTruth.moved_surveyed_in_view`)."""
     moved_seen_fn: int = 0
     """Of :attr:`moved_fn`, the moves whose surveyed place came into view."""
+    removed_beyond_view_tp: int = 0
+    """Removed features not in view (:attr:`ChangeTruth.removed_in_view`) classified
+    missing: right, but outside the recall's population (the raw scans saw through
+    a place the extractor's rule does not predict in view)."""
 
     @staticmethod
     def _pr(tp: int, fp: int, fn: int) -> tuple[float, float]:
@@ -197,7 +201,9 @@ class ChangeScore:
         out: dict[str, Any] = {}
         for name in ("moved", "removed", "added"):
             tp, fp, fn = (getattr(self, f"{name}_{s}") for s in ("tp", "fp", "fn"))
-            p, r = self._pr(tp, fp, fn)
+            right = tp + (self.removed_beyond_view_tp if name == "removed" else 0)
+            p = self._pr(right, fp, 0)[0]
+            r = self._pr(tp, 0, fn)[1]
             out[name] = {
                 "tp": tp,
                 "fp": fp,
@@ -205,6 +211,7 @@ class ChangeScore:
                 "precision": None if math.isnan(p) else p,
                 "recall": None if math.isnan(r) else r,
             }
+        out["removed"]["beyond_view_tp"] = self.removed_beyond_view_tp
         tp, fn = self.moved_seen_tp, self.moved_seen_fn
         out["moved_surveyed_in_view"] = {
             "tp": tp,
@@ -224,7 +231,7 @@ def score_changes(
     smaller true move classified moved counts neither way, and so does a moved feature
     never observed where it went that is classified missing (its surveyed place is
     empty; no observation shows where it went)."""
-    mtp = mfn = mfp = rtp = rfn = rfp = stp = sfn = 0
+    mtp = mfn = mfp = rtp = rfn = rfp = rbv = stp = sfn = 0
     removed = set(truth.removed)
     for c in report.known:
         sig = truth.significant_move(c.known_id, min_move_m, min_turn_rad)
@@ -241,8 +248,10 @@ def score_changes(
             mfn += 1
             sfn += seen
         if c.status == ChangeStatus.MISSING:
-            if c.known_id in removed:
+            if c.known_id in truth.removed_in_view:
                 rtp += 1
+            elif c.known_id in removed:
+                rbv += 1
             elif c.known_id not in truth.moved or observed:
                 # A feature that moved and was never observed where it went is gone from
                 # where the map has it, and missing is what the classes call that.
@@ -265,4 +274,5 @@ def score_changes(
         added_fp=afp,
         moved_seen_tp=stp,
         moved_seen_fn=sfn,
+        removed_beyond_view_tp=rbv,
     )
