@@ -91,8 +91,10 @@ def main() -> None:
             if a.min_scans is not None and f"{pre}_missing_or_removed" in r:
                 for d in r[f"{pre}_missing_or_removed"]:
                     called = d["status"] == "missing" and d["scans_in_view"] >= a.min_scans
-                    if called and d["removed"]:
+                    if called and d["removed_in_view"]:
                         rem[pre][0] += 1
+                    elif called and d["removed"]:
+                        beyond[pre] += 1
                     elif called:
                         rem[pre][1] += 1
                     elif d["removed_in_view"]:

@@ -14,7 +14,7 @@ from mapfuse_core.evaluation.changes import ChangeParams, ChangeStatus
 from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
 from mapfuse_core.evaluation.changes.visibility import map_world
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.sim.laser import LaserParams, cast_rays
+from mapfuse_core.sim.laser import LaserParams, cast_rays, simulate_scan
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 from tests.test_changes import PARAMS, _classify, _log, _most_in_view, _with_absent_trees
 
@@ -105,6 +105,39 @@ def test_a_swept_place_partly_hidden_or_too_thin_for_the_beams_gives_no_evidence
     assert _empty(_tree(25.0, 0.06, sigma_xy=0.1), _scans(None)) == 0
     # Thinner than its own radius σ allows for: no evidence at all.
     assert _empty(_tree(8.0, 0.3, sigma_xy=0.1, sigma_r=0.1), _scans(None)) == 0
+
+
+def test_a_post_hiding_the_middle_of_the_swept_place_leaves_a_gap() -> None:
+    # A 0.4 m post at 4 m shadows the middle of the places an 0.3 m trunk could stand
+    # at 8 m, wider than the trunk: a trunk there would be hidden.  A 6 cm post is not.
+    known = _tree(8.0, 0.3, sigma_xy=0.1)
+    post = World(segments=(BEHIND,), circles=(CircleObstacle(1, (4.0, 0.0), 0.2),))
+    assert _empty(known, _scans(post)) == 0
+    thin = World(segments=(BEHIND,), circles=(CircleObstacle(1, (4.0, 0.0), 0.03),))
+    assert _empty(known, _scans(thin)) == N
+
+
+@pytest.mark.parametrize(("d", "r", "sigma_xy"), [(15.0, 0.1, 0.05), (25.0, 0.15, 0.1)])
+def test_a_standing_thin_far_trunk_is_not_read_empty_through_the_beams_bearing_noise(
+    d: float, r: float, sigma_xy: float
+) -> None:
+    """Each beam leaves 0.25° (σ) off its recorded bearing, more than a thin far trunk's
+    angular half-width: a beam recorded as aimed at it may have missed it.  None of 200
+    noisy scans reads the standing trunk's place empty; the same scans with the trunk
+    gone would need a beam spacing finer than the noise, and read nothing either."""
+    laser = LaserParams()
+    params = ChangeParams(view_stride=1).with_sensor(laser)
+    rng = np.random.default_rng(7)
+    n = 200
+    poses = np.zeros((n, 3))
+    covs = np.tile(np.eye(3) * 1e-6, (n, 1, 1))
+    far = WallSegment(50, (d + 10.0, -20.0), (d + 10.0, 20.0))
+    known = _tree(d, r, sigma_xy=sigma_xy)
+    for circles in ((CircleObstacle(7, (d, 0.0), r),), ()):
+        world = World(segments=(far,), circles=circles)
+        ranges = np.array([simulate_scan(world, p, laser, rng).ranges for p in poses])
+        got = scans_seen_empty(known, [0], poses, covs, BEARINGS, ranges, params)[7]
+        assert got == 0
 
 
 def test_only_circles_within_max_range_are_read_and_counts_follow_the_stride() -> None:

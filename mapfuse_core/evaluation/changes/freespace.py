@@ -10,11 +10,11 @@ there that returns from beyond the trunk's far side, or returns nothing, saw the
 empty.  This needs no extractor and no radius threshold, only the scan.
 
 Which beams count.  The trunk may stand off its mapped centre by the map's position
-error, the pose's position error and the heading error times the range, together a
-lateral σ; its radius may be smaller than mapped by the map's radius σ.  A beam whose
-perpendicular distance from the mapped centre is below ``r − q·σ`` (``σ`` the two
-combined, ``q`` the one-sided normal quantile of the test level) would hit the trunk
-wherever those errors put it.  Only such *core* beams are read:
+error, the pose's position error, and the heading error and the beam's own bearing
+error (the laser's) times the range, together a lateral σ; its radius may be smaller
+than mapped by the map's radius σ.  A beam whose perpendicular distance from the
+mapped centre is below ``r − q·σ`` (``σ`` the two combined, ``q`` the one-sided
+normal quantile of the test level) would hit the trunk wherever those errors put it.  Only such *core* beams are read:
 
 * a return beyond ``d + r + q·σ`` (``d`` the range to the mapped centre, range noise
   included in ``σ``), or no return: the beam went through; it *passes*;
@@ -29,8 +29,10 @@ its centre lies within ``q·σ`` of the mapped one (position errors only), and i
 least ``r − q·σ_r`` thick (``σ_r`` the radius σ).  Wherever in that disc it stands, it
 stops the beams passing within that thickness of its centre; if the passing beams
 leave no gap it fits in, and no beam that could meet it there returns near the
-centre's range, nothing of that thickness stands anywhere in the disc.  A beam
-returning shorter leaves a gap, so a place hidden in part says nothing.  Both readings
+centre's range, nothing of that thickness stands anywhere in the disc.  A beam may
+have gone ``q`` bearing σ off its recorded bearing, so that much is taken off what it
+covers.  A beam returning shorter leaves a gap, so a place hidden in part says
+nothing.  Both readings
 rest on the poses' σ: a pose further off than its σ can read a standing trunk's place
 empty.  Such a trunk is also read standing in the scans from better poses, and a
 trunk read standing in ``K`` scans is never called missing, whatever the count of
@@ -48,8 +50,8 @@ mapped), which the view rules cannot tell from an absent one.
 Walls (known lines with extents) are read the same way along each beam.  A beam meets
 the mapped wall's line at range ``t``; it is a core beam when it meets it inside the
 wall's extent by more than ``q·σ_s`` at both ends, ``σ_s`` the first-order error of
-where it crosses (map and pose position, heading error times ``t``, the wall's lateral
-error times the tangent of the incidence).  It passes beyond ``t + q·σ_t`` (``σ_t``
+where it crosses (map and pose position, heading and bearing errors times ``t``, the
+wall's lateral error times the tangent of the incidence).  It passes beyond ``t + q·σ_t`` (``σ_t``
 the lateral error over the cosine of the incidence, the heading error's effect on
 ``t`` and the range noise), hits within ``q·σ_t`` of ``t``, and says nothing when
 shorter.  A wall's place is seen empty when no core beam hits and at least
@@ -110,6 +112,8 @@ def read_surveyed_places(
     b = np.asarray(bearings, dtype=float)
     q = float(norm.ppf(params.level))
     sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
+    # A beam's own bearing error: each beam's, where the heading error is every beam's.
+    sig_bearing = 0.0 if params.laser is None else float(params.laser.sigma_bearing_rad)
     walls = [
         r
         for r in rows
@@ -118,11 +122,13 @@ def read_surveyed_places(
         and np.all(np.isfinite(features.extents[r]))
     ]
     if walls:
-        _walls_seen_empty(features, walls, P, C, b, ranges, q, sig_range, params, empty)
+        noise = (sig_range, sig_bearing)
+        _walls_seen_empty(features, walls, P, C, b, ranges, q, noise, params, empty)
     circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
     occupied = {int(features.ids[r]): (0, 0.0) for r in circles}
     if circles:
-        _read_circles(features, circles, P, C, b, ranges, q, sig_range, params, empty, occupied)
+        noise = (sig_range, sig_bearing)
+        _read_circles(features, circles, P, C, b, ranges, q, noise, params, empty, occupied)
     return PlaceReading(empty=empty, occupied=occupied)
 
 
@@ -166,13 +172,14 @@ def _read_circles(
     b: FloatArray,
     ranges: FloatArray,
     q: float,
-    sig_range: float,
+    noise: tuple[float, float],
     params: ChangeParams,
     empty: dict[int, int],
     occupied: dict[int, tuple[int, float]],
 ) -> None:
     """Both readings of the circles at ``circles``, in one pass over the scans, added
-    into ``empty`` and ``occupied``."""
+    into ``empty`` and ``occupied``.  ``noise``: the laser's range and bearing σ."""
+    sig_range, sig_bearing = noise
     centres = features.params[circles, :2]
     radii = features.params[circles, 2]
     map_var = np.array([_largest_position_variance(features.covs[r]) for r in circles])
@@ -192,7 +199,8 @@ def _read_circles(
             d = math.hypot(float(v[0]), float(v[1]))
             if d > params.max_range_m or d <= radii[j]:
                 continue
-            lateral = map_var[j] + pos_var + d * d * head_var
+            common = map_var[j] + pos_var + d * d * head_var
+            lateral = common + d * d * sig_bearing**2
             reach = radii[j] + q * math.sqrt(lateral + radius_var[j] + sig_range**2)
             rel = np.angle(np.exp(1j * (b - (math.atan2(v[1], v[0]) - x[2]))))
             across = np.abs(d * np.sin(rel))
@@ -209,8 +217,9 @@ def _read_circles(
             if not through:
                 # Empty too: the passing beams sweep every place the trunk could stand.
                 thin = radii[j] - q * math.sqrt(radius_var[j])
-                spread = q * math.sqrt(lateral)
-                through = _swept(rel, rho, d, spread, thin, radii[j], reach)
+                spread = q * math.sqrt(common)
+                jitter = q * sig_bearing
+                through = _swept(rel, rho, d, spread, thin, radii[j], reach, jitter)
             if through:
                 n_empty[j] += params.view_stride
             # Occupied: beams on the mapped disc return from a near face.  A standing
@@ -237,6 +246,7 @@ def _swept(
     thin: float,
     radius: float,
     reach: float,
+    jitter: float = 0.0,
 ) -> bool:
     """Whether one scan's beams went through every place where a trunk at least
     ``thin`` in radius could stand within ``spread`` of a mapped centre ``d`` ahead.
@@ -249,13 +259,16 @@ def _swept(
     beyond ``d + reach``, or nothing) leave no gap a trunk fits in, and no beam that
     could meet a trunk of the mapped ``radius`` anywhere in the disc returns within
     ``reach`` of ``d`` (a hit).  A beam that returns shorter hides the place from
-    itself and leaves a gap.
+    itself and leaves a gap.  ``jitter``: how far a beam may have gone off its recorded
+    bearing (rad), taken off what each beam covers and added to the hit band.
     """
-    if thin <= 0.0 or spread >= d or d - spread <= radius:
+    if not (thin > 0.0 and spread < d and d - spread > radius and jitter >= 0.0):
         return False
     half = math.asin(spread / d)
-    cover = math.asin(min(1.0, thin / (d + spread)))
-    wide = half + math.asin(min(1.0, radius / (d - spread)))
+    cover = math.asin(min(1.0, thin / (d + spread))) - jitter
+    if not cover > 0.0:
+        return False
+    wide = math.asin(min(1.0, (spread + radius) / d)) + jitter
     band = np.abs(rel) < wide
     seen = rho[band]
     passes = seen > d + reach
@@ -275,11 +288,13 @@ def _walls_seen_empty(
     b: FloatArray,
     ranges: FloatArray,
     q: float,
-    sig_range: float,
+    noise: tuple[float, float],
     params: ChangeParams,
     out: dict[int, int],
 ) -> None:
-    """Add to ``out`` the scans that saw the walls at ``walls`` empty."""
+    """Add to ``out`` the scans that saw the walls at ``walls`` empty.  ``noise``: the
+    laser's range and bearing σ."""
+    sig_range, sig_bearing = noise
     assert features.extents is not None
     min_cos = math.cos(params.max_incidence_rad)
     for r in walls:
@@ -298,7 +313,8 @@ def _walls_seen_empty(
             if not np.all(np.isfinite(x)) or not np.all(np.isfinite(C[k])):
                 continue
             pos_var = _largest_position_variance(C[k])
-            head_var = max(float(C[k][2, 2]), 0.0)
+            # A beam's bearing error moves it as the heading error does.
+            head_var = max(float(C[k][2, 2]), 0.0) + sig_bearing**2
             phi = x[2] + b
             w = np.column_stack((np.cos(phi), np.sin(phi)))
             nw = w @ n
