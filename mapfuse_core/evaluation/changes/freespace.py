@@ -14,7 +14,8 @@ error, the pose's position error, and the heading error and the beam's own beari
 error (the laser's) times the range, together a lateral σ; its radius may be smaller
 than mapped by the map's radius σ.  A beam whose perpendicular distance from the
 mapped centre is below ``r − q·σ`` (``σ`` the two combined, ``q`` the one-sided
-normal quantile of the test level) would hit the trunk wherever those errors put it.  Only such *core* beams are read:
+normal quantile of the test level) would hit the trunk wherever those errors put it.
+Only such *core* beams are read:
 
 * a return beyond ``d + r + q·σ`` (``d`` the range to the mapped centre, range noise
   included in ``σ``), or no return: the beam went through; it *passes*;
