@@ -33,11 +33,12 @@ leave no gap it fits in, and no beam that could meet it there returns near the
 centre's range, nothing of that thickness stands anywhere in the disc.  A beam may
 have gone ``q`` bearing σ off its recorded bearing, so that much is taken off what it
 covers.  A beam returning shorter leaves a gap, so a place hidden in part says
-nothing.  Both readings
-rest on the poses' σ: a pose further off than its σ can read a standing trunk's place
-empty.  Such a trunk is also read standing in the scans from better poses, and a
-trunk read standing in ``K`` scans is never called missing, whatever the count of
-empty scans.
+nothing.
+
+Both readings rest on the poses' σ: a pose further off than its σ can read a standing
+trunk's place empty.  Such a trunk is also read standing in the scans from better
+poses, and a trunk read standing in ``K`` scans is never called missing, whatever the
+count of empty scans.
 
 The same beams say the converse (:func:`circles_seen_occupied`): a trunk that still
 stands where the map has it returns the beams aimed at its mapped disc (within the
@@ -48,18 +49,18 @@ A scan sees the place occupied when at least ``min_beams_present`` of those beam
 This reads a trunk the extractor missed (hidden in part by another, or thinner than
 mapped), which the view rules cannot tell from an absent one.
 
-Walls (known lines with extents) are read the same way along each beam.  A beam meets
+Walls (known lines with extents) are read the same way along each beam. A beam meets
 the mapped wall's line at range ``t``; it is a core beam when it meets it inside the
 wall's extent by more than ``q·σ_s`` at both ends, ``σ_s`` the first-order error of
 where it crosses (map and pose position, heading and bearing errors times ``t``, the
-wall's lateral error times the tangent of the incidence).  It passes beyond ``t + q·σ_t`` (``σ_t``
-the lateral error over the cosine of the incidence, the heading error's effect on
-``t`` and the range noise), hits within ``q·σ_t`` of ``t``, and says nothing when
-shorter.  A wall's place is seen empty when no core beam hits and at least
-``min_beams_line`` pass: the support the extractor needs to see a wall, so that a
-doorway, or the one stretch of a wall left unhidden by people, is not an empty wall.
-Beams beyond ``max_incidence_rad`` from the wall's normal are not read.  A wall without
-extents gives no evidence.
+wall's lateral error times the tangent of the incidence). It passes beyond
+``t + q·σ_t`` (``σ_t`` the lateral error over the cosine of the incidence, the heading and
+bearing errors' effect on ``t`` and the range noise), hits within ``q·σ_t`` of ``t``,
+and says nothing when shorter. A wall's place is seen empty when no core beam hits and
+at least ``min_beams_line`` pass: the support the extractor needs to see a wall, so
+that a doorway, or the one stretch of a wall left unhidden by people, is not an empty
+wall. Beams beyond ``max_incidence_rad`` from the wall's normal are not read. A wall
+without extents gives no evidence.
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ def read_surveyed_places(
     sig_range = 0.0 if params.laser is None else float(params.laser.sigma_range_m)
     # A beam's own bearing error: each beam's, where the heading error is every beam's.
     sig_bearing = 0.0 if params.laser is None else float(params.laser.sigma_bearing_rad)
+    noise = (sig_range, sig_bearing)
     walls = [
         r
         for r in rows
@@ -123,12 +125,10 @@ def read_surveyed_places(
         and np.all(np.isfinite(features.extents[r]))
     ]
     if walls:
-        noise = (sig_range, sig_bearing)
         _walls_seen_empty(features, walls, P, C, b, ranges, q, noise, params, empty)
     circles = [r for r in rows if int(features.kinds[r]) == int(FeatureKind.CIRCLE)]
     occupied = {int(features.ids[r]): (0, 0.0) for r in circles}
     if circles:
-        noise = (sig_range, sig_bearing)
         _read_circles(features, circles, P, C, b, ranges, q, noise, params, empty, occupied)
     return PlaceReading(empty=empty, occupied=occupied)
 
