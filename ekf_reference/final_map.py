@@ -41,11 +41,11 @@ def final_map(g: GaussianMap, tracks: Tracks, known_centre: FloatArray) -> MapRe
         fk = e.kind.feature_kind()
         if e.role == Role.KNOWN:
             # Known features enter the map with the anchor, so it is there.
-            ak = g.find(Role.ANCHOR)
-            f_wl, Ja, Je = transform_feature(fk, g.mean[ak], g.mean[i])
+            assert a is not None
+            f_wl, Ja, Je = transform_feature(fk, g.mean[a], g.mean[i])
             val, J1, J2 = transform_feature(fk, inv_b, f_wl)
             J = np.hstack([J1 @ Jinv, J2 @ Ja, J2 @ Je])
-            P = g.marginal([gb, ak, i])
+            P = g.marginal([gb, a, i])
         else:
             val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
             J = np.hstack([J1 @ Jinv, J2])
