@@ -26,10 +26,13 @@ from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 
 
-def _pr(tp: int, fp: int, fn: int) -> str:
-    p = f"{tp / (tp + fp):.3f}" if tp + fp else "–"
+def _pr(tp: int, fp: int, fn: int, beyond: int = 0) -> str:
+    """Precision and recall; ``beyond``: right calls outside the recall's population
+    (removed features found out of view), counted for precision only."""
+    p = f"{(tp + beyond) / (tp + beyond + fp):.3f}" if tp + beyond + fp else "–"
     r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
-    return f"P {p} R {r} (tp {tp}, fp {fp}, fn {fn})"
+    extra = f", {beyond} found out of view" if beyond else ""
+    return f"P {p} R {r} (tp {tp}, fp {fp}, fn {fn}{extra})"
 
 
 def main() -> None:
@@ -135,14 +138,7 @@ def main() -> None:
             where = "came into view" if in_view else "never came into view"
             print(f"  significant moves whose surveyed place {where}: {tp} of {tp + fn} detected")
     for pre in ("changed", "unchanged"):
-        tp, fp, fn = rem[pre]
-        b = beyond[pre]
-        p = f"{(tp + b) / (tp + b + fp):.3f}" if tp + b + fp else "–"
-        r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
-        print(
-            f"removed ({pre}): P {p} R in view {r} (in view found {tp}, missed {fn}; "
-            f"found out of view {b}; false {fp})"
-        )
+        print(f"removed in view ({pre}):", _pr(*rem[pre], beyond=beyond[pre]))
         print(f"added ({pre}):", _pr(*add[pre]))
     for lo, hi in ((0.0, 0.3), (0.3, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 99.0)):
         s = [x for x in size if lo <= x[0] < hi]
@@ -296,10 +292,7 @@ def _graph_table(rows: list[dict[str, Any]]) -> None:
         for cls in ("moved", "removed", "added"):
             tp, fp, fn = (sum(s[cls][k] for s in scores) for k in ("tp", "fp", "fn"))
             b = sum(s[cls].get("beyond_view_tp", 0) for s in scores)
-            p = f"{(tp + b) / (tp + b + fp):.3f}" if tp + b + fp else "–"
-            r = f"{tp / (tp + fn):.3f}" if tp + fn else "–"
-            extra = f", {b} found out of view" if b else ""
-            print(f"graph {cls} ({pre}): P {p} R {r} (tp {tp}, fp {fp}, fn {fn}{extra})")
+            print(f"graph {cls} ({pre}):", _pr(tp, fp, fn, beyond=b))
 
 
 def _ci(x: np.ndarray, rng: np.random.Generator) -> str:
