@@ -765,7 +765,7 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
     estimates = {kid: (value, np.diag([0.05**2, 0.05**2, 0.02**2]))}
     last = int(moved.feat_step[moved.feat_true_id == kid].max())
 
-    def classify(until: int):
+    def classify(until: int, filter_estimates: bool = True):
         return classify_changes(
             moved,
             lm,
@@ -773,7 +773,7 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
             poses,
             covs,
             start,
-            dataclasses.replace(PARAMS, relocalize=False),
+            dataclasses.replace(PARAMS, relocalize=False, filter_estimates=filter_estimates),
             anchor_cov=np.zeros((3, 3)),
             anchored_from_step=until,
             landmark_estimates=estimates,
@@ -787,17 +787,5 @@ def test_a_landmark_seen_only_before_the_match_is_read_through_the_estimators_es
     assert abs(after.displacement[0] - (value[0] - p[circ, 0])) > 1e-4
     assert after.displacement[0] == pytest.approx(-3.0, abs=0.3)
     # Switched off, the observations decide even for a landmark seen only before.
-    params_off = dataclasses.replace(PARAMS, relocalize=False, filter_estimates=False)
-    off = classify_changes(
-        moved,
-        lm,
-        kn,
-        poses,
-        covs,
-        start,
-        params_off,
-        anchor_cov=np.zeros((3, 3)),
-        anchored_from_step=last + 1,
-        landmark_estimates=estimates,
-    ).known[circ]
+    off = classify(last + 1, filter_estimates=False)
     np.testing.assert_allclose(off.displacement, after.displacement, atol=1e-9)
