@@ -56,8 +56,8 @@ import numpy as np
 
 from mapfuse.estimators.graph import to_result
 from mapfuse.metrics import run_metrics
-from mapfuse_core.data.measlog import MeasurementLog, load_log
 from mapfuse_core.geometry.se2 import wrap_angle
+from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.graph import GraphBuilder, GraphOptions, pose_key
 from mapfuse_graph.solvers import (

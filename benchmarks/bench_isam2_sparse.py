@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 from mapfuse_graph.solvers import GraphResult, run_graph

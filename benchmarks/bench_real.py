@@ -18,7 +18,7 @@ from typing import Any
 
 from mapfuse.run import run
 from mapfuse_core.data.datasets import load_carpark, load_victoria_park
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 TARGET_S = 180.0
 

@@ -35,11 +35,11 @@ from mapfuse.changes import detect_changes
 from mapfuse.figures import run_errors
 from mapfuse.result import EstimatorResult
 from mapfuse.run import Run, run
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
 from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 

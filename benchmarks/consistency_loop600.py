@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 
 from mapfuse.run import run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -37,6 +36,7 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.se2 import wrap_angle
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
 

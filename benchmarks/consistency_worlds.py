@@ -35,10 +35,10 @@ from mapfuse.campaign.cli import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
 from mapfuse.run import run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.worldgen import WorldParams, generate_scenario

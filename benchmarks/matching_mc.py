@@ -53,10 +53,10 @@ import mapfuse_core.matching.ccda as ccda_pkg
 from ekf_reference import EKFConfig, run_ekf
 from mapfuse.estimators.ekf import to_result
 from mapfuse.result import EstimatorResult
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sim.clutter import ClutterParams
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate

@@ -40,7 +40,6 @@ from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
 from mapfuse.result import Anchor
 from mapfuse.run import run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -50,6 +49,7 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.se2 import compose, wrap_angle
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import build_known_map, load_scenario
 from mapfuse_core.sim.simulate import simulate
 

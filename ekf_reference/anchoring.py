@@ -17,9 +17,9 @@ import numpy as np
 
 from ekf_reference.association import IteratedUpdate, apply_iterated, element_pairings
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
+from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = [
     "JOINTLY_INCONSISTENT",

@@ -21,16 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.geometry.features import (
-    FeatureKind,
-    pairing_cov,
-    pairing_residual,
-    transform_feature,
-)
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
+from mapfuse_core.models import pairing_cov, pairing_residual
 
 __all__ = [
     "Candidate",
@@ -139,11 +135,11 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     """Residual, Jacobian and Mahalanobis distance of pairing query ``q`` with target ``t``.
 
     The residual is the feature model's ``pairing(target, q)``
-    (:func:`mapfuse_core.geometry.features.pairing_residual`): for a line, the offset of the
+    (:func:`mapfuse_core.models.dispatch.pairing_residual`): for a line, the offset of the
     query's reference point (a measured segment's midpoint) from the target line and
     the angle between them, for an estimated line and a known wall alike, so the
     target's reference point along its line never enters.  A measurement's noise is
-    the model's (:func:`mapfuse_core.geometry.features.pairing_cov`: its covariance with the
+    the model's (:func:`mapfuse_core.models.dispatch.pairing_cov`: its covariance with the
     along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
     covariance is in the map, so its pairing has none.  docs/models.md says why the
     segment form.

@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays
 
 
 def centred_known_map(known: KnownMapArrays) -> tuple[KnownMapArrays, FloatArray]:

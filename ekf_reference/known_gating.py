@@ -23,7 +23,7 @@ inconsistent (``docs/changes.md`` says why this mechanism):
 An un-fused feature is removed from every target list from then on: its later
 observations build an ordinary landmark (and a new feature in the map); what it had
 already contributed stays in the estimate.  The un-fused ids travel with the run's
-:class:`~mapfuse_core.matching.decisions.AssociationDecisions`, so a graph backend
+:class:`~mapfuse_core.estimate.decisions.AssociationDecisions`, so a graph backend
 consuming them adds no tie for those features.
 """
 
@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 from ekf_reference.association import Candidate, Query
 from ekf_reference.state import ElementKind, GaussianMap, Role
+from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
-from mapfuse_core.matching.decisions import KnownMapGating
 
 __all__ = ["KnownGate", "KnownGatingParams"]
 

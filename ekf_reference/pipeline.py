@@ -45,11 +45,11 @@ from ekf_reference.result import AnchorResult, EKFResult, LoopClosure
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.tracks import Tracks
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult, ccda_match
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["JOINTLY_INCONSISTENT", "PAIRING_INCONSISTENT", "run_ekf"]
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ekf_reference.config import EKFConfig
+from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions, KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions, KnownMapGating
 
 __all__ = [
     "AnchorResult",

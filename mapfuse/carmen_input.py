@@ -16,7 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 if TYPE_CHECKING:
     from mapfuse_core.evaluation.changes import ChangeParams

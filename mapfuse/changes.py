@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from mapfuse.result import EstimatorResult
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport, classify_changes
 from mapfuse_core.evaluation.changes.truth import ChangeTruth, change_truth, score_changes
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario
 
 __all__ = ["change_report_lines", "change_section", "detect_changes"]

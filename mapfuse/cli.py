@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from mapfuse.interrupt import catching_sigint
-from mapfuse_core.data.measlog import MeasurementLog, save_log
+from mapfuse_core.measlog import MeasurementLog, save_log
 from mapfuse_core.sim.limits import check_seed
 from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
 from mapfuse_core.sim.simulate import simulate

@@ -36,9 +36,9 @@ from mapfuse.figures import (
 from mapfuse.outputs import write_outputs
 from mapfuse.result import EstimatorResult
 from mapfuse.run import Run, consumer_options, fusion_for, labelled, resolve, run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import CHI2_3_95, path_length
 from mapfuse_core.geometry.se2 import wrap_scalar
+from mapfuse_core.measlog import MeasurementLog
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

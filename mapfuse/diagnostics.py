@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 
 from mapfuse.result import EstimatorResult, MatchAttempts
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import CHI2_3_95
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = [
     "NEES_MEAN_LIMIT",

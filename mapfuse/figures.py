@@ -27,7 +27,6 @@ from mapfuse.plotting import (
     plot_world,
 )
 from mapfuse.run import Run, fusion_for
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     gps_error_series,
@@ -37,6 +36,7 @@ from mapfuse_core.evaluation import (
 )
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose, inverse
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sim.world import World
 
 if TYPE_CHECKING:

@@ -21,7 +21,7 @@ import numpy as np
 
 from mapfuse.diagnostics import matching_block, run_warnings
 from mapfuse.result import Anchor, EstimatorResult
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.evaluation import (
     anchor_metrics,
     anchor_truth,
@@ -31,7 +31,7 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import KnownMapGating
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["anchor_block", "build_metrics", "run_metrics"]
 

@@ -12,16 +12,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, compose, transform_point
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sim.world import World
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from mapfuse_core.sim.laser import Scan
+    from mapfuse_core.sensor import Scan
 
 __all__ = [
     "draw_circle",

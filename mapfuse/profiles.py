@@ -17,7 +17,7 @@ from typing import Any
 from mapfuse.carmen_input import CARMEN_PREFIX
 from mapfuse.estimator import Estimator
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["PROFILES", "Profile", "default_options", "profile_of"]
 

@@ -13,8 +13,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from mapfuse_core.estimate.decisions import AssociationDecisions
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import AssociationDecisions
 
 __all__ = ["Anchor", "EstimatorResult", "MapEstimate", "MatchAttempts", "PoseTrack"]
 

@@ -19,8 +19,8 @@ from mapfuse.estimator import Estimator, Progress
 from mapfuse.metrics import run_metrics
 from mapfuse.profiles import default_options
 from mapfuse.result import EstimatorResult
-from mapfuse_core.data.measlog import MeasurementLog, load_log
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import MeasurementLog, load_log
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
 

@@ -8,24 +8,13 @@ real datasets) and :mod:`~mapfuse_core.evaluation` (metrics and NEES statistics)
 Poses are ``(x, y, θ)`` everywhere (``docs/conventions.md``).
 """
 
-from mapfuse_core.data.measlog import (
-    KnownMapArrays,
-    MeasurementLog,
-    MeasurementLogError,
-    load_log,
-    save_log,
-)
 from mapfuse_core.geometry.features import (
     FeatureKind,
     canonical_line,
-    circle_pairing,
     express_in,
     line_from_normal,
-    line_pairing,
     line_to_normal,
     normal_to_line,
-    observe,
-    pairing_residual,
     transform_feature,
 )
 from mapfuse_core.geometry.se2 import (
@@ -36,13 +25,22 @@ from mapfuse_core.geometry.se2 import (
     relative,
 )
 from mapfuse_core.matching.ccda import CCDAParams, CCDAResult, ccda_match, estimate_transform
+from mapfuse_core.measlog import (
+    KnownMapArrays,
+    MeasurementLog,
+    MeasurementLogError,
+    load_log,
+    save_log,
+)
+from mapfuse_core.models import circle_pairing, line_pairing, observe, pairing_residual
 from mapfuse_core.perception.extraction import (
     ExtractedFeature,
     ExtractionParams,
     ExtractionResult,
     extract_features,
 )
-from mapfuse_core.sim.laser import LaserParams, Scan, cast_rays, simulate_scan
+from mapfuse_core.sensor import LaserParams, Scan
+from mapfuse_core.sim.laser import cast_rays, simulate_scan
 from mapfuse_core.sim.scenario import (
     Scenario,
     ScenarioError,

@@ -13,6 +13,6 @@ Modules, imported on demand (each loads gtsam):
   with :mod:`~mapfuse_graph.marginals` and :mod:`~mapfuse_graph.results`.
 
 Depends on :mod:`mapfuse_core` only (association decisions arrive as
-:class:`~mapfuse_core.matching.decisions.AssociationDecisions`); the harness that runs it beside
+:class:`~mapfuse_core.estimate.decisions.AssociationDecisions`); the harness that runs it beside
 the EKF is :mod:`mapfuse`.
 """

@@ -1,6 +1,6 @@
 """The factor graph over a measurement log (docs/method.md §7), built step by step.
 
-:class:`GraphBuilder` turns a :class:`~mapfuse_core.data.measlog.MeasurementLog` into the
+:class:`GraphBuilder` turns a :class:`~mapfuse_core.measlog.MeasurementLog` into the
 factors and initial values of each step, so that one code path feeds both the
 batch solver (all steps, then optimise) and iSAM2 (one update per step).
 
@@ -26,7 +26,7 @@ after the anchor step gets its tie when it is created.
 Association sources:
 
 * ``"ekf"`` — the EKF's final decisions, handed over as
-  :class:`~mapfuse_core.matching.decisions.AssociationDecisions`: the same data association as
+  :class:`~mapfuse_core.estimate.decisions.AssociationDecisions`: the same data association as
   the reference, so differences come from the estimator alone.  Anchor step and
   initial value from the decisions' anchor.
 * ``"truth"`` — the simulator's world ids (observations with id −1 are dropped);
@@ -39,8 +39,8 @@ Association sources:
   ``ccda_every`` steps until it accepts a match, then χ²-gated pairing of the
   remaining landmarks with known features.
 * explicit arrays ``(obs_landmark, obs_known_id)`` (e.g. the
-  :attr:`~mapfuse_core.matching.decisions.AssociationDecisions.arrays` of
-  :func:`mapfuse_core.matching.decisions.load_associations`).
+  :attr:`~mapfuse_core.estimate.decisions.AssociationDecisions.arrays` of
+  :func:`mapfuse_core.estimate.decisions.load_associations`).
 
 Everything is validated before any factor is built: an exception inside an iSAM2
 update leaves it corrupt, so malformed input must never reach GTSAM.
@@ -54,14 +54,14 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.estimate.decisions import AssociationDecisions
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose, inverse
 from mapfuse_core.matching import (
     chi2_gate,
 )
 from mapfuse_core.matching.ccda import estimate_transform
-from mapfuse_core.matching.decisions import AssociationDecisions
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_graph.estimate import Estimate, StepGraph, _Landmark, _WithStep
 from mapfuse_graph.factors import (
     circle_centre_factor,

@@ -78,8 +78,9 @@ from collections.abc import Callable, Sequence
 import gtsam
 import numpy as np
 
-from mapfuse_core.geometry.features import FeatureKind, pairing_cov
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar_half
+from mapfuse_core.models import pairing_cov
 from mapfuse_graph.residuals import (
     circle_observation_error,
     circle_tie_error,

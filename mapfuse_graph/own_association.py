@@ -14,7 +14,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
 from mapfuse_core.matching import (
@@ -23,6 +22,7 @@ from mapfuse_core.matching import (
     pregate,
 )
 from mapfuse_core.matching.ccda import ccda_match
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_graph.estimate import Estimate, StepGraph, _Landmark, _WithStep
 from mapfuse_graph.factors import (
     circle_observation_error,

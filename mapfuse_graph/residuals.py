@@ -17,12 +17,12 @@ import numpy as np
 from mapfuse_core.geometry.features import (
     FeatureKind,
     line_from_normal,
-    pairing_residual,
     transform_circle,
     transform_feature,
     transform_line,
 )
 from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar
+from mapfuse_core.models import pairing_residual
 from mapfuse_core.models.circle import circle_observation
 from mapfuse_core.models.line import line_observation, line_residual, line_residual_cov
 

@@ -11,10 +11,10 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import FeatureKind, line_from_normal
 from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
-from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions
 from mapfuse_graph.builder import GraphBuilder
 from mapfuse_graph.factors import pose_of
 from mapfuse_graph.keys import anchor_key, key_map, landmark_key, pose_key, radius_key

@@ -34,9 +34,9 @@ from typing import Literal
 
 import numpy as np
 
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.estimate.decisions import AssociationDecisions
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching.decisions import AssociationDecisions
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.batch import LMOptions, _run_batch, levenberg_marquardt
 from mapfuse_graph.batch import _joint_pose_cov as _joint_pose_cov
 from mapfuse_graph.batch import _ValuesEstimate as _ValuesEstimate

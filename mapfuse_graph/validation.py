@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.factors import (
     line_to_rho_alpha,
     residual_noise_cov,

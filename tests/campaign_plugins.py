@@ -8,7 +8,7 @@ import time
 from typing import Any
 
 from mapfuse.result import EstimatorResult
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from tests.toy_estimator import DeadReckoning, DeadReckoningOptions
 
 

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, rot2, wrap_angle
 from mapfuse_core.matching.ccda import pairing_chi2
+from mapfuse_core.measlog import KnownMapArrays
 
 LINE, CIRCLE = int(FeatureKind.LINE), int(FeatureKind.CIRCLE)
 #: Along-line pseudo-standard deviation of line covariances: huge, and must not matter.

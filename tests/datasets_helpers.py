@@ -10,8 +10,8 @@ from scipy.optimize import least_squares
 from mapfuse_core.data.datasets import (
     dead_reckoning,
 )
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.se2 import wrap_scalar
+from mapfuse_core.measlog import MeasurementLog
 
 
 def rigid_fit(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

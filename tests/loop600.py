@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 from ekf_reference import EKFConfig, EKFResult, run_ekf
 from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
 

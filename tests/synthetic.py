@@ -11,11 +11,11 @@ import math
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind, canonical_line, express_in
 from mapfuse_core.geometry.se2 import compose, relative, wrap_angle
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.sensor import LaserParams
 from mapfuse_core.sim.clutter import ClutterParams, spurious_feature
-from mapfuse_core.sim.laser import LaserParams
 
 
 def ring_world(

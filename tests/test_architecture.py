@@ -2,6 +2,8 @@
 
 The harness package ``mapfuse`` is the only code that knows every estimator; the
 numeric packages never load a plotting library, and the EKF path never loads gtsam.
+Inside the core, subpackages sit in layers (:data:`CORE_LAYERS`): each imports only
+from layers below it, so no two subpackages import each other.
 """
 
 from __future__ import annotations
@@ -16,6 +18,20 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("mapfuse_core", "ekf_reference", "mapfuse_graph", "mapfuse")
+
+#: The core's subpackages, lowest layer first.  A subpackage imports only from
+#: subpackages of lower layers: bottom-layer types (features, the laser and its
+#: scans, the measurement log and known map, the estimate every estimator returns)
+#: sit below everything that reads them.
+CORE_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("geometry",),
+    ("models", "sensor", "measlog", "estimate"),
+    ("perception", "matching"),
+    ("sim",),
+    ("evaluation",),
+    ("data",),
+    ("changes",),
+)
 
 
 @pytest.mark.parametrize(
@@ -164,6 +180,71 @@ def test_cycle_finder_sees_a_function_level_cycle() -> None:
         "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import pkg.b\n"
     )
     assert _imports(typing_only, "pkg.a", False, known) == set()
+
+
+def _subpackage(module: str) -> str | None:
+    """``mapfuse_core.sim`` for any module in it; ``None`` for a top-level module."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if len(parts) > 1 else None
+
+
+def _subpackage_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """Which subpackage imports which (a package's own modules are one node each)."""
+    out: dict[str, set[str]] = {}
+    for name, deps in graph.items():
+        a = _subpackage(name)
+        if a is None:
+            continue
+        out.setdefault(a, set())
+        for d in deps:
+            b = _subpackage(d)
+            if b is not None and b != a:
+                out[a].add(b)
+    return out
+
+
+def _layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """``"a -> b"`` for every import of a core subpackage from its own or a higher layer."""
+    layer = {f"mapfuse_core.{s}": i for i, names in enumerate(CORE_LAYERS) for s in names}
+    bad = []
+    for name, deps in graph.items():
+        a = _subpackage(name)
+        if a is None or not a.startswith("mapfuse_core."):
+            continue
+        for d in deps:
+            b = _subpackage(d)
+            if b is None or b == a or not b.startswith("mapfuse_core."):
+                continue
+            if layer[b] >= layer[a]:
+                bad.append(f"{name} -> {d}")
+    return sorted(bad)
+
+
+def test_every_core_subpackage_has_a_layer() -> None:
+    found = {p.name for p in (ROOT / "mapfuse_core").iterdir() if (p / "__init__.py").is_file()}
+    declared = {s for names in CORE_LAYERS for s in names}
+    assert found <= declared, f"core subpackages without a layer: {sorted(found - declared)}"
+
+
+def test_core_subpackages_import_only_lower_layers() -> None:
+    assert _layer_violations(_import_graph()) == []
+
+
+def test_no_import_cycles_between_subpackages() -> None:
+    assert _cycles(_subpackage_graph(_import_graph())) == []
+
+
+def test_layer_check_sees_an_upward_and_a_sideways_import() -> None:
+    graph = {
+        "mapfuse_core.sim.simulate": {"mapfuse_core.geometry.se2"},
+        "mapfuse_core.geometry.se2": {"mapfuse_core.sim.simulate"},
+        "mapfuse_core.models.line": {"mapfuse_core.measlog.log"},
+    }
+    assert _layer_violations(graph) == [
+        "mapfuse_core.geometry.se2 -> mapfuse_core.sim.simulate",
+        "mapfuse_core.models.line -> mapfuse_core.measlog.log",
+    ]
+    assert _cycles(_subpackage_graph(graph)) == [["mapfuse_core.geometry", "mapfuse_core.sim"]]
 
 
 def test_numeric_packages_never_import_the_harness() -> None:

@@ -22,9 +22,10 @@ from ekf_reference.association import (
     predict_all_targets,
 )
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
-from mapfuse_core.geometry.features import FeatureKind, pairing_residual, transform_feature
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, compose_jacobians, wrap_angle
 from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.models import pairing_residual
 from tests.jacobians import ATOL, RTOL, numerical_jacobian, poses
 
 # Measurement-like noise: 1 cm lateral, 5 mrad, and an along-line pseudo-variance of

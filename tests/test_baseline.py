@@ -37,7 +37,7 @@ from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import build_metrics, run_metrics
 from mapfuse.run import run
 from mapfuse.testing import assert_no_worse_than_baseline
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
 COMMITTED = Path(__file__).parent / "baselines" / "synthetic_ring_seed0_200.json"
@@ -379,7 +379,7 @@ def test_helper_does_not_modify_its_input(tmp_path: Path) -> None:
 
 def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path) -> None:
     from mapfuse.cli import main
-    from mapfuse_core.data.measlog import KnownMapArrays, save_log
+    from mapfuse_core.measlog import KnownMapArrays, save_log
 
     log = synthetic_log(60, 2)
     k = log.known_map

@@ -25,13 +25,14 @@ from mapfuse_core.data.datasets.floorplan import (
     line_nees,
     same_wall,
 )
-from mapfuse_core.data.measlog import load_log, save_log
+from mapfuse_core.measlog import load_log, save_log
 from mapfuse_core.perception.extraction import (
     EXTRACTION_PROFILES,
     ExtractionParams,
     extract_features,
 )
-from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.world import WallSegment, World
 
 DATA = Path(__file__).parent / "data" / "carmen"

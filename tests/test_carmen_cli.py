@@ -16,7 +16,8 @@ from mapfuse.cli import main
 from mapfuse.profiles import default_options, profile_of
 from mapfuse.registry import get
 from mapfuse_core.data.datasets import carmen_association
-from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.world import WallSegment, World
 from tests.synthetic import synthetic_log
 

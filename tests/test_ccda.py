@@ -12,9 +12,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import inverse
 from mapfuse_core.matching.ccda import CCDAParams, ccda_match, estimate_transform, pairing_chi2
+from mapfuse_core.measlog import KnownMapArrays
 from tests.ccda_helpers import (
     CIRCLE,
     LINE,

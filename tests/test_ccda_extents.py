@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.matching.ccda import CCDAParams, ccda_match
 from mapfuse_core.matching.ccda import clique as clique_mod
 from mapfuse_core.matching.ccda.inspect import correspondence_graph
 from mapfuse_core.matching.ccda.params import _check_params
 from mapfuse_core.matching.ccda.prepare import _prepare
 from mapfuse_core.matching.ccda.verification import _segments_overlap
+from mapfuse_core.measlog import KnownMapArrays
 from tests.ccda_helpers import LINE, line_cov, move, random_overlap, rotate_cov
 
 S_LAT, S_TH = 0.02, 0.005

@@ -14,10 +14,10 @@ from ekf_reference import EKFConfig, run_ekf
 from ekf_reference.association import apply_iterated, element_pairings
 from ekf_reference.pipeline import JOINTLY_INCONSISTENT
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.matching import chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult, pairing_chi2
+from mapfuse_core.measlog import KnownMapArrays
 from tests.synthetic import synthetic_log
 
 TRUTH = np.array([3.0, -2.0, 0.4])

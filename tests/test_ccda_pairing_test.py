@@ -17,10 +17,10 @@ from ekf_reference.anchoring import (
     worst_pairing,
 )
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
+from mapfuse_core.measlog import KnownMapArrays
 from tests.test_ccda_joint_test import KNOWN as JOINT_KNOWN
 from tests.test_ccda_joint_test import SIGMA_COMMON, SIGMA_OWN, TRUTH
 

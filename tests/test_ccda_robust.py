@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLogError, load_log, save_log
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.geometry.se2 import compose, inverse, transform_point
 from mapfuse_core.matching.ccda import REASONS, CCDAParams, ccda_match
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLogError, load_log, save_log
 from tests.ccda_helpers import (
     CIRCLE,
     LINE,

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import KnownMapArrays
-from mapfuse_core.geometry.features import FeatureKind, pairing_residual, transform_feature
+from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose
 from mapfuse_core.matching import ccda
 from mapfuse_core.matching.ccda import CCDAParams, estimate_transform, pairing_chi2
+from mapfuse_core.measlog import KnownMapArrays
+from mapfuse_core.models import pairing_residual
 from tests.ccda_helpers import (
     CIRCLE,
     LINE,

@@ -11,7 +11,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes import (
     ChangeParams,
     ChangeStatus,
@@ -21,6 +20,7 @@ from mapfuse_core.evaluation.changes import (
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, inverse, relative
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from tests.synthetic import synthetic_log
 

@@ -9,12 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeStatus
 from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
 from mapfuse_core.evaluation.changes.visibility import map_world
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.sim.laser import LaserParams, cast_rays, simulate_scan
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import cast_rays, simulate_scan
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 from tests.test_changes import PARAMS, _classify, _log, _most_in_view, _with_absent_trees
 

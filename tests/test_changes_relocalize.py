@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes import ChangeStatus
 from mapfuse_core.evaluation.changes.relocalize import (
     _linearize,
@@ -19,6 +18,7 @@ from mapfuse_core.evaluation.changes.relocalize import (
 )
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import compose, wrap_scalar
+from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
 LEVEL = 0.999
@@ -113,7 +113,7 @@ def test_a_moved_known_feature_is_set_aside_and_the_pose_still_lands():
 def _ties_log(kinds: list[FeatureKind], params: list[np.ndarray]) -> MeasurementLog:
     """One step seeing the given known features exactly from the origin."""
     base = synthetic_log(steps=2, seed=0)
-    from mapfuse_core.data.measlog import KnownMapArrays
+    from mapfuse_core.measlog import KnownMapArrays
 
     n = len(kinds)
     known = KnownMapArrays(

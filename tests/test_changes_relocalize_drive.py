@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.relocalize import _place, _solve, _Tie, relocalize_before_match
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import compose
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.test_changes_relocalize import LEVEL, LOOSE, _err, _filtered
 
 Q = np.diag([0.02**2, 0.01**2, 0.003**2])

@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.visibility import scans_in_view
+from mapfuse_core.measlog import KnownMapArrays
 from mapfuse_core.perception.extraction import ExtractionParams
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 
 BEAMS = ChangeParams(view_stride=1)
 EXTRACTOR = BEAMS.with_sensor(LaserParams())

@@ -16,7 +16,7 @@ import pytest
 
 import mapfuse.run
 from mapfuse.cli import EXIT_INTERRUPTED, _parser, main
-from mapfuse_core.data.measlog import save_log
+from mapfuse_core.measlog import save_log
 from tests.synthetic import synthetic_log
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -20,9 +20,9 @@ from mapfuse.figures import (
     timing_figure,
 )
 from mapfuse.run import run
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.matching.ccda import ccda_match
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.synthetic import synthetic_log
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -17,7 +17,7 @@ from mapfuse.compare import (
     report_markdown,
     write_comparison,
 )
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import list_builtin_scenarios, load_scenario
 from tests.synthetic import synthetic_log
 

@@ -22,9 +22,9 @@ from mapfuse_core.data.datasets import (
     dead_reckoning,
     load_carpark,
 )
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose_jacobians, relative, wrap_scalar
+from mapfuse_core.measlog import MeasurementLog
 from tests.datasets_helpers import (
     apply_rigid,
     features_in_world,

@@ -26,8 +26,8 @@ from mapfuse_core.data.datasets import (
     dead_reckoning,
     load_victoria_park,
 )
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.measlog import MeasurementLog
 from tests.datasets_helpers import features_in_world, gps_at, rigid_fit
 
 # --------------------------------------------------------------------------- Victoria Park (real)

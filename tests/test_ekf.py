@@ -14,11 +14,12 @@ from ekf_reference.loops import LoopClosureParams
 from ekf_reference.maps import associate, predict
 from ekf_reference.pipeline import _Run
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
-from mapfuse_core.data.measlog import MeasurementLog, MeasurementLogError
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
-from mapfuse_core.geometry.features import FeatureKind, canonical_line, observe, transform_feature
+from mapfuse_core.geometry.features import FeatureKind, canonical_line, transform_feature
 from mapfuse_core.geometry.se2 import compose_jacobians, wrap_angle
 from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.measlog import MeasurementLog, MeasurementLogError
+from mapfuse_core.models import observe
 from tests.synthetic import ring_world, synthetic_log, with_known
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from ekf_reference.config import EKFConfig
 from mapfuse.run import Run, run
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log, with_clutter
 
 STEPS, CLUTTER = 120, 5  # 600 spurious detections, half trunks, half short walls

@@ -10,16 +10,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
-from mapfuse_core.geometry.features import (
-    FeatureKind,
-    canonical_line,
-    express_in,
-    line_pairing,
-    line_to_normal,
-)
+from mapfuse_core.geometry.features import FeatureKind, canonical_line, express_in, line_to_normal
+from mapfuse_core.models import line_pairing
 from mapfuse_core.perception import extraction as ex
 from mapfuse_core.perception.extraction import ExtractedFeature, ExtractionParams, extract_features
-from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
+from mapfuse_core.sensor import LaserParams, Scan
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 EXACT = LaserParams(sigma_range_m=0.0, sigma_bearing_rad=0.0)

@@ -6,7 +6,7 @@ feature expressed in the sensor frame is normalised by the reported covariance:
 * lines, 2 dof: the SPmap pairing ``line_pairing(extracted, true_in_S)`` (lateral
   offset and angle modulo π) with covariance ``Ja Σ Jaᵀ``, ``Ja`` the residual's
   Jacobian w.r.t. the extracted line.  The extracted line is the *first* argument, as
-  in :func:`mapfuse_core.geometry.features.observe`, so the along-line pseudo-variance does not
+  in :func:`mapfuse_core.models.dispatch.observe`, so the along-line pseudo-variance does not
   enter (as the second argument it would leak ``(L²/12) sin²Δθ`` into the lateral
   variance and push the NEES down);
 * circles, 3 dof: ``(x, y, r)`` difference with the 3×3 covariance.
@@ -24,9 +24,11 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.geometry.features import FeatureKind, express_in, line_pairing
+from mapfuse_core.geometry.features import FeatureKind, express_in
+from mapfuse_core.models import line_pairing
 from mapfuse_core.perception.extraction import ExtractionParams, extract_features
-from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 LO = np.array([-100.0, -80.0])

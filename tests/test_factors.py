@@ -12,14 +12,9 @@ from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDer
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from mapfuse_core.geometry.features import (
-    FeatureKind,
-    line_from_normal,
-    observe,
-    pairing_residual,
-    transform_feature,
-)
+from mapfuse_core.geometry.features import FeatureKind, line_from_normal, transform_feature
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle, wrap_angle_half
+from mapfuse_core.models import observe, pairing_residual
 from mapfuse_graph import factors as fx
 from tests.jacobians import angle, circles, coord, numerical_jacobian, poses
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.se2 import wrap_angle
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.isam2 import isam2_params
 from mapfuse_graph.solvers import FixedLagOptions, GraphResult, ISAM2Options, run_graph

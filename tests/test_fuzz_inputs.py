@@ -36,7 +36,7 @@ from hypothesis import strategies as st
 
 from ekf_reference.config import EKFConfig
 from ekf_reference.pipeline import run_ekf
-from mapfuse_core.data.measlog import MeasurementLog, MeasurementLogError, load_log, save_log
+from mapfuse_core.measlog import MeasurementLog, MeasurementLogError, load_log, save_log
 from mapfuse_core.sim.scenario import ScenarioError, scenario_from_toml
 from mapfuse_core.sim.simulate import simulate
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph import factors as fx
 from mapfuse_graph.graph import (
     GraphBuilder,

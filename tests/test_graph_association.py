@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import pose_errors, truth_in_global
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAParams
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.graph import GraphBuilder, GraphOptions
 from mapfuse_graph.solvers import GraphResult, ISAM2Options, run_graph
 from tests.synthetic import synthetic_log

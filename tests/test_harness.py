@@ -20,9 +20,9 @@ from mapfuse.registry import get
 from mapfuse.result import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse.run import fusion_for, make_options, run
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions, load_associations
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.matching.decisions import AnchorDecision, AssociationDecisions, load_associations
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.synthetic import synthetic_log
 
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from mapfuse.cli import main
-from mapfuse_core.data.measlog import MeasurementLogError, load_log, save_log
-from mapfuse_core.sim.laser import LaserParams
-from mapfuse_core.sim.limits import MAX_BEAMS, MAX_SEED, MAX_STEPS, check_seed
+from mapfuse_core.measlog import MeasurementLogError, load_log, save_log
+from mapfuse_core.sensor import MAX_BEAMS, LaserParams
+from mapfuse_core.sim.limits import MAX_SEED, MAX_STEPS, check_seed
 from mapfuse_core.sim.scenario import scenario_from_toml
 from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.vehicle import VehicleParams, simulate_motion

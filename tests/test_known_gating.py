@@ -11,15 +11,11 @@ import pytest
 
 from ekf_reference import EKFConfig, EKFResult, run_ekf
 from ekf_reference.known_gating import KnownGate, KnownGatingParams
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.estimate.decisions import AssociationDecisions, KnownMapGating, load_associations
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import inverse
 from mapfuse_core.matching import AssociationConfig
-from mapfuse_core.matching.decisions import (
-    AssociationDecisions,
-    KnownMapGating,
-    load_associations,
-)
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.synthetic import ring_world, synthetic_log
 
 #: A precise known map (σ 2 cm, 0.01 rad): a move of a few decimetres is many σ.

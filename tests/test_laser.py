@@ -9,7 +9,8 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from mapfuse_core.sim.laser import LaserParams, Scan, cast_rays, simulate_scan
+from mapfuse_core.sensor import LaserParams, Scan
+from mapfuse_core.sim.laser import cast_rays, simulate_scan
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 ORIGIN = np.zeros(3)

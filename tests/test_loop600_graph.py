@@ -19,7 +19,6 @@ from scipy.stats import chi2
 from ekf_reference import EKFConfig, run_ekf
 from mapfuse.estimators.ekf import to_result
 from mapfuse.run import Run, run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -30,6 +29,7 @@ from mapfuse_core.evaluation import (
     truth_in_global,
 )
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.measlog import MeasurementLog
 from tests.loop600 import SEEDS, ekf_metrics, loop600_ekf, loop600_log
 from tests.synthetic import with_known
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import (
+from mapfuse_core.measlog import (
     FORMAT_VERSION,
     KnownMapArrays,
     MeasurementLog,

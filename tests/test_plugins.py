@@ -18,8 +18,8 @@ from mapfuse import registry
 from mapfuse.baseline import check_log_against_baseline, record_baselines
 from mapfuse.compare import FIGURE_FILES, compare, write_comparison
 from mapfuse.run import run
-from mapfuse_core.data.measlog import MeasurementLog, save_log
 from mapfuse_core.evaluation import pose_errors, truth_in_global
+from mapfuse_core.measlog import MeasurementLog, save_log
 from tests.synthetic import synthetic_log
 from tests.toy_estimator import DeadReckoning
 

@@ -25,7 +25,7 @@ from mapfuse_core.data.datasets import (
     load_carpark,
     load_victoria_park,
 )
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 pytestmark = pytest.mark.slow
 

@@ -16,8 +16,8 @@ from mapfuse.compare import compare
 from mapfuse.metrics import run_metrics
 from mapfuse.result import MatchAttempts, PoseTrack
 from mapfuse.run import Run, prepare_log, run
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog, save_log
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, save_log
 from tests.synthetic import synthetic_log, with_known
 
 STEPS = 60  # the synthetic vehicle drives the whole ring in any number of steps

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.clutter import ClutterParams
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate

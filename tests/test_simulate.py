@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from mapfuse.cli import main
-from mapfuse_core.data.measlog import load_log, save_log
 from mapfuse_core.evaluation import path_length
-from mapfuse_core.sim.laser import LaserParams, simulate_scan
+from mapfuse_core.measlog import load_log, save_log
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
 from mapfuse_core.sim.world import World

@@ -18,7 +18,7 @@ from mapfuse.spectrum import (
     spectrum,
     spectrum_markdown,
 )
-from mapfuse_core.data.measlog import save_log
+from mapfuse_core.measlog import save_log
 from tests.synthetic import synthetic_log
 
 

@@ -15,9 +15,9 @@ from mapfuse.compare import compare, write_comparison
 from mapfuse.outputs import write_outputs
 from mapfuse.run import Run, run
 from mapfuse.trajectories import TRAJECTORY_FILES
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import truth_in_global
 from mapfuse_core.geometry.se2 import compose, wrap_angle
+from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
 

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from mapfuse.result import EstimatorResult, MapEstimate, PoseTrack
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.geometry.se2 import compose_jacobians
+from mapfuse_core.measlog import MeasurementLog
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,8 @@ from mapfuse import registry
 from mapfuse.campaign.spec import CampaignSpec
 from mapfuse.result import EstimatorResult
 from mapfuse.run import consumer_options, fusion_for, make_options, resolve, run
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors, truth_in_global
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 

@@ -11,7 +11,7 @@ from ekf_reference.pipeline import run_ekf
 from ekf_reference.result import EKFResult
 from mapfuse.estimator import Progress
 from mapfuse.result import Anchor, EstimatorResult, MapEstimate, MatchAttempts, PoseTrack
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["EKFEstimator", "to_result"]
 

@@ -12,7 +12,7 @@ from mapfuse import registry
 from mapfuse.estimator import Progress
 from mapfuse.profiles import default_options
 from mapfuse.result import Anchor, EstimatorResult, MapEstimate, MatchAttempts, PoseTrack
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.graph import ASSOCIATIONS, GraphOptions, centre_radius_correlated
 from mapfuse_graph.solvers import (
     FixedLagOptions,

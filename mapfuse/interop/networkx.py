@@ -23,9 +23,9 @@ import math
 import networkx as nx
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.matching.ccda import CCDAParams, CCDAResult
 from mapfuse_core.matching.ccda.inspect import EDGE_INVARIANTS, correspondence_graph
+from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = ["correspondence_nx"]
 

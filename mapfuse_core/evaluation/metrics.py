@@ -11,12 +11,7 @@ from typing import Any
 import numpy as np
 
 from mapfuse_core.evaluation.nees import CHI2_3_95, nees_mean_interval, nees_series
-from mapfuse_core.geometry.features import (
-    FeatureKind,
-    express_in,
-    pairing_residual,
-    transform_feature,
-)
+from mapfuse_core.geometry.features import FeatureKind, express_in, transform_feature
 from mapfuse_core.geometry.se2 import (
     FloatArray,
     compose,
@@ -25,6 +20,7 @@ from mapfuse_core.geometry.se2 import (
     transform_point,
     wrap_angle,
 )
+from mapfuse_core.models import pairing_residual
 
 __all__ = [
     "MapDrawOffset",

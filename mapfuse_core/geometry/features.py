@@ -14,11 +14,8 @@ Two feature kinds, each a length-3 float array:
   like a point and leaves ``r`` alone.
 
 Every function returns its value together with its Jacobians.  The measurement
-models themselves live in :mod:`mapfuse_core.models` (one per feature type);
-:func:`pairing_residual`, :func:`pairing_cov` and :func:`observe` only dispatch to
-them by kind.  The EKF evaluates its pairings through :func:`pairing_residual` and
-:func:`pairing_cov`; the factor graph calls the models directly (its hot-path
-callbacks are closed forms of them, held equal by tests).
+models live above this module, in :mod:`mapfuse_core.models` (one per feature type,
+and :mod:`mapfuse_core.models.dispatch` to pick one by kind).
 """
 
 from __future__ import annotations
@@ -35,33 +32,16 @@ from mapfuse_core.geometry.se2 import (
     transform_point_jacobians,
     wrap_scalar,
 )
-from mapfuse_core.models.circle import (
-    circle_observation,
-    circle_residual,
-    circle_residual_cov,
-)
-from mapfuse_core.models.line import (
-    B_LINE,
-    line_observation,
-    line_residual,
-    line_residual_cov,
-)
 
 __all__ = [
-    "B_LINE",
     "FeatureKind",
     "canonical_line",
-    "circle_pairing",
     "express_circle_in",
     "express_in",
     "express_line_in",
     "line_from_normal",
-    "line_pairing",
     "line_to_normal",
     "normal_to_line",
-    "observe",
-    "pairing_cov",
-    "pairing_residual",
     "residual_dim",
     "transform_circle",
     "transform_feature",
@@ -147,10 +127,6 @@ def express_line_in(T: FloatArray, line: FloatArray) -> tuple[FloatArray, FloatA
     return relative(T, line)
 
 
-#: SPmap pairing of two lines: :func:`mapfuse_core.models.line.line_residual`.
-line_pairing = line_residual
-
-
 # --------------------------------------------------------------------------- circles
 
 
@@ -182,10 +158,6 @@ def express_circle_in(
     return value, JT, JC
 
 
-#: Pairing of two circles: :func:`mapfuse_core.models.circle.circle_residual`.
-circle_pairing = circle_residual
-
-
 # --------------------------------------------------------------------------- dispatch
 
 
@@ -201,42 +173,3 @@ def express_in(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Feature given in the parent of ``T`` → frame ``T`` (``⊖T ⊕ f``), by kind."""
     return express_line_in(T, f) if kind == FeatureKind.LINE else express_circle_in(T, f)
-
-
-def pairing_residual(
-    kind: FeatureKind, target: FloatArray, observed: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Residual of ``observed`` against ``target`` (both of ``kind``, in one frame).
-
-    Dispatches to :func:`~mapfuse_core.models.line.line_residual` or
-    :func:`~mapfuse_core.models.circle.circle_residual`; returns the residual and its
-    Jacobians w.r.t. ``target`` and ``observed``.
-    """
-    if kind == FeatureKind.LINE:
-        return line_residual(target, observed)
-    return circle_residual(target, observed)
-
-
-def pairing_cov(
-    kind: FeatureKind, target: FloatArray, observed: FloatArray, cov: FloatArray
-) -> FloatArray:
-    """Noise of :func:`pairing_residual` due to ``observed`` (covariance ``cov``), by kind."""
-    if kind == FeatureKind.LINE:
-        return line_residual_cov(target, observed, cov)
-    return circle_residual_cov(target, observed, cov)
-
-
-def observe(
-    kind: FeatureKind, z: FloatArray, x_W_R: FloatArray, f_W: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Observation residual of measurement ``z`` (in the sensor frame ``R``), by kind.
-
-    ``residual = pairing(⊖x_W_R ⊕ f_W, z)``: zero when the feature ``f_W`` (in ``W``)
-    seen from pose ``x_W_R`` coincides with the measurement.  Dispatches to
-    :func:`~mapfuse_core.models.line.line_observation` or
-    :func:`~mapfuse_core.models.circle.circle_observation`; returns the residual (2 for
-    a line, 3 for a circle) and its Jacobians w.r.t. ``x_W_R`` and ``f_W``.
-    """
-    if kind == FeatureKind.LINE:
-        return line_observation(x_W_R, f_W, z)
-    return circle_observation(x_W_R, f_W, z)

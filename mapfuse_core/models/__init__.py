@@ -12,6 +12,13 @@ from mapfuse_core.models.circle import (
     circle_residual,
     circle_residual_cov,
 )
+from mapfuse_core.models.dispatch import (
+    circle_pairing,
+    line_pairing,
+    observe,
+    pairing_cov,
+    pairing_residual,
+)
 from mapfuse_core.models.line import (
     B_LINE,
     bind_line_cov,
@@ -26,10 +33,15 @@ __all__ = [
     "bind_line_cov",
     "circle_observation",
     "circle_observation_cov",
+    "circle_pairing",
     "circle_residual",
     "circle_residual_cov",
     "line_observation",
     "line_observation_cov",
+    "line_pairing",
     "line_residual",
     "line_residual_cov",
+    "observe",
+    "pairing_cov",
+    "pairing_residual",
 ]

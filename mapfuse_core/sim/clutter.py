@@ -30,7 +30,7 @@ import numpy as np
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import rot2
 from mapfuse_core.perception.extraction import ExtractedFeature, ExtractionResult
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 
 __all__ = ["ClutterParams", "add_clutter"]
 

@@ -9,8 +9,9 @@ works on beams × features arrays per scan.
 
 from __future__ import annotations
 
-import math
 from numbers import Integral
+
+from mapfuse_core.sensor.laser import MAX_ANGLE_SIGMA, MAX_BEAMS
 
 __all__ = [
     "MAX_ANGLE_SIGMA",
@@ -30,10 +31,6 @@ still resolves 1e-7 m there, and UTM-like surveyed coordinates are below 1e7 m),
 speeds, ranges and standard deviations likewise, so that squares and products of
 them stay finite."""
 
-MAX_ANGLE_SIGMA = math.pi
-"""Largest standard deviation of an angle (rad): beyond π the angle is as good as
-uniform, which no linearised filter can represent (its innovation covariances stop
-being positive definite)."""
 
 MAX_SEED = 2**63 - 1
 """Largest seed: seeds are stored as int64 in the measurement log (``0 ≤ seed ≤ 2⁶³ − 1``)."""
@@ -44,9 +41,6 @@ MAX_FEATURE_ID = 2**63 - 1
 MAX_STEPS = 1_000_000
 """Most poses a simulation drives: the per-step arrays then take 136 MB."""
 
-MAX_BEAMS = 10_000
-"""Most beams of a simulated laser (real planar scanners give at most a few thousand):
-a scan's ray casting then holds a few beams × features arrays of 80 kB per feature."""
 
 MAX_SCAN_BEAMS = 100_000_000
 """Most beams of a whole simulation, steps × beams per scan: the kept raw scans then

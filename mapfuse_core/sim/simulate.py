@@ -36,12 +36,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, MeasurementLogError
 from mapfuse_core.perception.extraction import ExtractionParams, ExtractionResult, extract_features
+from mapfuse_core.sensor import LaserParams, Scan
 from mapfuse_core.sim.clutter import ClutterParams, add_clutter
-from mapfuse_core.sim.laser import LaserParams, Scan, simulate_scan
+from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.limits import check_seed, check_steps
 from mapfuse_core.sim.scenario import (
     Scenario,

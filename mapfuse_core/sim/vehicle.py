@@ -39,7 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray, as_pose, compose, relative, wrap_angle
-from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_STEPS
+from mapfuse_core.sensor import MAX_ANGLE_SIGMA
+from mapfuse_core.sim.limits import MAX_STEPS
 
 __all__ = [
     "MotionResult",

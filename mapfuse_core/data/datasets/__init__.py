@@ -35,12 +35,8 @@ from mapfuse_core.data.datasets.carmen import (
     load_carmen,
 )
 from mapfuse_core.data.datasets.carmen_format import read_carmen
-from mapfuse_core.data.datasets.carpark import (
-    CARPARK_NAME,
-    CARPARK_ODOMETRY_NOISE,
-    CarparkOptions,
-    load_carpark,
-)
+from mapfuse_core.data.datasets.carpark import CARPARK_NAME, load_carpark
+from mapfuse_core.data.datasets.carpark_options import CARPARK_ODOMETRY_NOISE, CarparkOptions
 from mapfuse_core.data.datasets.common import DatasetError
 from mapfuse_core.data.datasets.floorplan import (
     FloorPlan,

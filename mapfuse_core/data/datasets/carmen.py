@@ -28,13 +28,13 @@ import numpy as np
 
 from mapfuse_core.data.datasets.carmen_format import CarmenRecords, LaserMessage, read_carmen
 from mapfuse_core.data.datasets.common import DatasetError, check_finite, empty_map
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, compose, relative, wrap_scalar
 from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.matching.ccda import CCDAParams
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.perception.extraction import ExtractionParams, extract_features
-from mapfuse_core.sim.laser import LaserParams, Scan
+from mapfuse_core.sensor import LaserParams, Scan
 
 __all__ = [
     "CarmenOptions",

@@ -8,12 +8,11 @@ clock of the dead reckoning.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from mapfuse_core.data.datasets.carpark_options import CarparkOptions
 from mapfuse_core.data.datasets.common import DatasetError, Features, check_finite, make_log
 from mapfuse_core.data.datasets.files import (
     check_increasing,
@@ -22,99 +21,17 @@ from mapfuse_core.data.datasets.files import (
     mat_vector,
 )
 from mapfuse_core.data.datasets.gps import gps_reference_labels
-from mapfuse_core.data.datasets.odometry import CarGeometry, OdometryNoise, integrate_odometry
+from mapfuse_core.data.datasets.odometry import integrate_odometry
 from mapfuse_core.data.datasets.poles import detect_reflector_poles
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 CARPARK_NAME = "acfr_carpark"
 """Scenario name of the car-park log (also its sub-directory of the data directory)."""
 
 _N_BEAMS = 361
 """Beams per car-park scan (−90° to +90° in 0.5° steps)."""
-
-
-CARPARK_ODOMETRY_NOISE = OdometryNoise(
-    steer_saturation_rad=0.59, sigma_steer_saturated_rad=math.radians(5.0)
-)
-"""Odometry errors of the car park: the default ones plus a steering end stop.
-
-The car-park steering readings pile up at 0.597–0.624 rad while the car drives tighter
-circles than they imply: the sensor is at its stop, and a step holding such a reading
-gets a wider steering error.  ``docs/datasets.md`` gives the effect of the value.
-"""
-
-
-@dataclass(frozen=True)
-class CarparkOptions:
-    """How :func:`load_carpark` turns the raw car-park data into a measurement log."""
-
-    geometry: CarGeometry = field(default_factory=CarGeometry)
-    """Car geometry (``docs/datasets.md``)."""
-    odometry_noise: OdometryNoise = field(default_factory=lambda: CARPARK_ODOMETRY_NOISE)
-    """Errors of the dead-reckoning sensors (:data:`CARPARK_ODOMETRY_NOISE`)."""
-    pole_radius_m: float = 0.03
-    """Radius of a beacon pole (about 6 cm diameter, ``docs/datasets.md``).  With 1 to 6
-    returns on a pole the radius cannot be fitted, so every pole, observed or surveyed,
-    gets this."""
-    pole_radius_sigma_m: float = 0.005
-    """σ of the pole radius (m): "about 6 cm" read as 6 ± 1 cm of diameter."""
-    sigma_range_m: float = 0.02
-    """σρ of a SICK LMS range (m): the sensor's ±15 mm systematic error at the car park's
-    1–16 m (1 cm resolution in this file); slightly conservative against the scatter of
-    poses fitted to the surveyed beacons alone (``docs/datasets.md``)."""
-    sigma_bearing_rad: float = math.radians(0.35)
-    """σβ of the direction to a pole's centre (rad), beside the beam quantisation (added
-    separately, ``Δβ²/24``): pointing and beam-footprint asymmetry.  Slightly
-    conservative against the same pose fits (``docs/datasets.md``), which the single
-    poles seen at 1–2 returns deserve."""
-    max_range_m: float = 30.0
-    """Reflective returns farther than this are ignored and counted per return as
-    ``beyond_max_range`` (the ACFR example code's cut); no pole is seen beyond 16 m here."""
-    cluster_max_beam_gap: int = 2
-    """Two reflective returns belong to one pole only if their beam indices differ by at
-    most this (one missing beam tolerated: the tape does not always flag)."""
-    cluster_max_gap_m: float = 0.3
-    """… and if they are at most this far apart (m); poles are metres apart."""
-    max_cluster_width_m: float = 0.3
-    """A cluster wider than this (first to last return, m) is not a 6 cm pole; rejected
-    as ``cluster_too_wide``."""
-    reference_labels: bool = True
-    """Give every pole the id of its surveyed beacon as located through GPS
-    (:func:`gps_reference_labels`) in ``feat_true_id``: what lets ``correct_pairings`` and
-    ``--association truth`` work on this real run.  A GPS-based label, not ground truth."""
-    laser_time_offset_s: float = 0.0
-    """Added to ``TimeLaser`` before use.  The raw clock is kept by default; the beacon
-    projections fit best with −0.03 s (range residuals of the GPS-aligned dead reckoning
-    are unbiased there), which suggests a 30 ms scanner latency."""
-    bearing_offset_rad: float = 0.0
-    """Added to every bearing (laser yaw misalignment).  Kept 0; the surveyed beacons
-    appear about 0.5–0.7° clockwise of their measured bearing from the GPS-aligned dead
-    reckoning, which this parameter can absorb."""
-
-    def __post_init__(self) -> None:
-        for name in (
-            "pole_radius_m",
-            "pole_radius_sigma_m",
-            "sigma_range_m",
-            "sigma_bearing_rad",
-            "max_range_m",
-            "cluster_max_gap_m",
-            "max_cluster_width_m",
-        ):
-            check_finite("CarparkOptions", name, getattr(self, name), positive=True)
-        for name in ("laser_time_offset_s", "bearing_offset_rad"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"CarparkOptions.{name} must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"CarparkOptions.{name} must be finite, got {value}")
-        gap = self.cluster_max_beam_gap
-        if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
-            raise ValueError(
-                f"CarparkOptions.cluster_max_beam_gap must be an int >= 1, got {gap!r}"
-            )
 
 
 def load_carpark(

@@ -1,7 +1,7 @@
 """What the dataset readers share: the error type, parameter checks, the log builder.
 
 Every missing or malformed input raises :class:`DatasetError` naming the file and the
-problem; :func:`make_log` assembles a :class:`~mapfuse_core.data.measlog.MeasurementLog` of
+problem; :func:`make_log` assembles a :class:`~mapfuse_core.measlog.MeasurementLog` of
 circle features from the parallel arrays a reader produces.
 """
 
@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 BEAM_SPACING_RAD = math.radians(0.5)
 """Angular spacing of the SICK beams of both datasets (rad)."""

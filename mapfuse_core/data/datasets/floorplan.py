@@ -23,16 +23,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.geometry.features import (
     FeatureKind,
     express_line_in,
     line_from_normal,
-    line_pairing,
     line_to_normal,
     transform_line,
 )
 from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.models import line_pairing
 
 __all__ = [
     "FloorPlan",
@@ -388,7 +388,7 @@ def line_nees(log: MeasurementLog, plan: FloorPlan) -> FloatArray:
     """(K,) NEES (2 dof) of every labelled line observation against its wall.
 
     The wall is expressed in the sensor frame at the reference pose (taken as exact);
-    the residual is :func:`~mapfuse_core.geometry.features.line_pairing` (observation first), its
+    the residual is :func:`~mapfuse_core.models.dispatch.line_pairing` (observation first), its
     covariance the observation's plus the wall's, both propagated.
     """
     if log.true_poses is None:

@@ -12,7 +12,7 @@ from mapfuse_core.data.datasets.common import BEAM_SPACING_RAD
 from mapfuse_core.geometry.se2 import FloatArray
 
 if TYPE_CHECKING:
-    from mapfuse_core.data.datasets.carpark import CarparkOptions
+    from mapfuse_core.data.datasets.carpark_options import CarparkOptions
 
 _NO_RETURN_M = 81.91
 """Range the car-park SICK reports for "no return"."""

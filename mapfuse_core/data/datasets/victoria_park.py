@@ -24,7 +24,7 @@ from mapfuse_core.data.datasets.common import (
 )
 from mapfuse_core.data.datasets.files import check_increasing, load_mat, mat_vector, read_table
 from mapfuse_core.data.datasets.odometry import CarGeometry, OdometryNoise, integrate_odometry
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse_core.measlog import MeasurementLog
 
 VICTORIA_PARK_NAME = "victoria_park"
 """Scenario name of the Victoria Park log (also its sub-directory of the data directory)."""

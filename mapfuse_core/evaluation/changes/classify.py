@@ -47,7 +47,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.evidence import (
     ObservationSet,
     fuse_against,
@@ -67,6 +66,7 @@ from mapfuse_core.evaluation.changes.residual import feature_residual, residual_
 from mapfuse_core.evaluation.changes.visibility import scans_in_view
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 __all__ = ["classify_changes"]
 

@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes.residual import feature_residual
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
+from mapfuse_core.measlog import MeasurementLog
 
 __all__ = [
     "LandmarkEvidence",

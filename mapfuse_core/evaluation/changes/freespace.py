@@ -71,10 +71,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import norm
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = ["PlaceReading", "circles_seen_occupied", "read_surveyed_places", "scans_seen_empty"]
 

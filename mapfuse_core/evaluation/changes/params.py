@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from scipy.stats import chi2, norm
 
 from mapfuse_core.perception.extraction import ExtractionParams
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 
 __all__ = ["ChangeParams"]
 

@@ -49,7 +49,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.data.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.evaluation.changes.residual import feature_residual
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import (
@@ -58,6 +57,7 @@ from mapfuse_core.geometry.se2 import (
     inverse_jacobian,
     wrap_scalar,
 )
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 __all__ = ["Relocalization", "relocalize_before_match"]
 

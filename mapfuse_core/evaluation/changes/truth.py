@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.evaluation.changes.report import ChangeReport, ChangeStatus
 from mapfuse_core.evaluation.changes.visibility import scans_in_view, world_as_map
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import FeatureMove, Scenario
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 

@@ -28,12 +28,13 @@ import math
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.evaluation.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import KnownMapArrays
 from mapfuse_core.perception.extraction import ExtractionParams, extract_features
-from mapfuse_core.sim.laser import Scan, cast_rays
+from mapfuse_core.sensor import Scan
+from mapfuse_core.sim.laser import cast_rays
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
 __all__ = ["map_world", "scans_in_view", "world_as_map"]

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle_half
 from mapfuse_core.matching.ccda.graph import (
     _build_graph,
@@ -27,6 +26,7 @@ from mapfuse_core.matching.ccda.graph import (
 )
 from mapfuse_core.matching.ccda.params import CCDAParams, _check_params, _Gates
 from mapfuse_core.matching.ccda.prepare import IntArray, _prepare
+from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = ["EDGE_INVARIANTS", "CorrespondenceGraph", "correspondence_graph"]
 

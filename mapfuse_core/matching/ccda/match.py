@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import FloatArray, rot2, wrap_angle
 from mapfuse_core.matching.ccda.clique import _CliqueGraph, _SearchBudget, _SearchLimitError
 from mapfuse_core.matching.ccda.graph import _build_graph, _GraphTooLargeError, _k_core
@@ -19,6 +18,7 @@ from mapfuse_core.matching.ccda.verification import (
     _Hypothesis,
     _hypothesis,
 )
+from mapfuse_core.measlog import KnownMapArrays
 
 _DEFAULT_PARAMS = CCDAParams()
 """The default tuning (a frozen dataclass, shared safely as a default argument)."""

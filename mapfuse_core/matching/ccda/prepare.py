@@ -12,10 +12,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.matching.ccda.params import CCDAParams
+from mapfuse_core.measlog import KnownMapArrays
 
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import FloatArray, as_pose, wrap_angle_half
 from mapfuse_core.matching.ccda.params import CCDAParams
 from mapfuse_core.matching.ccda.prepare import (
@@ -19,6 +18,7 @@ from mapfuse_core.matching.ccda.prepare import (
     _Prep,
     _prepare,
 )
+from mapfuse_core.measlog import KnownMapArrays
 
 
 def pairing_chi2(

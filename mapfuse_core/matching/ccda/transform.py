@@ -11,7 +11,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mapfuse_core.data.measlog import KnownMapArrays
 from mapfuse_core.geometry.se2 import FloatArray, as_pose, rot2, wrap_angle
 from mapfuse_core.matching.ccda.params import CCDAParams
 from mapfuse_core.matching.ccda.prepare import (
@@ -23,6 +22,7 @@ from mapfuse_core.matching.ccda.prepare import (
     _prepare,
 )
 from mapfuse_core.matching.ccda.residuals import _pair_set, _PairSet, _residuals_of
+from mapfuse_core.measlog import KnownMapArrays
 
 #: The shortest step (fraction of the Gauss–Newton step) the line search tries.
 _MIN_STEP = 2.0**-20

@@ -72,8 +72,8 @@ does not describe, with rules computable without the truth:
 The 3×3 covariance of a line holds, along the line, the pseudo-variance ``L²/12`` of
 a position uniform over the observed segment of length ``L``.  It never reaches a
 residual when the observed line is the *first* argument of
-:func:`mapfuse_core.geometry.features.line_pairing` (as in
-:func:`mapfuse_core.geometry.features.observe`): that Jacobian has no along-line component.
+:func:`mapfuse_core.models.dispatch.line_pairing` (as in
+:func:`mapfuse_core.models.dispatch.observe`): that Jacobian has no along-line component.
 As the second argument it would leak ``(L²/12) sin²Δθ`` into the lateral variance.
 
 Modules: :mod:`~mapfuse_core.perception.extraction.params` (thresholds, features, result),

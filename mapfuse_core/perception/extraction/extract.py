@@ -19,7 +19,7 @@ from mapfuse_core.perception.extraction.params import (
     ExtractionResult,
 )
 from mapfuse_core.perception.extraction.segment import _outside_occluded_ends, _segment
-from mapfuse_core.sim.laser import LaserParams, Scan
+from mapfuse_core.sensor import LaserParams, Scan
 
 __all__ = ["extract_features"]
 

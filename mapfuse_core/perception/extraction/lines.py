@@ -22,7 +22,7 @@ from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction.labels import _label
 from mapfuse_core.perception.extraction.noise import _chi2_max, _Noise, _normal_var, _range_moments
 from mapfuse_core.perception.extraction.params import ExtractedFeature, ExtractionParams
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 
 
 def _min_normal(S: FloatArray) -> FloatArray:

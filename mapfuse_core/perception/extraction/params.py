@@ -194,7 +194,7 @@ class ExtractedFeature:
     pseudo-variance ``L²/12`` (``L`` the segment length, the variance of a uniform
     position along the segment): it lets association compare along-line positions
     loosely and has no effect on the pairing residual when the observed line is its
-    first argument (as in :func:`mapfuse_core.geometry.features.observe`)."""
+    first argument (as in :func:`mapfuse_core.models.dispatch.observe`)."""
     true_id: int
     """World id that produced at least ``label_majority`` of the points, −1 if none."""
     n_points: int

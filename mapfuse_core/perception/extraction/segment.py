@@ -12,7 +12,7 @@ import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction.params import ExtractionParams
-from mapfuse_core.sim.laser import LaserParams, Scan
+from mapfuse_core.sensor import LaserParams, Scan
 
 
 def _segment(scan: Scan, laser: LaserParams, params: ExtractionParams) -> list[np.ndarray]:

@@ -8,7 +8,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.sim.laser import LaserParams, cast_rays
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import cast_rays
 from mapfuse_core.sim.scenario.types import ControlSegment, IntArray, Scenario, ScenarioError
 from mapfuse_core.sim.vehicle import MotionResult, simulate_controls, simulate_motion
 from mapfuse_core.sim.world import World

@@ -14,7 +14,7 @@ import numpy as np
 
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 from mapfuse_core.sim.limits import MAX_SEED, MAX_STEPS, check_steps
 from mapfuse_core.sim.scenario.reader import _join, _Reader
 from mapfuse_core.sim.scenario.types import (

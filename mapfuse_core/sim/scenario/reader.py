@@ -8,7 +8,8 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
-from mapfuse_core.sim.limits import MAX_ANGLE_SIGMA, MAX_FEATURE_ID, MAX_MAGNITUDE
+from mapfuse_core.sensor import MAX_ANGLE_SIGMA
+from mapfuse_core.sim.limits import MAX_FEATURE_ID, MAX_MAGNITUDE
 from mapfuse_core.sim.scenario.types import ScenarioError
 
 

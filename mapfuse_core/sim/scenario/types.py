@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.sim.laser import LaserParams
+from mapfuse_core.sensor import LaserParams
 from mapfuse_core.sim.vehicle import VehicleParams
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
 
