@@ -35,7 +35,7 @@ def main() -> None:
             walls = []
             for _ in range(max(1, args.repeat)):
                 t0 = time.perf_counter()
-                res = run_ekf(log, EKFConfig(fusion=fusion, local_map_steps=size))
+                res = run_ekf(log, EKFConfig(local_map_steps=size), fusion=fusion)
                 walls.append(time.perf_counter() - t0)
             wall = min(walls)
             m = run_metrics(to_result(res, log), log)

@@ -483,7 +483,7 @@ def main() -> None:
         from ekf_reference import EKFConfig, run_ekf
 
         t0 = time.perf_counter()
-        ekf = run_ekf(log, EKFConfig(fusion=args.fusion))
+        ekf = run_ekf(log, EKFConfig(), fusion=args.fusion)
         ekf_s = round(time.perf_counter() - t0, 3)
     common = {
         "fusion": args.fusion,

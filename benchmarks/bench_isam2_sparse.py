@@ -77,7 +77,7 @@ def _one(log: MeasurementLog, fusion: bool, association: str, repeat: int) -> di
     if association == "ekf":
         from ekf_reference import EKFConfig, run_ekf
 
-        decisions = run_ekf(log, EKFConfig(fusion=fusion)).decisions
+        decisions = run_ekf(log, EKFConfig(), fusion=fusion).decisions
     common = {"fusion": fusion, "association": association, "decisions": decisions}
     inc = _best(log, "isam2", repeat, common)
     bat = _best(log, "batch", repeat, common)

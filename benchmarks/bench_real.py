@@ -16,7 +16,7 @@ import platform
 import time
 from typing import Any
 
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets import load_carpark, load_victoria_park
 from mapfuse_core.measlog import MeasurementLog
 

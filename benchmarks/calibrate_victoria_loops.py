@@ -4,7 +4,7 @@ EKF's loop closures (prints JSON).
 Not a speed benchmark: the study behind ``VICTORIA_PARK_ODOMETRY_NOISE`` and
 ``VictoriaParkOptions.bearing_offset_rad`` (``docs/victoria-park-calibration.md``).  For
 each setting the whole run goes through the EKF as ``mapfuse run victoria-park`` runs it
-(``mapfuse.run.run``; without fusion, which is the same on a log with no known map), and the
+(``mapfuse.runner.run``; without fusion, which is the same on a log with no known map), and the
 rotations of its loop closures (``EKFResult.loop_closures``) are summarised.  Anything
 that makes every map the car builds on new ground turn the same way (a yaw error of the
 laser, or a motion model that meets sideways motion only with turns) makes the closures
@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets import (
     VICTORIA_PARK_ODOMETRY_NOISE,
     VictoriaParkOptions,

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mapfuse.carmen_input import load_carmen_input
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets import (
     CarmenOptions,
     build_floor_plan,

@@ -31,7 +31,7 @@ import numpy as np
 
 from mapfuse.carmen_input import carmen_change_params, load_carmen_input
 from mapfuse.changes import detect_changes
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets.carmen import with_known_map
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog

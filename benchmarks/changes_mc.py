@@ -33,8 +33,8 @@ import numpy as np
 
 from mapfuse.changes import detect_changes
 from mapfuse.figures import run_errors
-from mapfuse.result import EstimatorResult
-from mapfuse.run import Run, run
+from mapfuse.runner import Run, run
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation.changes import ChangeParams
 from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.evaluation.changes.truth import change_truth, score_changes

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,

@@ -34,7 +34,7 @@ import numpy as np
 from mapfuse.campaign.cli import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse

@@ -52,7 +52,7 @@ import numpy as np
 import mapfuse_core.matching.ccda as ccda_pkg
 from ekf_reference import EKFConfig, run_ekf
 from mapfuse.estimators.ekf import to_result
-from mapfuse.result import EstimatorResult
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_angle
@@ -384,13 +384,13 @@ def _guarded(fn: Callable[[], EstimatorResult]) -> EstimatorResult | str:
 def _run_ekf(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     calls: list[Call] = []
     with recording(calls):
-        res = _guarded(lambda: to_result(run_ekf(log, EKFConfig(fusion=True)), log))
+        res = _guarded(lambda: to_result(run_ekf(log, EKFConfig(), fusion=True), log))
     return calls, res
 
 
 def _run_graph_own(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     import mapfuse_graph.own_association  # noqa: F401  (loads gtsam; patched below)
-    from mapfuse.run import run
+    from mapfuse.runner import run
 
     calls: list[Call] = []
     with recording(calls):

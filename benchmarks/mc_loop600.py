@@ -38,8 +38,8 @@ import numpy as np
 from ekf_reference import AnchorResult, EKFConfig, EKFResult, run_ekf
 from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
-from mapfuse.result import Anchor
-from mapfuse.run import run
+from mapfuse.runner import run
+from mapfuse_core.estimate import Anchor
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -118,7 +118,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
 
     row: dict[str, Any] = {"seed": seed}
     # The graph backends take the default fused EKF's association decisions.
-    default_fused = run_ekf(log, EKFConfig(fusion=True))
+    default_fused = run_ekf(log, EKFConfig(), fusion=True)
     for name, carry in (("ekf", 0), ("ekf_carry", 1)):
         if name not in estimators:
             continue
@@ -127,7 +127,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
             res = (
                 default_fused
                 if fusion and not carry
-                else run_ekf(log, EKFConfig(fusion=fusion, carry_seen_steps=carry))
+                else run_ekf(log, EKFConfig(carry_seen_steps=carry), fusion=fusion)
             )
             row[name]["fused" if fusion else "plain"] = _ekf_row(
                 _ekf_metrics(res, log), anchor_nees(res.anchor)

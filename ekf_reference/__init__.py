@@ -6,14 +6,12 @@ Depends on :mod:`mapfuse_core` only; never imports gtsam.
 from ekf_reference.config import EKFConfig
 from ekf_reference.loops import LoopClosureParams
 from ekf_reference.pipeline import run_ekf
-from ekf_reference.result import AnchorResult, EKFResult, LoopClosure, MapResult
+from ekf_reference.result import EKFDetails, LoopClosure
 
 __all__ = [
-    "AnchorResult",
     "EKFConfig",
-    "EKFResult",
+    "EKFDetails",
     "LoopClosure",
     "LoopClosureParams",
-    "MapResult",
     "run_ekf",
 ]

@@ -17,8 +17,6 @@ __all__ = ["EKFConfig"]
 class EKFConfig:
     """Parameters of :func:`ekf_reference.run_ekf`."""
 
-    fusion: bool = True
-    """Fuse the known map (the paper's method); ``False`` is "SLAM without map fusion"."""
     local_map_steps: int = 40
     """*(choice)* Steps per local map before it is joined.  40 steps (10 m of travel in
     loop600) balances the per-step cost (larger maps) against the join cost and

@@ -1,4 +1,4 @@
-"""The EKF's final map as a :class:`~ekf_reference.result.MapResult`: :func:`final_map`.
+"""The EKF's final map as a :class:`~mapfuse_core.estimate.MapEstimate`: :func:`final_map`.
 
 Every feature is given in ``Wglobal`` with its marginal covariance.  When the map was
 matched, each feature the EKF kept apart from the known map is also given in
@@ -14,18 +14,26 @@ from __future__ import annotations
 import numpy as np
 
 from ekf_reference.known_frame import uncentred
-from ekf_reference.result import MapResult
 from ekf_reference.state import GaussianMap, Role
 from ekf_reference.tracks import Tracks
+from mapfuse_core.estimate import MapEstimate
 from mapfuse_core.geometry.features import express_in, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
 
 __all__ = ["final_map"]
 
 
-def final_map(g: GaussianMap, tracks: Tracks, known_centre: FloatArray) -> MapResult:
+def final_map(
+    g: GaussianMap, tracks: Tracks, known_centre: FloatArray, obs_known_id: np.ndarray
+) -> MapEstimate:
     """The final map of global map ``g``; ``tracks`` merge the landmarks' track ids,
-    ``known_centre`` is the offset of the centred known frame the filter works in."""
+    ``known_centre`` is the offset of the centred known frame the filter works in.
+
+    A known feature's ``n_obs`` is the number of logged observations associated with
+    it (``obs_known_id``, the known id of every observation's landmark), as the graph's
+    landmarks count theirs: the filter's own count misses those absorbed into it by a
+    hard constraint.
+    """
     feats = [i for i, e in enumerate(g.elements) if e.role in (Role.FEATURE, Role.KNOWN)]
     gb = g.find(Role.BASE)
     a = g.find(Role.ANCHOR) if g.has(Role.ANCHOR) else None
@@ -58,16 +66,19 @@ def final_map(g: GaussianMap, tracks: Tracks, known_centre: FloatArray) -> MapRe
                 covs_known[r] = K @ g.marginal([a, i]) @ K.T
         params[r] = val
         covs[r] = J @ P @ J.T
-    return MapResult(
+    known_ids = np.array(
+        [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
+        dtype=np.int64,
+    )
+    return MapEstimate(
         kinds=np.array([int(g.elements[i].kind.feature_kind()) for i in feats], dtype=np.int8),
         params=params,
         covs=covs,
-        known_ids=np.array(
-            [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
-            dtype=np.int64,
-        ),
+        known_ids=known_ids,
         true_ids=np.array([g.elements[i].true_id for i in feats], dtype=np.int64),
-        n_obs=np.array([g.elements[i].n_obs for i in feats], dtype=np.int64),
+        n_obs=_n_obs(
+            np.array([g.elements[i].n_obs for i in feats], dtype=np.int64), known_ids, obs_known_id
+        ),
         tracks=np.array(
             [
                 tracks.root(int(g.elements[i].track)) if g.elements[i].track >= 0 else -1
@@ -78,3 +89,14 @@ def final_map(g: GaussianMap, tracks: Tracks, known_centre: FloatArray) -> MapRe
         params_known=params_known,
         covs_known=covs_known,
     )
+
+
+def _n_obs(n_obs: np.ndarray, known_ids: np.ndarray, obs_known_id: np.ndarray) -> np.ndarray:
+    """``n_obs`` with each known feature's count taken from the observations' known ids."""
+    out = np.array(n_obs, dtype=np.int64, copy=True)
+    known = known_ids >= 0
+    if np.any(known):
+        ids, counts = np.unique(obs_known_id[obs_known_id >= 0], return_counts=True)
+        per_id = dict(zip(ids.tolist(), counts.tolist(), strict=True))
+        out[known] = [per_id.get(int(i), 0) for i in known_ids[known]]
+    return out

@@ -41,10 +41,18 @@ from ekf_reference.maps import (
     shared_in_global_frame,
     vehicle_in_global,
 )
-from ekf_reference.result import AnchorResult, EKFResult, LoopClosure
+from ekf_reference.result import EKFDetails, LoopClosure
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.tracks import Tracks
+from mapfuse_core.estimate import (
+    Anchor,
+    AnchorDecision,
+    AssociationDecisions,
+    EstimatorResult,
+    MatchAttempts,
+    PoseTrack,
+)
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
 from mapfuse_core.matching import chi2_gate
@@ -55,15 +63,15 @@ __all__ = ["JOINTLY_INCONSISTENT", "PAIRING_INCONSISTENT", "run_ekf"]
 
 
 class _Run:
-    def __init__(self, log: MeasurementLog, config: EKFConfig) -> None:
+    def __init__(self, log: MeasurementLog, config: EKFConfig, fusion: bool = True) -> None:
         self.log = log
         self.config = config
+        self.fusion = bool(fusion)
         self.tracks = Tracks()
         self.obs_track = np.full(log.n_features, -1, dtype=np.int64)
         self.obs_known = np.full(log.n_features, -1, dtype=np.int64)
         self.global_map = new_global_map()
         self.local, self.ctx = new_local_map(self.global_map)
-        self.anchor: AnchorResult | None = None
         self.ccda_attempts = 0
         self.ccda_reasons: dict[str, int] = {}
         self.ccda_refused: list[tuple[int, float, int]] = []
@@ -74,7 +82,7 @@ class _Run:
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
         self.gate: KnownGate | None = None
-        if config.fusion and config.known_map_gating:
+        if self.fusion and config.known_map_gating:
             self.gate = KnownGate(config.known_gating, config.data_association)
         self.step = 0
 
@@ -247,7 +255,7 @@ class _Run:
         joint.bind_lines()
         self.tentative.settle(joint, self.obs_track, self.tracks.root, joined)
         self.global_map = joint
-        if self.config.fusion and not joint.has(Role.ANCHOR):
+        if self.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
         self.local, self.ctx = new_local_map(self.global_map, self._carried(k))
 
@@ -487,11 +495,20 @@ class _Run:
 def run_ekf(
     log: MeasurementLog,
     config: EKFConfig | None = None,
+    *,
+    fusion: bool = True,
     progress: Callable[[int, int], None] | None = None,
-) -> EKFResult:
-    """Run the EKF reference over ``log`` and return its frozen result."""
+) -> EstimatorResult:
+    """Run the EKF reference over ``log``, fusing its known map when ``fusion`` (the
+    paper's method; ``False`` is SLAM without map fusion).
+
+    Returns the :class:`~mapfuse_core.estimate.EstimatorResult` every estimator returns
+    (estimator ``"ekf"``: filtered poses, the final map, the anchor, the association
+    decisions and the map matchings), with :class:`~ekf_reference.result.EKFDetails` as
+    its ``details``.
+    """
     config = config or EKFConfig()
-    run = _Run(log, config)
+    run = _Run(log, config, fusion)
     n = log.n_steps
     poses = np.zeros((n, 3))
     covs = np.zeros((n, 3, 3))
@@ -526,46 +543,63 @@ def _result(
     poses_known: FloatArray,
     covs_known: FloatArray,
     times: FloatArray,
-) -> EKFResult:
-    g = run.global_map
-    anchor = None
-    if g.has(Role.ANCHOR):
-        a = g.find(Role.ANCHOR)
-        gb = g.find(Role.BASE)
-        # x^Wknown_Wglobal = ⊖x^Wlocal_Wknown ⊕ x^Wlocal_Wglobal
-        inv, Ji = inverse_jacobian(g.mean[a])
-        est, J1, J2 = compose_jacobians(inv, g.mean[gb])
-        Jfull = np.hstack([J1 @ Ji, J2])
-        P = g.marginal([a, gb])
-        anchor = AnchorResult(
-            x_Wknown_Wglobal=uncentred(est, run.known_centre),
-            cov=Jfull @ P @ Jfull.T,
-            accepted_at_step=int(run.anchor_step),
-            pairings=tuple(run.anchor_pairings),
-        )
+) -> EstimatorResult:
     roots = run.tracks.roots(run.obs_track)
     obs_known = np.array(
         [run.tracks.known.get(int(r), -1) if r >= 0 else -1 for r in roots], dtype=np.int64
     )
-    return EKFResult(
+    anchor = _anchor(run)
+    gating = None if run.gate is None else run.gate.report()
+    decisions = AssociationDecisions(
+        roots.astype(np.int64),
+        obs_known,
+        None
+        if anchor is None
+        else AnchorDecision(
+            np.asarray(anchor.x_Wknown_Wglobal, dtype=float), anchor.accepted_at_step
+        ),
+        gating,
+    )
+    return EstimatorResult(
+        estimator="ekf",
         scenario=log.scenario,
         seed=log.seed,
-        config=config,
-        poses=poses,
-        covs=covs,
-        poses_in_known=poses_known,
-        covs_in_known=covs_known,
+        fusion=run.fusion,
+        timestamps=np.asarray(log.timestamps[: poses.shape[0]], dtype=float),
         step_time_s=times,
+        map=final_map(run.global_map, run.tracks, run.known_centre, obs_known),
+        filtered=PoseTrack(poses, covs),
         anchor=anchor,
-        global_map=final_map(g, run.tracks, run.known_centre),
-        obs_landmark=roots.astype(np.int64),
-        obs_known_id=obs_known,
-        ccda_attempts=run.ccda_attempts,
-        ccda_reasons=dict(run.ccda_reasons),
-        ccda_refused=tuple(run.ccda_refused),
-        ccda_excluded=tuple(run.ccda_excluded),
-        tentative_promoted=run.tentative.promoted,
+        decisions=decisions,
+        matching=MatchAttempts(run.ccda_attempts, dict(run.ccda_reasons)) if run.fusion else None,
         tentative_dropped=run.tentative.dropped,
-        loop_closures=tuple(run.loop_closures),
-        known_gating=None if run.gate is None else run.gate.report(),
+        details=EKFDetails(
+            config=config,
+            poses_in_known=poses_known,
+            covs_in_known=covs_known,
+            loop_closures=tuple(run.loop_closures),
+            ccda_refused=tuple(run.ccda_refused),
+            ccda_excluded=tuple(run.ccda_excluded),
+            tentative_promoted=run.tentative.promoted,
+        ),
+    )
+
+
+def _anchor(run: _Run) -> Anchor | None:
+    """The anchor ``x^Wknown_Wglobal`` at the end of the run, from the global map."""
+    g = run.global_map
+    if not g.has(Role.ANCHOR):
+        return None
+    a = g.find(Role.ANCHOR)
+    gb = g.find(Role.BASE)
+    # x^Wknown_Wglobal = ⊖x^Wlocal_Wknown ⊕ x^Wlocal_Wglobal
+    inv, Ji = inverse_jacobian(g.mean[a])
+    est, J1, J2 = compose_jacobians(inv, g.mean[gb])
+    Jfull = np.hstack([J1 @ Ji, J2])
+    P = g.marginal([a, gb])
+    return Anchor(
+        x_Wknown_Wglobal=uncentred(est, run.known_centre),
+        cov=Jfull @ P @ Jfull.T,
+        accepted_at_step=int(run.anchor_step),
+        pairings=tuple(run.anchor_pairings),
     )

@@ -46,6 +46,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Literal
 
+from mapfuse_core.estimate import RunMetrics
 from mapfuse_core.measlog import MeasurementLog
 
 __all__ = [
@@ -53,6 +54,7 @@ __all__ = [
     "BASELINE_VERSION",
     "DEFAULT_METRICS",
     "METRICS",
+    "BaselineEntry",
     "BaselineError",
     "BaselineReport",
     "MetricCheck",
@@ -71,14 +73,43 @@ BASELINE_VERSION = 1
 
 Better = Literal["lower", "higher", "target"]
 
-# What identifies a run: a baseline only applies to a run with the same values.
-_KEY_FIELDS = ("scenario", "seed", "steps", "backend", "fusion", "association", "estimate")
+# What identifies a run (RunMetrics fields, JSON names in messages): a baseline only
+# applies to a run with the same values.
+_KEY_FIELDS = {
+    "scenario": "scenario",
+    "seed": "seed",
+    "steps": "steps",
+    "estimator": "backend",
+    "fusion": "fusion",
+    "association": "association",
+    "estimate": "estimate",
+}
 # Fields that select the entry of a multi-run baseline file.
-_SELECT_FIELDS = ("backend", "fusion", "association", "estimate")
+_SELECT_FIELDS = ("estimator", "fusion", "association", "estimate")
 
 
 class BaselineError(ValueError):
     """A baseline file or object is malformed, or a requested metric is unknown."""
+
+
+@dataclass(frozen=True)
+class BaselineEntry:
+    """One recorded run: its metrics, a note, and the mapfuse that made it."""
+
+    metrics: RunMetrics
+    """The run's metrics."""
+    note: str = ""
+    """Free text (why it was recorded)."""
+    mapfuse_version: str = "unknown"
+    """Version of mapfuse that recorded it."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The entry as stored in a baseline file."""
+        return {
+            "metrics": self.metrics.to_json(),
+            "note": self.note,
+            "mapfuse_version": self.mapfuse_version,
+        }
 
 
 @dataclass(frozen=True)
@@ -251,79 +282,91 @@ def _version() -> str:
         return "unknown"
 
 
-def _entry(metrics: Mapping[str, Any], note: str) -> dict[str, Any]:
-    missing = [k for k in ("scenario", "seed", "steps", "backend", "fusion") if k not in metrics]
-    if missing:
-        raise BaselineError(f"not a metrics.json object: missing {', '.join(missing)}")
-    # Round-trip through JSON: a plain, detached copy (no numpy scalars, no aliasing).
-    plain = json.loads(json.dumps(dict(metrics)))
-    return {"metrics": plain, "note": note, "mapfuse_version": _version()}
+def _metrics_of(metrics: RunMetrics | Mapping[str, Any]) -> RunMetrics:
+    if isinstance(metrics, RunMetrics):
+        return metrics
+    try:
+        return RunMetrics.from_json(metrics)
+    except (ValueError, TypeError) as exc:
+        raise BaselineError(f"not a metrics.json object: {exc}") from None
 
 
 def record_baseline(
-    source: MeasurementLog | Mapping[str, Any],
-    backend: str | None = None,
+    source: MeasurementLog | RunMetrics | Mapping[str, Any],
+    estimator: str | None = None,
     fusion: bool = True,
     association: str = "ekf",
     note: str = "",
     progress: Callable[[str, int, int], None] | None = None,
-) -> dict[str, Any]:
-    """A baseline entry from a ``metrics.json`` object, or by running ``backend`` on a log.
+) -> BaselineEntry:
+    """A baseline entry from a run's metrics, or by running ``estimator`` on a log.
 
-    With a log, ``backend`` (a registered estimator name) is required and the run is
-    :func:`mapfuse.run.run` of it with ``fusion`` (and, for an estimator that consumes
-    another's decisions, ``association``), reporting ``progress(label, k, n)``.  With
-    metrics, ``backend`` (if given) must match them and ``fusion``/``association`` are
-    ignored.
+    With a log, ``estimator`` (a registered name) is required and the run is
+    :func:`mapfuse.runner.run` of it with ``fusion`` (and ``association`` for an
+    estimator whose options have that field), reporting ``progress(label, k, n)``.
+    With metrics (a :class:`~mapfuse_core.estimate.RunMetrics` or a ``metrics.json``
+    object), ``estimator`` (if given) must match them and ``fusion``/``association``
+    are ignored.
     """
     if isinstance(source, MeasurementLog):
-        if backend is None:
-            raise ValueError("record_baseline on a log needs a backend ('ekf', 'batch', 'isam2')")
-        from mapfuse.run import fusion_for, labelled, make_options, resolve, run
+        if estimator is None:
+            raise ValueError("record_baseline on a log needs an estimator ('ekf', 'batch', ...)")
+        import dataclasses
 
-        est = resolve(backend)
+        from mapfuse.plan import resolve
+        from mapfuse.runner import fusion_for, labelled, run
+
+        est = resolve(estimator)
         fusion = fusion_for(source, fusion)
-        label = f"{backend} {'with' if fusion else 'without'} fusion"
-        overrides = {} if getattr(est, "consumes", None) is None else {"association": association}
+        label = f"{est.name} {'with' if fusion else 'without'} fusion"
+        takes = {f.name for f in dataclasses.fields(est.options_type)}
+        overrides = {"association": association} if "association" in takes else {}
+        from mapfuse.options import make_options
+
         options = make_options(est, source, **overrides)
         r = run(source, est, fusion=fusion, options=options, progress=labelled(progress, label))
-        return _entry(r.metrics, note)
-    if backend is not None and source.get("backend") != backend:
-        raise ValueError(f"metrics are of backend {source.get('backend')!r}, not {backend!r}")
-    return _entry(source, note)
+        return BaselineEntry(r.metrics, note, _version())
+    metrics = _metrics_of(source)
+    if estimator is not None and metrics.estimator != estimator:
+        raise ValueError(f"metrics are of estimator {metrics.estimator!r}, not {estimator!r}")
+    return BaselineEntry(metrics, note, _version())
 
 
 def record_baselines(
     log: MeasurementLog,
-    backends: Sequence[str] | None = None,
+    estimators: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
     note: str = "",
     progress: Callable[[str, int, int], None] | None = None,
-) -> list[dict[str, Any]]:
-    """Entries for ``backends`` × ``fusions`` on ``log`` (as :func:`mapfuse.compare.compare`,
-    whose defaults ``None`` takes).
+) -> list[BaselineEntry]:
+    """Entries for ``estimators`` × ``fusions`` on ``log`` (as
+    :func:`mapfuse.comparison.compare`, whose defaults ``None`` takes).
 
-    ``progress(label, k, n)`` as in :func:`mapfuse.compare.compare`.
+    ``progress(label, k, n)`` as in :func:`mapfuse.comparison.compare`.
     """
-    from mapfuse.compare import compare
+    from mapfuse.comparison import compare
 
-    comparison = compare(log, progress=progress, backends=backends, fusions=fusions)
-    return [_entry(m, note) for m in comparison.metrics]
+    comparison = compare(log, progress=progress, estimators=estimators, fusions=fusions)
+    return [BaselineEntry(m, note, _version()) for m in comparison.metrics]
 
 
-def save_baseline(
-    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]], path: str | Path
-) -> Path:
+def save_baseline(baseline: BaselineEntry | Sequence[BaselineEntry], path: str | Path) -> Path:
     """Write one entry or a list of entries to ``path`` as a baseline file."""
-    entries = _entries_of(baseline)
+    entries = [baseline] if isinstance(baseline, BaselineEntry) else list(baseline)
+    if not entries:
+        raise BaselineError("a baseline needs at least one entry")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"format": BASELINE_FORMAT, "version": BASELINE_VERSION, "entries": entries}
+    doc = {
+        "format": BASELINE_FORMAT,
+        "version": BASELINE_VERSION,
+        "entries": [e.to_json() for e in entries],
+    }
     path.write_text(json.dumps(doc, indent=2, sort_keys=False) + "\n")
     return path
 
 
-def load_baseline(path: str | Path) -> list[dict[str, Any]]:
+def load_baseline(path: str | Path) -> list[BaselineEntry]:
     """The entries of a baseline file; :class:`BaselineError` naming the file otherwise."""
     path = Path(path)
     try:
@@ -345,45 +388,38 @@ def load_baseline(path: str | Path) -> list[dict[str, Any]]:
         raise BaselineError(f"{path}: {exc}") from None
 
 
-def _entries_of(baseline: object) -> list[dict[str, Any]]:
-    """Normalise one entry / a list of entries, validating each."""
+def _entries_of(baseline: object) -> list[BaselineEntry]:
+    """Entries from one entry, a list of entries, or their stored (JSON) form."""
+    if isinstance(baseline, BaselineEntry):
+        return [baseline]
     items = [baseline] if isinstance(baseline, Mapping) else baseline
     if not isinstance(items, Sequence) or isinstance(items, str) or not items:
         raise BaselineError("a baseline must be an entry or a non-empty list of entries")
     out = []
     for i, e in enumerate(items):
+        if isinstance(e, BaselineEntry):
+            out.append(e)
+            continue
         if not isinstance(e, Mapping) or not isinstance(e.get("metrics"), Mapping):
             raise BaselineError(f"entry {i} has no 'metrics' object")
-        missing = [
-            k for k in ("scenario", "seed", "steps", "backend", "fusion") if k not in e["metrics"]
-        ]
-        if missing:
-            raise BaselineError(f"entry {i}: metrics lack {', '.join(missing)}")
-        out.append(dict(e))
+        try:
+            metrics = RunMetrics.from_json(e["metrics"])
+        except (ValueError, TypeError) as exc:
+            raise BaselineError(f"entry {i}: {exc}") from None
+        out.append(
+            BaselineEntry(metrics, str(e.get("note", "")), str(e.get("mapfuse_version", "unknown")))
+        )
     return out
 
 
 # --------------------------------------------------------------------------- checking
 
 
-def _get(metrics: Mapping[str, Any], path: str) -> float | None:
-    """Value at a dotted path; ``None`` if any part is absent, ``None`` or not finite."""
-    node: Any = metrics
-    for part in path.split("."):
-        if not isinstance(node, Mapping) or node.get(part) is None:
-            return None
-        node = node[part]
-    if isinstance(node, bool) or not isinstance(node, int | float):
-        return None
-    x = float(node)
-    return x if math.isfinite(x) else None
-
-
-def _describe_run(m: Mapping[str, Any]) -> str:
-    est = f", {m['estimate']} estimate" if m.get("estimate") else ""
+def _describe_run(m: RunMetrics) -> str:
+    est = f", {m.estimate} estimate" if m.estimate else ""
     return (
-        f"{m.get('backend')} {'with' if m.get('fusion') else 'without'} fusion{est} on "
-        f"{m.get('scenario')} seed {m.get('seed')} ({m.get('steps')} steps)"
+        f"{m.estimator} {'with' if m.fusion else 'without'} fusion{est} on "
+        f"{m.scenario} seed {m.seed} ({m.steps} steps)"
     )
 
 
@@ -436,23 +472,17 @@ def _check_one(
     return out("pass" if ok else "fail", limit, msg)
 
 
-def _select(
-    metrics: Mapping[str, Any], entries: list[dict[str, Any]]
-) -> tuple[dict[str, Any] | None, str]:
+def _select(metrics: RunMetrics, entries: list[BaselineEntry]) -> tuple[BaselineEntry | None, str]:
     if len(entries) == 1:
         return entries[0], ""
     same = [
         e
         for e in entries
-        if all(
-            e["metrics"].get(k) == metrics.get(k)
-            for k in _SELECT_FIELDS
-            if k in e["metrics"] or k in metrics
-        )
+        if all(getattr(e.metrics, k) == getattr(metrics, k) for k in _SELECT_FIELDS)
     ]
     if len(same) == 1:
         return same[0], ""
-    have = "; ".join(_describe_run(e["metrics"]) for e in entries)
+    have = "; ".join(_describe_run(e.metrics) for e in entries)
     if not same:
         return None, f"no baseline entry for {_describe_run(metrics)} (the baseline has: {have})"
     return None, f"{len(same)} baseline entries match {_describe_run(metrics)}: ambiguous"
@@ -468,16 +498,21 @@ def _tolerance_for(
     return tolerances.get(metric, spec.tolerance)
 
 
+Baseline = BaselineEntry | Sequence[BaselineEntry] | Mapping[str, Any] | str | Path
+"""A baseline: an entry, a list of entries, their stored form, or a baseline file."""
+
+
 def check_baseline(
-    metrics: Mapping[str, Any],
-    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]] | str | Path,
+    metrics: RunMetrics | Mapping[str, Any],
+    baseline: Baseline,
     tolerances: Tolerance | Mapping[str, Tolerance] | None = None,
     which: Sequence[str] | None = None,
 ) -> BaselineReport:
-    """Check a ``metrics.json`` object against its baseline entry.
+    """Check a run's metrics (a :class:`~mapfuse_core.estimate.RunMetrics` or a
+    ``metrics.json`` object) against its baseline entry.
 
     ``baseline``: an entry (:func:`record_baseline`), a list of entries, or a baseline
-    file path; from several entries the one of the same backend, fusion, association
+    file path; from several entries the one of the same estimator, fusion, association
     and estimate is used.  ``which``: metrics to check (default
     :data:`DEFAULT_METRICS`; any key of :data:`METRICS`).  ``tolerances``: one
     :class:`Tolerance` for all of them, or per metric (the others keep their default).
@@ -493,25 +528,26 @@ def check_baseline(
         extra = [n for n in tolerances if n not in METRICS]
         if extra:
             raise BaselineError(f"tolerance for unknown metric(s) {', '.join(extra)}")
+    new = _metrics_of(metrics)
     entries = load_baseline(baseline) if isinstance(baseline, str | Path) else _entries_of(baseline)
-    run = _describe_run(metrics)
-    entry, problem = _select(metrics, entries)
+    run = _describe_run(new)
+    entry, problem = _select(new, entries)
     if entry is None:
         return BaselineReport(run=run, checks=(), problems=(problem,))
-    base = entry["metrics"]
+    base = entry.metrics
     problems = []
-    for k in _KEY_FIELDS:
-        if k in base and base.get(k) != metrics.get(k):
-            problems.append(
-                f"{k}: the baseline is of {k} {base.get(k)!r}, the new run of {metrics.get(k)!r}"
-            )
+    for attr, key in _KEY_FIELDS.items():
+        b, v = getattr(base, attr), getattr(new, attr)
+        if b is not None and b != v:
+            problems.append(f"{key}: the baseline is of {key} {b!r}, the new run of {v!r}")
+    base_values, new_values = base.scalars(), new.scalars()
     checks = tuple(
         _check_one(
             n,
             METRICS[n],
             _tolerance_for(n, METRICS[n], tolerances),
-            _get(base, n),
-            _get(metrics, n),
+            base_values.get(n),
+            new_values.get(n),
         )
         for n in names
     )
@@ -520,38 +556,46 @@ def check_baseline(
 
 def check_log_against_baseline(
     log: MeasurementLog,
-    baseline: Mapping[str, Any] | Sequence[Mapping[str, Any]] | str | Path,
+    baseline: Baseline,
     tolerances: Tolerance | Mapping[str, Tolerance] | None = None,
     which: Sequence[str] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> list[BaselineReport]:
-    """Re-run every entry's backend/fusion/association on ``log`` and check each.
+    """Re-run every entry's estimator/fusion/association on ``log`` and check each.
 
-    An estimator's result that others consume (the EKF's, for graph entries) is made
-    once per fusion setting and reused.  ``progress(label, k, n)`` as in
-    :func:`mapfuse.compare.compare`.
+    The runs are planned together (:mod:`mapfuse.plan`): an estimator's result that
+    others consume (the EKF's, for graph entries) is made once per fusion setting and
+    reused.  ``progress(label, k, n)`` as in :func:`mapfuse.comparison.compare`.
     """
     from mapfuse.metrics import run_metrics
-    from mapfuse.result import EstimatorResult
-    from mapfuse.run import consumer_options, labelled, resolve, run
+    from mapfuse.plan import RunRequest, execute, plan_runs
 
     entries = load_baseline(baseline) if isinstance(baseline, str | Path) else _entries_of(baseline)
-    done: dict[bool, dict[str, EstimatorResult]] = {}
+    requests = [
+        RunRequest(
+            e.metrics.estimator,
+            e.metrics.fusion,
+            {} if e.metrics.association is None else {"association": e.metrics.association},
+        )
+        for e in entries
+    ]
+    plan = plan_runs(requests, len(log.known_map) > 0)
+    done = execute(plan, log, progress=progress)
+    by_request = {
+        (d.planned.estimator, d.planned.fusion, repr(sorted(d.planned.overrides.items()))): d
+        for d in done
+    }
     reports = []
-    for e in entries:
-        m = e["metrics"]
-        est = resolve(str(m["backend"]))
-        fusion = bool(m["fusion"])
-        overrides = {"association": str(m["association"])} if "association" in m else {}
-        mine = done.setdefault(fusion, {})
-        options = consumer_options(est, log, mine, **overrides)
-        label = f"{est.name} {'with' if fusion else 'without'} fusion"
-        r = run(log, est, fusion=fusion, options=options, progress=labelled(progress, label))
-        mine.setdefault(est.name, r.result)
-        if r.result.upstream is not None:
-            mine.setdefault(r.result.upstream.estimator, r.result.upstream)
-        new = r.metrics
-        if m.get("estimate") == "filtered":
-            new = run_metrics(r.result, log, which="filtered")
+    for e, req in zip(entries, requests, strict=True):
+        fusion = req.fusion and len(log.known_map) > 0
+        d = by_request.get((req.estimator, fusion, repr(sorted(req.overrides.items()))))
+        if d is None or d.result is None:
+            # The estimator cannot fuse: its one run is the one without fusion.
+            d = by_request[(req.estimator, False, repr(sorted(req.overrides.items())))]
+        assert d.result is not None  # errors raise
+        which_track: Literal["filtered", "smoothed"] | None = (
+            "filtered" if e.metrics.estimate == "filtered" else None
+        )
+        new = run_metrics(d.result, log, which=which_track)
         reports.append(check_baseline(new, [e], tolerances, which))
     return reports

@@ -1,4 +1,4 @@
-"""Known-map change detection on an :class:`~mapfuse.result.EstimatorResult`.
+"""Known-map change detection on an :class:`~mapfuse_core.estimate.EstimatorResult`.
 
 The same classification (:func:`mapfuse_core.evaluation.changes.classify_changes`) for every
 estimator: it reads the run's association decisions, its main trajectory (the
@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.result import EstimatorResult
+from mapfuse import registry
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport, classify_changes
 from mapfuse_core.evaluation.changes.truth import ChangeTruth, change_truth, score_changes
 from mapfuse_core.geometry.se2 import FloatArray
@@ -48,8 +49,8 @@ def detect_changes(
     # estimated without the known map, and so were a fixed-lag smoother's poses that
     # left its window before the match: their observations carry the anchor's
     # uncertainty too (for the fixed-lag smoother, conservatively, every pose up to the
-    # match).  A batch or iSAM2 track was smoothed with the map.
-    before_map = result.estimate == "filtered" or result.estimator == "fixedlag"
+    # match).  A smoother over the whole run re-estimated them with the map.
+    before_map = not _smooths_before_anchor(result)
     return classify_changes(
         log,
         lm,
@@ -62,6 +63,16 @@ def detect_changes(
         anchored_from_step=result.anchor.accepted_at_step + 1 if before_map else 0,
         landmark_estimates=_landmark_estimates(result),
     )
+
+
+def _smooths_before_anchor(result: EstimatorResult) -> bool:
+    """Whether ``result``'s estimator declares that it re-estimates the poses before
+    its match with it (:attr:`~mapfuse.estimator.Capabilities.smooths_before_anchor`);
+    ``False`` (the conservative reading) for a result without a smoothed track or of
+    an estimator not registered here."""
+    if result.smoothed is None or result.estimator not in registry.available():
+        return False
+    return registry.get(result.estimator).capabilities.smooths_before_anchor
 
 
 def _landmark_estimates(result: EstimatorResult) -> dict[int, tuple[FloatArray, FloatArray]]:

@@ -54,8 +54,8 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     from mapfuse.carmen_input import carmen_change_params, is_carmen
     from mapfuse.changes import change_section, detect_changes
     from mapfuse.changes_figure import changes_figure
-    from mapfuse.run import DATASETS, prepare_log
-    from mapfuse.run import run as run_estimator
+    from mapfuse.runner import DATASETS, prepare_log
+    from mapfuse.runner import run as run_estimator
     from mapfuse_core.evaluation.changes import ChangeParams
     from mapfuse_core.evaluation.changes.generate import with_changes
     from mapfuse_core.evaluation.changes.truth import change_truth
@@ -108,8 +108,8 @@ def _cmd_changes(args: argparse.Namespace) -> int:
         "scenario": log.scenario,
         "seed": log.seed,
         **change_section(report, truth),
-        "warnings": run.metrics.get("warnings", []),
-        "known_map_rejections": run.metrics.get("known_map_rejections", {}),
+        "warnings": list(run.metrics.warnings),
+        "known_map_rejections": dict(run.metrics.known_map_rejections or {}),
     }
     json_path = out / "changes.json"
     json_path.write_text(json.dumps(section, indent=2) + "\n")

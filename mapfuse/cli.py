@@ -56,8 +56,8 @@ def _warn_runs(runs: Sequence[Any], label: bool = False) -> None:
     """Each run's ``metrics.json`` warnings, once each, on stderr (stdout is JSON)."""
     for r in runs:
         m = r.metrics
-        who = f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion: " if label else ""
-        for w in m.get("warnings", ()):
+        who = f"{m.estimator} {'with' if m.fusion else 'without'} fusion: " if label else ""
+        for w in m.warnings:
             _note(f"mapfuse: warning: {who}{w}")
 
 
@@ -65,7 +65,7 @@ def _warn_runs(runs: Sequence[Any], label: bool = False) -> None:
 
 
 def _is_dataset(source: str) -> bool:
-    from mapfuse.run import DATASETS
+    from mapfuse.runner import DATASETS
 
     return source in DATASETS
 
@@ -109,21 +109,54 @@ def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> No
         raise UsageError(f"--data applies to carpark and victoria-park only, not {source!r}")
 
 
-def _check_graph_flags(args: argparse.Namespace, backends: Sequence[str]) -> dict[str, Any]:
-    """``--association`` / ``--robust`` as option overrides for the backends that take
-    them (those consuming another's decisions: the graph backends); an error when none
-    of ``backends`` does, or when a value is bad."""
-    from mapfuse.run import resolve
+#: Command-line flags that set an option field, and that field's path in the options.
+_OPTION_FLAGS: dict[str, tuple[str, ...]] = {
+    "association": ("association",),
+    "robust": ("graph", "robust"),
+}
 
-    given = {f: getattr(args, f) for f in ("association", "robust") if getattr(args, f) is not None}
+
+def _has_option(estimator: str, path: tuple[str, ...]) -> bool:
+    """Whether ``estimator``'s default options have the (nested) field ``path``."""
+    import dataclasses
+
+    from mapfuse.plan import resolve
+
+    obj: Any = resolve(estimator).options_type()
+    for name in path:
+        if not dataclasses.is_dataclass(obj) or name not in {
+            f.name for f in dataclasses.fields(obj)
+        }:
+            return False
+        obj = getattr(obj, name)
+    return True
+
+
+def _nest(path: tuple[str, ...], value: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {path[-1]: value}
+    for name in reversed(path[:-1]):
+        out = {name: out}
+    return out
+
+
+def _check_graph_flags(
+    args: argparse.Namespace, backends: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """``--association`` / ``--robust`` as option overrides, by estimator, for the
+    estimators whose options have those fields (the graph backends); an error when none
+    of ``backends`` has them, or when a value is bad."""
+    given = {f: getattr(args, f) for f in _OPTION_FLAGS if getattr(args, f) is not None}
     if not given:
         return {}
-    takers = [b for b in backends if getattr(resolve(b), "consumes", None) is not None]
-    if not takers:
-        names = " and ".join(f"--{f}" for f in given)
-        raise UsageError(
-            f"{names}: only for the graph backends (batch, isam2), not {', '.join(backends)}"
-        )
+    out: dict[str, dict[str, Any]] = {}
+    for flag, value in given.items():
+        takers = [b for b in backends if _has_option(b, _OPTION_FLAGS[flag])]
+        if not takers:
+            raise UsageError(
+                f"--{flag}: no option of {', '.join(backends)} takes it (the graph backends do)"
+            )
+        for b in takers:
+            out.setdefault(b, {}).update(_nest(_OPTION_FLAGS[flag], value))
     if "robust" in given:
         from mapfuse_graph.graph import GraphOptions
 
@@ -131,7 +164,7 @@ def _check_graph_flags(args: argparse.Namespace, backends: Sequence[str]) -> dic
             GraphOptions(robust=given["robust"])
         except ValueError as exc:
             raise UsageError(f"--robust: {exc}") from None
-    return given
+    return out
 
 
 def _check_out(args: argparse.Namespace) -> Path:
@@ -207,7 +240,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> MeasurementLog:
     """The measurement log a command works on: a .npz, a dataset or a simulation."""
-    from mapfuse.run import prepare_log
+    from mapfuse.runner import prepare_log
 
     return prepare_log(
         source,
@@ -220,16 +253,16 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from mapfuse.outputs import write_outputs
-    from mapfuse.run import resolve
-    from mapfuse.run import run as run_estimator
+    from mapfuse.plan import resolve
+    from mapfuse.runner import run as run_estimator
 
     estimator = resolve(args.backend)
     _check_source(args, args.scenario, args.seed)
-    flags = _check_graph_flags(args, [args.backend])
+    flags = _check_graph_flags(args, [args.backend]).get(estimator.name, {})
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
-    if args.export_graph and args.backend not in ("batch", "isam2"):
-        raise UsageError(f"--export-graph: only for the graph backends, not {args.backend}")
+    if args.export_graph and not estimator.capabilities.exports_graph:
+        raise UsageError(f"--export-graph: the {args.backend} estimator holds no factor graph")
     out = _check_out(args)
     log = _log_from_args(args, args.scenario, args.seed)
     if args.steps is not None:
@@ -242,19 +275,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.export_graph:
         from mapfuse_graph.export import export_graph
 
-        ex = export_graph(run.result.extras["graph"], out)
+        ex = export_graph(run.result, out)
         paths.update({"graph_g2o": str(ex.g2o), "graph_sidecar": str(ex.sidecar)})
         _note(ex.summary())
-    _emit({"metrics": run.metrics, "outputs": paths})
+    _emit({"metrics": run.metrics.to_json(), "outputs": paths})
     return 0
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapfuse.compare import DEFAULT_BACKENDS, compare, write_comparison
+    from mapfuse.comparison import DEFAULT_ESTIMATORS, compare, write_comparison
+    from mapfuse.plan import resolve
     from mapfuse.progress import LabelledProgress
-    from mapfuse.run import resolve
 
-    backends = list(DEFAULT_BACKENDS)
+    backends = list(DEFAULT_ESTIMATORS)
     if args.backends is not None:
         backends = [b.strip() for b in args.backends.split(",") if b.strip()]
         if not backends or len(set(backends)) != len(backends):
@@ -262,10 +295,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     for b in backends:
         resolve(b)  # an unknown name fails before any work
     _check_source(args, args.scenario, args.seed)
-    flags = _check_graph_flags(args, backends)
-    overrides = {
-        b: flags for b in backends if flags and getattr(resolve(b), "consumes", None) is not None
-    }
+    overrides = _check_graph_flags(args, backends)
     fusions = (True, False) if args.fusion is None else (args.fusion,)
     beside = list(args.beside or ())
     for b in beside:
@@ -276,7 +306,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     log = _log_from_args(args, args.scenario, args.seed)
     progress = LabelledProgress(not args.quiet)
     comparison = compare(
-        log, progress=progress, backends=backends, fusions=fusions, overrides=overrides
+        log, progress=progress, estimators=backends, fusions=fusions, overrides=overrides
     )
     others: tuple[Any, ...] = ()
     if beside:
@@ -295,14 +325,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse.baseline import record_baselines, save_baseline
-    from mapfuse.run import resolve
+    from mapfuse.plan import resolve
 
     resolve(args.backend)
     _check_source(args, args.scenario, args.seed)
     out = _check_file_out(args.out)
     log = _log_from_args(args, args.scenario, args.seed)
     fusions = (True, False) if args.fusion is None else (args.fusion,)
-    entries = record_baselines(log, backends=(args.backend,), fusions=fusions, note=args.note)
+    entries = record_baselines(log, estimators=(args.backend,), fusions=fusions, note=args.note)
     save_baseline(entries, out)
     _emit({"baseline": str(out), "entries": len(entries)})
     return 0
@@ -314,11 +344,11 @@ def _cmd_baseline_check(args: argparse.Namespace) -> int:
     if args.tolerance is not None and not args.tolerance > 0:
         raise UsageError(f"--tolerance must be > 0, got {args.tolerance}")
     entries = load_baseline(args.baseline)
-    m0 = entries[0]["metrics"]
-    source = args.scenario or m0["scenario"]
+    m0 = entries[0].metrics
+    source = args.scenario or m0.scenario
     # A CARMEN log's seed is that of its simulated odometry (-1: raw odometry, none).
-    keeps_seed = _simulated(source) or (_is_carmen(source) and m0["seed"] >= 0)
-    seed = m0["seed"] if keeps_seed else None
+    keeps_seed = _simulated(source) or (_is_carmen(source) and m0.seed >= 0)
+    seed = m0.seed if keeps_seed else None
     _check_source(args, source, seed)
     log = _log_from_args(args, source, seed)
     tolerances = None
@@ -340,7 +370,7 @@ class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def _sources() -> str:
-    from mapfuse.run import DATASETS
+    from mapfuse.runner import DATASETS
 
     return (
         f"built-in scenario ({', '.join(list_builtin_scenarios())}), a scenario .toml path, "

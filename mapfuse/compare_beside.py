@@ -4,8 +4,8 @@ The dense ``loop600`` keeps every estimator within a few centimetres of the othe
 the paper's regime, where SLAM without fusion drifts about 0.5 m far from the start,
 is the sparser ``loop600-sparse`` (see its TOML).  :func:`compare_beside`
 runs the same backends and fusion settings on each other scenario with the same seed;
-:func:`mapfuse.compare.write_comparison` puts their tables after the main one in
-``report.md`` (:func:`mapfuse.compare.beside_lines`).
+:func:`mapfuse.comparison.write_comparison` puts their tables after the main one in
+``report.md`` (:func:`mapfuse.comparison.beside_lines`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from mapfuse.compare import Comparison, Progress, compare
-from mapfuse.run import prepare_log
+from mapfuse.comparison import Comparison, Progress, compare
+from mapfuse.runner import prepare_log
 
 __all__ = ["compare_beside"]
 
@@ -22,19 +22,19 @@ __all__ = ["compare_beside"]
 def compare_beside(
     scenarios: Sequence[str],
     seed: int | None,
-    backends: Sequence[str] | None = None,
+    estimators: Sequence[str] | None = None,
     fusions: Sequence[bool] = (True, False),
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
     progress: Progress | None = None,
 ) -> tuple[Comparison, ...]:
-    """:func:`mapfuse.compare.compare` on each of ``scenarios`` (built-in names or TOML
+    """:func:`mapfuse.comparison.compare` on each of ``scenarios`` (built-in names or TOML
     paths), simulated with ``seed`` (``None``: each scenario's own)."""
     out = []
     for name in scenarios:
         log = prepare_log(name, seed=seed)
         p = None if progress is None else _prefixed(progress, name)
         out.append(
-            compare(log, progress=p, backends=backends, fusions=fusions, overrides=overrides)
+            compare(log, progress=p, estimators=estimators, fusions=fusions, overrides=overrides)
         )
     return tuple(out)
 

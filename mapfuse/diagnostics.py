@@ -4,7 +4,7 @@ list of ``metrics.json`` (``docs/warnings.md``).
 A run can finish with plausible numbers and still be degraded: fusion asked for and
 never achieved, a known map whose walls cannot be told apart along their length, a
 vehicle estimate inconsistent with its own covariance.  :func:`run_warnings` looks
-at the run's :class:`~mapfuse.result.EstimatorResult` and its log, once, for every
+at the run's :class:`~mapfuse_core.estimate.EstimatorResult` and its log, once, for every
 estimator, and says so in one sentence per case.
 """
 
@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
-from mapfuse.result import EstimatorResult, MatchAttempts
+from mapfuse_core.estimate import (
+    EstimatorResult,
+    MatchAttempts,
+    MatchingMetrics,
+    NeesSummary,
+)
 from mapfuse_core.evaluation import CHI2_3_95
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
@@ -52,18 +56,18 @@ def matching_of(result: EstimatorResult) -> tuple[MatchAttempts | None, str | No
     return None, None
 
 
-def matching_block(result: EstimatorResult) -> dict[str, Any]:
-    """The ``matching`` block of ``metrics.json``: whether fusion was requested (on a
-    log with a known map) and achieved (an anchor), and the CCDA calls behind it."""
+def matching_block(result: EstimatorResult) -> MatchingMetrics:
+    """Whether fusion was requested (on a log with a known map) and achieved (an
+    anchor), and the CCDA calls behind it."""
     m, by = matching_of(result)
-    return {
-        "requested": bool(result.fusion),
-        "achieved": result.anchor is not None,
-        "ccda_by": by,
-        "ccda_attempts": None if m is None else int(m.attempts),
-        "ccda_reasons": None if m is None else {k: int(v) for k, v in sorted(m.reasons.items())},
-        "search_limit": None if m is None else m.search_limit,
-    }
+    return MatchingMetrics(
+        requested=bool(result.fusion),
+        achieved=result.anchor is not None,
+        ccda_by=by,
+        ccda_attempts=None if m is None else int(m.attempts),
+        ccda_reasons=None if m is None else {k: int(v) for k, v in sorted(m.reasons.items())},
+        search_limit=None if m is None else m.search_limit,
+    )
 
 
 def _reasons_text(reasons: Mapping[str, int]) -> str:
@@ -107,19 +111,19 @@ def _no_extents(result: EstimatorResult, log: MeasurementLog) -> str | None:
     )
 
 
-def _inconsistent(nees: Mapping[str, Any], covs: FloatArray) -> list[str]:
+def _inconsistent(nees: NeesSummary, covs: FloatArray) -> list[str]:
     out = []
     n_steps = int(covs.shape[0])
     # A pose whose covariance is exactly zero is the frame's origin (step 0 of a filter
     # in Wglobal): its NEES is undefined by construction, not a fault.
     origin = int(np.sum(np.all(covs.reshape(n_steps, -1) == 0.0, axis=1)))
-    bad = n_steps - int(nees["steps"]) - origin
+    bad = n_steps - nees.steps - origin
     if bad > 0:
         out.append(
             f"vehicle NEES not finite on {bad} of {n_steps} steps (a covariance that is "
             "not finite or not positive definite)"
         )
-    mean, within = float(nees["mean"]), float(nees["fraction_within_chi2_95"])
+    mean, within = nees.mean, nees.fraction_within_chi2_95
     if mean > NEES_MEAN_LIMIT or within < NEES_WITHIN_LIMIT:
         out.append(
             f"estimator inconsistent on this run: vehicle NEES mean {mean:.2f} (3 if "
@@ -133,19 +137,18 @@ def _inconsistent(nees: Mapping[str, Any], covs: FloatArray) -> list[str]:
 def run_warnings(
     result: EstimatorResult,
     log: MeasurementLog,
-    nees: Mapping[str, Any] | None = None,
+    nees: NeesSummary | None = None,
     covs: FloatArray | None = None,
 ) -> list[str]:
     """Every warning of a run, one sentence each (``docs/warnings.md``).
 
-    ``nees``: the ``nees`` block of ``metrics.json`` (against truth), ``None`` without
-    truth; ``covs``: the (N, 3, 3) covariances it was computed from (default the
-    result's main track).
+    ``nees``: the run's NEES against truth, ``None`` without truth; ``covs``: the
+    (N, 3, 3) covariances it was computed from (default the result's main track).
     """
     out = [w for w in (_no_extents(result, log), _no_match(result)) if w is not None]
     if nees is None:
         return out
-    if not math.isfinite(float(nees["mean"])):
+    if not math.isfinite(nees.mean):
         out.append(
             f"vehicle NEES not finite on any of the {result.n_steps} steps (a covariance "
             "that is not finite or not positive definite)"

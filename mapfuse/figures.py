@@ -3,8 +3,8 @@
 Every function builds and returns a matplotlib :class:`~matplotlib.figure.Figure`
 from finished results (never ``pyplot``, never ``show()``), with labelled axes in
 units, a legend and a title; the caller saves or displays it.  Runs are the
-:class:`mapfuse.run.Run` of :func:`mapfuse.run.run`; every figure reads only their
-:class:`~mapfuse.result.EstimatorResult`, their log and their metrics, so any
+:class:`mapfuse.runner.Run` of :func:`mapfuse.runner.run`; every figure reads only their
+:class:`~mapfuse_core.estimate.EstimatorResult`, their log and their metrics, so any
 registered estimator can be drawn.
 
 Figures that compare against truth raise :class:`ValueError` for a log without true
@@ -26,7 +26,7 @@ from mapfuse.plotting import (
     plot_trajectory,
     plot_world,
 )
-from mapfuse.run import Run, fusion_for
+from mapfuse.runner import Run, fusion_for
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     gps_error_series,
@@ -84,18 +84,17 @@ _STYLES = {True: "-", False: "--"}
 def run_label(run: Run) -> str:
     """``"ekf with fusion"``-style label of a run; just the backend on a log without a
     known map (Victoria Park), where there is nothing to fuse either way."""
-    m = run.metrics
     if not fusion_for(run.log, True):
-        return str(m["backend"])
-    return f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion"
+        return run.estimator
+    return f"{run.estimator} {'with' if run.fusion else 'without'} fusion"
 
 
 def _colour(run: Run) -> str:
-    return _COLOURS.get(str(run.metrics["backend"]), "tab:gray")
+    return _COLOURS.get(run.estimator, "tab:gray")
 
 
 def _style(run: Run) -> str:
-    return _STYLES[bool(run.metrics["fusion"])]
+    return _STYLES[run.fusion]
 
 
 def _truth(log: MeasurementLog, n: int) -> FloatArray:
@@ -148,17 +147,17 @@ def fig6_errors_bounds(run: Run) -> Figure:
     axes = list(fig.subplots(3, 1, sharex=True))
     t = run.timestamps
     plot_errors_with_bounds(axes, t, dx, run.covs, label=run_label(run), color=_colour(run))
-    anchor = run.metrics.get("anchor")
+    anchor = run.metrics.anchor
     if anchor is not None:
         # Where CCDA accepted the match: the bounds shrink there.
-        ta = float(t[min(int(anchor["accepted_at_step"]), t.shape[0] - 1)])
+        ta = float(t[min(anchor.accepted_at_step, t.shape[0] - 1)])
         for i, ax in enumerate(axes):
             ax.axvline(ta, color="tab:red", lw=0.8, ls=":", label="map matched" if i == 0 else None)
         axes[0].legend(loc="upper right", fontsize=8)
     m = run.metrics
     fig.suptitle(
         f"Fig. 6: vehicle errors and 2σ bounds, {run_label(run)} "
-        f"({m['scenario']}, seed {m['seed']}, {m['steps']} steps)"
+        f"({m.scenario}, seed {m.seed}, {m.steps} steps)"
     )
     return fig
 
@@ -200,8 +199,7 @@ def fig7_error_fusion(runs: Sequence[Run], paper_reference: bool = True) -> Figu
         ax,
         "time [s]",
         "position error [m]",
-        f"Fig. 7: vehicle position error with and without map fusion "
-        f"({m['scenario']}, seed {m['seed']})",
+        f"Fig. 7: vehicle position error with and without map fusion ({m.scenario}, seed {m.seed})",
     )
     return fig
 
@@ -325,7 +323,7 @@ def fig10_maps(
         ax.set_aspect("equal", adjustable="datalim")
         _finish(ax, "x in Wknown [m]", "y in Wknown [m]", f"{run_label(run)}: map {how}")
     m = runs[0].metrics
-    fig.suptitle(f"Fig. 10: estimated maps over the known map ({m['scenario']}, seed {m['seed']})")
+    fig.suptitle(f"Fig. 10: estimated maps over the known map ({m.scenario}, seed {m.seed})")
     return fig
 
 
@@ -334,10 +332,17 @@ def fig10_maps(
 
 def _gps_alignment(run: Run) -> FloatArray | None:
     """``x^gps_Wglobal`` the run's GPS metrics used (anchor or best fit), if any."""
-    block = run.metrics.get("position_error_m")
-    if not isinstance(block, dict) or "x_gps_Wglobal" not in block:
+    block = run.metrics.position_error
+    if block is None or block.x_gps_Wglobal is None:
         return None
-    return np.asarray(block["x_gps_Wglobal"], dtype=float)
+    return np.asarray(block.x_gps_Wglobal, dtype=float)
+
+
+def _alignment(run: Run) -> str | None:
+    """How the run's GPS errors put the estimate in the GPS frame (``"anchor"`` or
+    ``"best_fit"``)."""
+    block = run.metrics.position_error
+    return None if block is None else block.alignment
 
 
 def gps_errors(run: Run) -> tuple[FloatArray, FloatArray]:
@@ -361,7 +366,7 @@ def gps_error_figure(runs: Sequence[Run]) -> Figure:
     ax = fig.subplots()
     for run in runs:
         t, e = gps_errors(run)
-        how = run.metrics["position_error_m"]["alignment"].replace("_", " ")
+        how = str(_alignment(run)).replace("_", " ")
         ax.plot(
             t - run.timestamps[0],
             e,
@@ -370,12 +375,12 @@ def gps_error_figure(runs: Sequence[Run]) -> Figure:
             lw=1.0,
             label=f"{run_label(run)} ({how}; median {np.median(e):.3f} m)",
         )
-    m = runs[0].metrics if runs else {"scenario": "?"}
+    scenario = runs[0].metrics.scenario if runs else "?"
     _finish(
         ax,
         "time since the first scan [s]",
         "position error against GPS [m]",
-        f"Position error against GPS ({m['scenario']}); GPS itself has errors",
+        f"Position error against GPS ({scenario}); GPS itself has errors",
     )
     return fig
 
@@ -394,7 +399,7 @@ def gps_trajectory_figure(runs: Sequence[Run]) -> Figure:
         if T is None:
             continue
         est = np.array([compose(T, p) for p in run.poses])
-        how = run.metrics["position_error_m"]["alignment"].replace("_", " ")
+        how = str(_alignment(run)).replace("_", " ")
         ax.plot(
             est[:, 0],
             est[:, 1],
@@ -415,8 +420,8 @@ def gps_trajectory_figure(runs: Sequence[Run]) -> Figure:
             label="known map",
         )
     ax.set_aspect("equal", adjustable="datalim")
-    m = runs[0].metrics if runs else {"scenario": "?"}
-    _finish(ax, "East [m]", "North [m]", f"Trajectories over GPS ({m['scenario']})")
+    scenario = runs[0].metrics.scenario if runs else "?"
+    _finish(ax, "East [m]", "North [m]", f"Trajectories over GPS ({scenario})")
     return fig
 
 
@@ -426,7 +431,7 @@ def gps_trajectory_figure(runs: Sequence[Run]) -> Figure:
 def _split_by_fusion(runs: Sequence[Run]) -> list[tuple[bool, list[Run]]]:
     out: list[tuple[bool, list[Run]]] = []
     for fusion in (True, False):
-        sel = [r for r in runs if bool(r.metrics["fusion"]) is fusion]
+        sel = [r for r in runs if r.fusion is fusion]
         if sel:
             out.append((fusion, sel))
     return out
@@ -454,7 +459,7 @@ def nees_figure(runs: Sequence[Run]) -> Figure:
                 nees,
                 color=_colour(run),
                 lw=0.8,
-                label=run.metrics["backend"] + smoothed,
+                label=run.estimator + smoothed,
             )
             f = run.result.filtered
             if run.result.smoothed is not None and f is not None:
@@ -466,7 +471,7 @@ def nees_figure(runs: Sequence[Run]) -> Figure:
                     color=_colour(run),
                     lw=0.8,
                     ls=":",
-                    label=f"{run.metrics['backend']} (filtered)",
+                    label=f"{run.estimator} (filtered)",
                 )
         ax.axhline(CHI2_3_95, color="k", lw=1.0, ls="--", label=f"χ²(3, 0.95) = {CHI2_3_95:.3f}")
         ax.set_yscale("log")
@@ -477,7 +482,7 @@ def nees_figure(runs: Sequence[Run]) -> Figure:
             ax, "time [s]", "NEES (3 dof) [-]", f"NEES {'with' if fusion else 'without'} fusion"
         )
     m = runs[0].metrics
-    fig.suptitle(f"Vehicle NEES against the 95 % bound ({m['scenario']}, seed {m['seed']})")
+    fig.suptitle(f"Vehicle NEES against the 95 % bound ({m.scenario}, seed {m.seed})")
     return fig
 
 
@@ -497,7 +502,7 @@ def timing_figure(runs: Sequence[Run]) -> Figure:
     for ax, (fusion, sel) in zip(axes, groups, strict=True):
         for run in sel:
             st = step_times(run)
-            b = str(run.metrics["backend"])
+            b = run.estimator
             # A smoother without per-step estimates (batch) shares its solve among the steps.
             shared = run.result.filtered is None
             label = f"{b} (solve shared equally over steps)" if shared else b
@@ -513,7 +518,7 @@ def timing_figure(runs: Sequence[Run]) -> Figure:
             f"run time per step {'with' if fusion else 'without'} fusion",
         )
     m = runs[0].metrics
-    fig.suptitle(f"Per-step run time of each backend ({m['scenario']}, seed {m['seed']})")
+    fig.suptitle(f"Per-step run time of each backend ({m.scenario}, seed {m.seed})")
     return fig
 
 

@@ -6,9 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from mapfuse.run import Run
+from mapfuse.runner import Run
 from mapfuse.trajectories import write_trajectories
-from mapfuse_core.evaluation import pose_errors, truth_in_global
 
 __all__ = ["write_outputs"]
 
@@ -26,7 +25,7 @@ def write_outputs(run: Run, out: str | Path, figures: bool = True) -> dict[str, 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"metrics": out / "metrics.json"}
-    paths["metrics"].write_text(json.dumps(run.metrics, indent=2) + "\n")
+    paths["metrics"].write_text(json.dumps(run.metrics.to_json(), indent=2) + "\n")
     for name, p in write_trajectories(run, out).items():
         paths[name.removesuffix(".tum")] = p
     if figures:
@@ -43,18 +42,17 @@ def _figures(run: Run, out: Path) -> dict[str, Path]:
     from mapfuse.plotting import errors_figure
 
     paths: dict[str, Path] = {}
-    if run.log.true_poses is not None:
-        n = run.poses.shape[0]
-        err = pose_errors(run.poses, truth_in_global(run.log.true_poses[:n]))
+    errors = run.errors if run.truth is not None else None
+    if errors is not None and errors.dx is not None:
         m = run.metrics
         title = (
-            f"{m['backend']} ({'with' if m['fusion'] else 'without'} map fusion), "
-            f"{m['scenario']} seed {m['seed']}: errors and 2σ bounds"
+            f"{m.estimator} ({'with' if m.fusion else 'without'} map fusion), "
+            f"{m.scenario} seed {m.seed}: errors and 2σ bounds"
         )
-        fig = errors_figure(run.timestamps, err.dx, run.covs, title)
+        fig = errors_figure(run.timestamps, errors.dx, run.covs, title)
         paths["errors"] = out / "errors.png"
         fig.savefig(paths["errors"], dpi=110)
-    elif isinstance(run.metrics.get("position_error_m"), dict):
+    elif run.metrics.position_error is not None:
         # Real data: no truth for errors.png; the GPS comparison stands in for it.
         paths["gps_errors"] = out / "gps_errors.png"
         gps_error_figure([run]).savefig(paths["gps_errors"], dpi=110)

@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
+    from mapfuse.runner import Run
     from mapfuse_core.sensor import Scan
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "plot_scan",
     "plot_trajectory",
     "plot_world",
+    "run_error_axes",
     "world_figure",
 ]
 
@@ -203,3 +205,28 @@ def errors_figure(t: FloatArray, dx: FloatArray, covs: FloatArray, title: str) -
     plot_errors_with_bounds(list(axes), t, dx, covs)
     fig.suptitle(title)
     return fig
+
+
+def run_error_axes(run: Run, ax: Axes | None = None) -> Axes:
+    """A run's position error against time on ``ax`` (a new figure's when ``None``):
+    with the estimate's 2σ position bound (``2·√(σx² + σy²)``) against truth, at the
+    fixes against GPS."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(8, 3.2), constrained_layout=True)
+    err = run.errors
+    label = f"{run.estimator} {'with' if run.fusion else 'without'} fusion"
+    if err.reference == "truth":
+        ax.plot(err.timestamps, err.position, lw=1.0, label=f"{label}: position error")
+        if err.sigma is not None:
+            bound = 2.0 * np.hypot(err.sigma[:, 0], err.sigma[:, 1])
+            ax.plot(err.timestamps, bound, lw=0.8, ls="--", color="0.4", label="2σ bound")
+    else:
+        ax.plot(err.timestamps, err.position, ".", ms=3, label=f"{label}: error against GPS")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position error [m]")
+    ax.set_title(f"{run.log.scenario}, seed {run.log.seed}: RMSE {err.rmse:.3f} m")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    return ax

@@ -1,7 +1,7 @@
 """Progress bars with rate and ETA, in a terminal and in Jupyter alike (``tqdm.auto``).
 
 Estimators report progress as ``progress(k, n)`` (``k`` of ``n`` steps done) and
-:func:`mapfuse.compare.compare` as ``progress(label, k, n)``; :func:`progress_bar` and
+:func:`mapfuse.comparison.compare` as ``progress(label, k, n)``; :func:`progress_bar` and
 :class:`LabelledProgress` turn those calls into one tqdm bar per run, e.g. in a
 notebook ``run(log, "ekf", progress=progress_bar("ekf"))``.  Bars write to stderr, so
 a command's stdout holds its JSON result alone.

@@ -22,7 +22,9 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available",
     "get",
+    "load_plugin",
     "register",
+    "register_plugin",
     "unregister",
 ]
 
@@ -57,8 +59,8 @@ def available() -> tuple[str, ...]:
 def _check(est: Any, where: str) -> Estimator:
     if not isinstance(est, Estimator):
         raise TypeError(
-            f"{where} is not a mapfuse estimator (needs name, options_type and run()), "
-            f"got {type(est).__name__}"
+            f"{where} is not a mapfuse estimator (needs name, options_type, capabilities "
+            f"and run()), got {type(est).__name__}"
         )
     return est
 
@@ -75,6 +77,24 @@ def _load_target(spec: str) -> Any:
     for part in attr.split("."):
         obj = getattr(obj, part)
     return obj
+
+
+def load_plugin(spec: str) -> Any:
+    """The object named by a ``module:attribute`` plug-in spec (an estimator, its
+    class, or a callable that makes one), imported; :class:`ValueError` naming the
+    spec when it is malformed or cannot be loaded.  The one parser of ``--plugin``."""
+    module, _, attr = str(spec).partition(":")
+    if not module or not attr:
+        raise ValueError(f"a plugin must look like module:attribute, got {spec!r}")
+    try:
+        return _load_target(spec)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"plugin {spec!r} cannot be loaded: {e}") from None
+
+
+def register_plugin(spec: str, *, replace: bool = False) -> Estimator:
+    """Load the ``module:attribute`` plug-in (:func:`load_plugin`) and register it."""
+    return register(load_plugin(spec), replace=replace)
 
 
 def get(name: str) -> Estimator:

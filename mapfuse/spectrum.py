@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -39,7 +39,6 @@ __all__ = [
     "SpectrumRow",
     "add_spectrum_parser",
     "parse_lags",
-    "parse_seeds",
     "plot_spectrum",
     "spectrum",
     "spectrum_figure",
@@ -67,29 +66,24 @@ def parse_lags(text: str) -> tuple[float, ...]:
     return tuple(sorted(set(lags)))
 
 
-def parse_seeds(text: str) -> tuple[int, ...]:
-    """``"0-4"``, ``"3"`` or ``"0,2,7"`` (ranges inclusive) → seeds in the given order."""
-    seeds: list[int] = []
-    for part in text.split(","):
-        s = part.strip()
-        if not s:
-            continue
-        try:
-            if "-" in s[1:]:
-                a, b = s.split("-", 1) if not s.startswith("-") else (s, "")
-                lo, hi = int(a), int(b)
-                if hi < lo:
-                    raise ValueError
-                seeds.extend(range(lo, hi + 1))
-            else:
-                seeds.append(int(s))
-        except ValueError:
-            raise ValueError(
-                f"--seeds: {s!r} is not a seed or an ascending range A-B of seeds"
-            ) from None
-    if not seeds or any(x < 0 for x in seeds):
-        raise ValueError(f"--seeds: need non-negative seeds, got {text!r}")
-    return tuple(dict.fromkeys(seeds))
+#: A row's place in the spectrum: the filter (lag 0), the fixed-lag smoother at a lag,
+#: the full smoother (lag ∞).
+Role = Literal["filter", "window", "smoother"]
+
+_ROLE_ORDER: dict[str, int] = {"filter": 0, "window": 1, "smoother": 2}
+
+
+@dataclass(frozen=True)
+class SpectrumEstimators:
+    """Which registered estimator plays each role of the spectrum."""
+
+    filter: str = "ekf"
+    """Lag 0: a filter, whose result the others consume (their decisions)."""
+    window: str = "fixedlag"
+    """A fixed-lag smoother, run at every lag; its options need a ``fixedlag`` field
+    with ``lag_s`` and ``landmarks``."""
+    smoother: str = "batch"
+    """Lag ∞: a smoother over the whole log."""
 
 
 @dataclass(frozen=True)
@@ -97,9 +91,11 @@ class SpectrumRow:
     """One estimator at one lag, over every seed."""
 
     estimator: str
-    """``"ekf"``, ``"fixedlag"`` or ``"batch"``."""
+    """Registered name of the estimator."""
+    role: Role
+    """Its place in the spectrum (:data:`Role`)."""
     lag_s: float
-    """Lag in seconds: 0 for the EKF, ``inf`` for batch."""
+    """Lag in seconds: 0 for the filter, ``inf`` for the full smoother."""
     rmse_m: tuple[float, ...]
     """Per seed: position RMSE (m) of the evaluated poses."""
     nees: tuple[float, ...]
@@ -111,8 +107,8 @@ class SpectrumRow:
 
     @property
     def label(self) -> str:
-        """``"ekf"``, ``"batch"`` or ``"fixedlag 5 s"``."""
-        return self.estimator if self.estimator != "fixedlag" else f"fixedlag {_lag(self.lag_s)}"
+        """``"ekf"``, ``"batch"`` or ``"fixedlag 5 s"`` (a windowed row names its lag)."""
+        return self.estimator if self.role != "window" else f"{self.estimator} {_lag(self.lag_s)}"
 
     @property
     def mean_rmse_m(self) -> float:
@@ -209,6 +205,8 @@ class SpectrumJob:
     """Steps of the log used (``None``: all)."""
     data_dir: str | None
     """Data directory for a real dataset."""
+    estimators: SpectrumEstimators = field(default_factory=lambda: SpectrumEstimators())
+    """The estimator of each role."""
 
 
 @dataclass(frozen=True)
@@ -216,9 +214,11 @@ class SeedRun:
     """One estimator at one lag on one seed."""
 
     estimator: str
-    """``"ekf"``, ``"fixedlag"`` or ``"batch"``."""
+    """Registered name of the estimator."""
+    role: Role
+    """Its place in the spectrum (:data:`Role`)."""
     lag_s: float
-    """Lag in seconds (0 for the EKF, ``inf`` for batch)."""
+    """Lag in seconds (0 for the filter, ``inf`` for the full smoother)."""
     rmse_m: float
     """Position RMSE of the evaluated poses (m)."""
     nees: float
@@ -249,9 +249,12 @@ def _run_name(job: SpectrumJob) -> str:
 
 
 def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = None) -> SeedSpectrum:
-    """The EKF, the fixed-lag smoother at each lag and batch on the log of one seed."""
-    from mapfuse.estimators.graph import FixedLagEstimator
-    from mapfuse.run import fusion_for, prepare_log, run
+    """The filter, the fixed-lag smoother at each lag and the full smoother on the log of
+    one seed, planned together (:mod:`mapfuse.plan`: the smoothers consume the filter's
+    run)."""
+    from mapfuse.metrics import run_metrics
+    from mapfuse.plan import RunRequest, execute, plan_runs
+    from mapfuse.runner import fusion_for, prepare_log
     from mapfuse_graph.fixedlag import FixedLagOptions
 
     log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir)
@@ -259,42 +262,45 @@ def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = Non
         raise ValueError(f"{job.source}: the spectrum needs true poses (a simulated log)")
     if job.steps is not None:
         log = log.head(min(job.steps, log.n_steps))
+    roles = job.estimators
+    graph = {"association": job.association}
+    requests: list[tuple[Role, float, RunRequest]] = [
+        ("filter", 0.0, RunRequest(roles.filter, job.fusion))
+    ]
+    for lag in job.lags:
+        opts = {**graph, "fixedlag": FixedLagOptions(lag_s=lag, landmarks=job.landmarks)}
+        label = f"{roles.window} {_lag(lag)}"
+        requests.append(("window", lag, RunRequest(roles.window, job.fusion, opts, label)))
+    requests.append(("smoother", math.inf, RunRequest(roles.smoother, job.fusion, graph)))
+    plan = plan_runs([r for _, _, r in requests], len(log.known_map) > 0)
+    done = execute(plan, log)
+    made = {d.planned.label: d for d in done}
     runs: list[SeedRun] = []
-
-    def note(label: str, r: Any, lag: float) -> None:
-        m = r.metrics
-        nees = m["nees"]
-        iv = (nees.get("mean_interval") or {}).get("interval_95") or [math.nan, math.nan]
+    for role, lag, req in requests:
+        fusion = fusion_for(log, job.fusion)
+        d = made[req.label or f"{req.estimator} {'with' if fusion else 'without'} fusion"]
+        assert d.result is not None  # errors raise
+        m = run_metrics(d.result, log)
+        assert m.position_error is not None  # the log has truth
+        assert m.nees is not None
+        iv = m.nees.mean_interval
+        bounds = (math.nan, math.nan) if iv is None else (iv.interval_95[0], iv.interval_95[1])
         runs.append(
             SeedRun(
-                estimator=label,
+                estimator=req.estimator,
+                role=role,
                 lag_s=lag,
-                rmse_m=float(m["position_error_m"]["rmse"]),
-                nees=float(nees["mean"]),
-                nees_bounds=(float(iv[0]), float(iv[1])),
-                time_s=float(sum(r.result.step_time_s)),
+                rmse_m=m.position_error.rmse,
+                nees=m.nees.mean,
+                nees_bounds=bounds,
+                time_s=float(sum(d.result.step_time_s)),
             )
         )
         if progress is not None:
             progress(
-                f"{_run_name(job)} {label} {_lag(lag)}: rmse "
-                f"{m['position_error_m']['rmse']:.4f} m, nees {nees['mean']:.3f}"
+                f"{_run_name(job)} {req.estimator} {_lag(lag)}: rmse "
+                f"{m.position_error.rmse:.4f} m, nees {m.nees.mean:.3f}"
             )
-
-    ekf = run(log, "ekf", fusion=job.fusion)
-    note("ekf", ekf, 0.0)
-    graph_kw: dict[str, Any] = {"association": job.association, "upstream": ekf.result}
-    fixedlag = FixedLagEstimator()
-    for lag in job.lags:
-        r = run(
-            log,
-            fixedlag,
-            fusion=job.fusion,
-            fixedlag=FixedLagOptions(lag_s=lag, landmarks=job.landmarks),
-            **graph_kw,
-        )
-        note("fixedlag", r, lag)
-    note("batch", run(log, "batch", fusion=job.fusion, **graph_kw), math.inf)
     return SeedSpectrum(
         seed=job.seed, scenario=log.scenario, fusion=fusion_for(log, job.fusion), runs=tuple(runs)
     )
@@ -386,6 +392,7 @@ def spectrum(
     rows = [
         SpectrumRow(
             estimator=run0.estimator,
+            role=run0.role,
             lag_s=run0.lag_s,
             rmse_m=tuple(s.runs[i].rmse_m for s in per_seed),
             nees=tuple(s.runs[i].nees for s in per_seed),
@@ -394,8 +401,7 @@ def spectrum(
         )
         for i, run0 in enumerate(first.runs)
     ]
-    order = {"ekf": 0, "fixedlag": 1, "batch": 2}
-    rows.sort(key=lambda r: (order[r.estimator], r.lag_s))
+    rows.sort(key=lambda r: (_ROLE_ORDER[r.role], r.lag_s))
     return SpectrumResult(
         scenario=first.scenario,
         seeds=tuple(seeds),
@@ -434,16 +440,20 @@ def plot_spectrum(ax: Axes, result: SpectrumResult, metric: str = "rmse") -> Non
     def seeds_of(r: SpectrumRow) -> tuple[float, ...]:
         return r.rmse_m if metric == "rmse" else r.nees
 
-    fl = [(x, r) for x, r in zip(xs, rows, strict=True) if r.estimator == "fixedlag"]
+    fl = [(x, r) for x, r in zip(xs, rows, strict=True) if r.role == "window"]
     if fl:
         ax.plot(
-            [x for x, _ in fl], [value(r) for _, r in fl], "o-", color="tab:red", label="fixedlag"
+            [x for x, _ in fl],
+            [value(r) for _, r in fl],
+            "o-",
+            color="tab:red",
+            label=fl[0][1].estimator,
         )
-    style = {"ekf": ("s", "tab:blue"), "batch": ("D", "tab:orange")}
+    style = {"filter": ("s", "tab:blue"), "smoother": ("D", "tab:orange")}
     for x, r in zip(xs, rows, strict=True):
         ax.plot([x] * len(seeds_of(r)), seeds_of(r), ".", color="0.6", zorder=1)
-        if r.estimator in style:
-            m, c = style[r.estimator]
+        if r.role in style:
+            m, c = style[r.role]
             ax.plot([x], [value(r)], m, color=c, markersize=8, label=r.estimator, zorder=3)
     if metric == "anees":
         lo = [r.anees_bounds[0] for _, r in fl]
@@ -513,6 +523,8 @@ def spectrum_markdown(result: SpectrumResult, figure: str | None = None) -> str:
 
 def _cmd_spectrum(args: argparse.Namespace) -> int:
     import sys
+
+    from mapfuse.campaign.spec import parse_seeds
 
     lags = parse_lags(args.lags)
     seeds = parse_seeds(args.seeds)

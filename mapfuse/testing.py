@@ -2,7 +2,7 @@
 
 Use in your own pytest tests::
 
-    from mapfuse.run import run
+    from mapfuse.runner import run
     from mapfuse.testing import assert_no_worse_than_baseline
 
     def test_my_change_keeps_the_ekf_accurate(my_log):

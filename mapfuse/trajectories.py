@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapfuse.run import Run
+from mapfuse.runner import Run
 from mapfuse_core.evaluation import truth_in_global, write_tum
 from mapfuse_core.geometry.se2 import FloatArray, compose
 

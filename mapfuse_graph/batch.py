@@ -221,7 +221,7 @@ def _run_batch(
         if joint_stride is not None:
             joint = _joint_pose_cov(m, poses, joint_stride)
     covs = _pose_covs(poses, cov_of)
-    landmarks = _landmarks(builder, values, cov_of, poses)
+    landmarks, variables = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
     marg = time.perf_counter() - t0
     # Spread the solve over the steps so that the per-step times add up to the run's
@@ -240,6 +240,7 @@ def _run_batch(
         marginals_time_s=marg,
         anchor=anchor,
         landmarks=landmarks,
+        variables=variables,
         lm=report,
         extra=extra,
         joint_pose_cov=joint,

@@ -23,24 +23,24 @@ matched features is counted once), every known feature as a variable with a prio
 from its σ, and one tie factor per (landmark, known) pairing; a landmark first seen
 after the anchor step gets its tie when it is created.
 
-Association sources:
+Association sources (:data:`~mapfuse_graph.options.ASSOCIATIONS`):
 
-* ``"ekf"`` — the EKF's final decisions, handed over as
-  :class:`~mapfuse_core.estimate.decisions.AssociationDecisions`: the same data association as
-  the reference, so differences come from the estimator alone.  Anchor step and
-  initial value from the decisions' anchor.
+* ``"given"`` — decisions made elsewhere (e.g. the EKF's), handed over as
+  :class:`~mapfuse_core.estimate.AssociationDecisions`: the same data association as
+  that estimator, so differences come from the estimator alone.  Anchor step and
+  initial value from the decisions' anchor; known features the decisions stopped
+  fusing get no tie.  Decisions saved beside a run (``associations.npz``) load with
+  :func:`mapfuse_core.estimate.load_associations`.
 * ``"truth"`` — the simulator's world ids (observations with id −1 are dropped);
-  a landmark is paired with the known feature of the same id.  The anchor is
-  initialised by a weighted fit (:func:`mapfuse_core.matching.ccda.estimate_transform`) once
-  enough paired landmarks exist to fix it.
+  a landmark is paired with the known feature of the same id.  The anchor takes its
+  initial value and step from the decisions' anchor when decisions are given, else
+  it is initialised by a weighted fit (:func:`mapfuse_core.matching.ccda.estimate_transform`)
+  once enough paired landmarks exist to fix it.
 * ``"own"`` — χ²-gated nearest neighbour against the solver's current estimate,
   made while the graph grows (needs an incremental solver), with the gates and the
   one-to-one rules of :mod:`mapfuse_core.matching` that the EKF uses; CCDA every
   ``ccda_every`` steps until it accepts a match, then χ²-gated pairing of the
   remaining landmarks with known features.
-* explicit arrays ``(obs_landmark, obs_known_id)`` (e.g. the
-  :attr:`~mapfuse_core.estimate.decisions.AssociationDecisions.arrays` of
-  :func:`mapfuse_core.estimate.decisions.load_associations`).
 
 Everything is validated before any factor is built: an exception inside an iSAM2
 update leaves it corrupt, so malformed input must never reach GTSAM.
@@ -77,7 +77,7 @@ from mapfuse_graph.factors import (
     to_spmap_feature,
 )
 from mapfuse_graph.keys import anchor_key, known_key, landmark_key, pose_key, radius_key
-from mapfuse_graph.options import GraphOptions
+from mapfuse_graph.options import ASSOCIATIONS, AssociationName, GraphOptions
 from mapfuse_graph.own_association import OwnAssociation
 from mapfuse_graph.validation import (
     _check_assoc_arrays,
@@ -92,22 +92,46 @@ __all__ = ["GraphBuilder"]
 class GraphBuilder(OwnAssociation):
     """Validated log + association → per-step factors and initial values.
 
-    ``association`` is a name of :data:`ASSOCIATIONS` or a pair of arrays
-    ``(obs_landmark, obs_known_id)`` of the log's length (−1 = not associated /
-    not merged).  ``decisions`` (the EKF's) is required for ``"ekf"``; with fusion its
-    anchor also provides the anchor's initial value and step.
+    ``association``: a name of :data:`~mapfuse_graph.options.ASSOCIATIONS` (see the
+    module docstring).  ``decisions`` are required for ``"given"``, optional for
+    ``"truth"`` (their anchor only) and refused for ``"own"``.  ``fusion``: whether
+    the known map enters the graph (anchor, known features, ties).
     """
 
     def __init__(
         self,
         log: MeasurementLog,
         options: GraphOptions | None = None,
+        *,
+        fusion: bool = True,
+        association: AssociationName = "given",
         decisions: AssociationDecisions | None = None,
-        association: tuple[np.ndarray, np.ndarray] | None = None,
         steps: int | None = None,
     ) -> None:
+        if association not in ASSOCIATIONS:
+            raise ValueError(
+                f"association must be one of {', '.join(ASSOCIATIONS)}, got {association!r}"
+            )
+        if association == "given" and decisions is None:
+            raise ValueError(
+                "association 'given' needs decisions (AssociationDecisions on this log)"
+            )
+        if association == "own" and decisions is not None:
+            raise ValueError(
+                "association 'own' makes its own decisions and anchor: decisions given "
+                "would be ignored"
+            )
         self.log = log
+        self.fusion = bool(fusion)
+        """Whether the known map is fused."""
+        self.association: AssociationName = association
+        """Where the data association comes from."""
         self.options = opts = options or GraphOptions()
+        if association == "own" and opts.data_association.method != "nn":
+            raise ValueError(
+                "association 'own' searches by nearest neighbour only: "
+                f"data_association.method must be 'nn', got {opts.data_association.method!r}"
+            )
         self.n_steps = log.n_steps if steps is None else int(steps)
         if not 1 <= self.n_steps <= log.n_steps:
             raise ValueError(f"steps must be in 1..{log.n_steps}, got {steps}")
@@ -132,23 +156,16 @@ class GraphBuilder(OwnAssociation):
         self._planned_known: dict[int, int] = {}
         self._fit_count = 0
 
-        if association is not None:
-            lm, kn = _check_assoc_arrays(log, association, self._known_row)
-            self._mode = "fixed"
-            self._plan(lm, kn)
-        elif opts.association == "ekf":
-            if decisions is None:
-                raise ValueError(
-                    "association 'ekf' needs decisions (the EKF's AssociationDecisions on this log)"
-                )
+        if association == "given":
+            assert decisions is not None
             lm, kn = _check_assoc_arrays(log, decisions.arrays, self._known_row)
             unfused = sorted(decisions.unfused_known_ids)
             if unfused:
-                # The EKF stopped fusing these known features: no tie, a plain landmark.
+                # The decisions stopped fusing these known features: no tie, a plain landmark.
                 kn = np.where(np.isin(kn, unfused), -1, kn)
             self._mode = "fixed"
             self._plan(lm, kn)
-        elif opts.association == "truth":
+        elif association == "truth":
             tid = np.asarray(log.feat_true_id, dtype=np.int64).copy()
             if log.world is not None:
                 # A segment labelled with a tree's id (or the reverse) is an extraction
@@ -171,15 +188,16 @@ class GraphBuilder(OwnAssociation):
             self._mode = "own"
 
         if (
-            opts.fusion
+            self.fusion
             and len(self.known) > 0
             and decisions is not None
             and decisions.anchor is not None
             and self._mode == "fixed"
         ):
-            # The anchor is the EKF's.  A graph of fewer steps than the EKF needed to
-            # match has none (nor fits one): the match is not known at its last step.
-            self.anchor_source = "ekf"
+            # The anchor is the decisions'.  A graph of fewer steps than their maker
+            # needed to match has none (nor fits one): the match is not known at its
+            # last step.
+            self.anchor_source = "given"
             if int(decisions.anchor.accepted_at_step) < self.n_steps:
                 a = np.asarray(decisions.anchor.x_Wknown_Wglobal, dtype=float)
                 self.anchor_init = inverse(a)
@@ -201,7 +219,7 @@ class GraphBuilder(OwnAssociation):
                 "split_circles cannot take a robust kernel (it would weigh "
                 "the centre and the radius apart)"
             )
-        if opts.fusion and np.any(self.known.kinds == int(FeatureKind.CIRCLE)):
+        if self.fusion and np.any(self.known.kinds == int(FeatureKind.CIRCLE)):
             raise ValueError("split_circles cannot fuse a known map with circles")
         j = centre_radius_correlated(log)
         if j is not None:
@@ -234,7 +252,7 @@ class GraphBuilder(OwnAssociation):
                 )
             self.obs_landmark[j] = i
             kid = int(kn_ids[j])
-            if kid >= 0 and self.options.fusion:
+            if kid >= 0 and self.fusion:
                 row = self._known_row[kid]
                 if int(self.known.kinds[row]) != int(kind):
                     raise ValueError(
@@ -340,9 +358,9 @@ class GraphBuilder(OwnAssociation):
 
     def _fusion_step(self, k: int, est: Estimate, out: StepGraph) -> None:
         opts = self.options
-        if not opts.fusion or len(self.known) == 0:
+        if not self.fusion or len(self.known) == 0:
             return
-        if self.anchor_init is None and self._mode == "fixed" and self.anchor_source != "ekf":
+        if self.anchor_init is None and self._mode == "fixed" and self.anchor_source != "given":
             self._try_fit_anchor(k, est, out)
         elif self.anchor_init is None and self._mode == "own" and (k + 1) % opts.ccda_every == 0:
             self._try_ccda(k, est, out)

@@ -29,8 +29,9 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_graph.keys import describe_key, symbol_name
-from mapfuse_graph.solvers import GraphResult
+from mapfuse_graph.results import GraphDetails
 
 __all__ = ["GraphExport", "export_graph"]
 
@@ -92,9 +93,13 @@ def _upper(info: np.ndarray) -> list[float]:
     return [float(info[i, j]) for i in range(3) for j in range(i, 3)]
 
 
-def export_graph(result: GraphResult, folder: str | Path, name: str = "graph") -> GraphExport:
-    """Write ``folder/name.g2o`` and ``folder/name.json`` for ``result``'s graph."""
-    graph, values = result.graph, result.values
+def export_graph(result: EstimatorResult, folder: str | Path, name: str = "graph") -> GraphExport:
+    """Write ``folder/name.g2o`` and ``folder/name.json`` for the graph of ``result``, a
+    graph backend's run (:func:`~mapfuse_graph.solvers.run_graph`)."""
+    details = result.details
+    if not isinstance(details, GraphDetails):
+        raise ValueError(f"the {result.estimator} result holds no factor graph to export")
+    graph, values = details.graph, details.values
     if graph is None or values is None:
         raise ValueError("this graph result holds no graph (made without run_graph)")
     out = Path(folder)
@@ -145,9 +150,9 @@ def export_graph(result: GraphResult, folder: str | Path, name: str = "graph") -
             "variables": variables,
             "why": "g2o has no standard type for these: line landmarks (ρ, α), circle "
             "observations with their radius, tie factors through the anchor, priors. "
-            "The full graph is GraphResult.graph (GTSAM objects).",
+            "The full graph is GraphDetails.graph (GTSAM objects).",
         },
-        "backend": result.backend,
+        "backend": result.estimator,
         "fusion": result.fusion,
         "association": result.association,
         "scenario": result.scenario,

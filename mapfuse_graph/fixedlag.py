@@ -11,10 +11,10 @@ dropped but nothing before the window is relinearised again.
 
 Which estimate is which, at step ``k`` (time ``t_k``):
 
-* **filtered** (:attr:`~mapfuse_graph.results.GraphResult.filtered_poses`): ``X_k`` right
+* **filtered** (the result's ``filtered`` track): ``X_k`` right
   after update ``k`` (steps ``0..k``), the exact solution of that update's linear
   system, read from one marginal of the smoother's Bayes tree, as iSAM2's;
-* **final** (:attr:`~mapfuse_graph.results.GraphResult.poses`): ``X_j`` is final once
+* **final** (the result's ``smoothed`` track): ``X_j`` is final once
   ``t_k > t_j + lag``: it is the estimate after the last update that still held ``X_j``
   (steps ``0..k−1``, the pose of ``k − lag`` at a constant step time), recorded with its
   marginal covariance just before GTSAM marginalises it;
@@ -331,7 +331,7 @@ def _run_fixedlag(
     covs = np.where(in_window[:, None, None], win_covs, final_covs)
     if not marginals:
         covs = np.where(in_window[:, None, None], np.nan, final_covs)
-    landmarks = _landmarks(builder, values, cov_of, poses)
+    landmarks, variables = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
     marg = time.perf_counter() - t0
     del linearization_point, isam
@@ -357,6 +357,7 @@ def _run_fixedlag(
         marginals_time_s=marg,
         anchor=anchor,
         landmarks=landmarks,
+        variables=variables,
         lm=None,
         extra=extra,
         initial=initial,

@@ -376,7 +376,7 @@ def _run_isam2(
         cov_of = bayes_tree_marginals(tree_of.tree(), dict(_key_dims(values))).__getitem__
     poses = _poses_from(values, n)
     covs = _pose_covs(poses, cov_of)
-    landmarks = _landmarks(builder, values, cov_of, poses)
+    landmarks, variables = _landmarks(builder, values, cov_of, poses)
     anchor = _anchor(builder, values, cov_of)
     marg = time.perf_counter() - t0
     del linearization_point
@@ -398,6 +398,7 @@ def _run_isam2(
         marginals_time_s=marg,
         anchor=anchor,
         landmarks=landmarks,
+        variables=variables,
         lm=None,
         extra=extra,
         initial=initial,

@@ -2,7 +2,7 @@
 
 The ``*_key`` functions make the keys; :func:`key_map` names every variable of a
 ``Values``, e.g. ``"x12"`` → ``"vehicle pose x^Wglobal_R of step 12 (Pose2)"``, so a
-user of :attr:`mapfuse_graph.solvers.GraphResult.graph` knows what the keys of its
+user of :attr:`mapfuse_graph.results.GraphDetails.graph` knows what the keys of its
 factors are.
 """
 

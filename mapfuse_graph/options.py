@@ -18,20 +18,16 @@ from mapfuse_graph.factors import (
 __all__ = ["ASSOCIATIONS", "AssociationName", "GraphOptions"]
 
 
-AssociationName = Literal["ekf", "truth", "own"]
+AssociationName = Literal["given", "truth", "own"]
+"""Where a graph's data association comes from (:mod:`mapfuse_graph.builder`)."""
 
-
-ASSOCIATIONS: tuple[str, ...] = ("ekf", "truth", "own")
+ASSOCIATIONS: tuple[AssociationName, ...] = ("given", "truth", "own")
 
 
 @dataclass(frozen=True)
 class GraphOptions:
     """Everything that shapes the graph (not the solver)."""
 
-    fusion: bool = True
-    """Fuse the known map (anchor, known features, tie factors)."""
-    association: str = "ekf"
-    """``"ekf"``, ``"truth"`` or ``"own"`` (see the module docstring)."""
     robust: str | None = None
     """Robust kernel of the observation factors: ``None``, ``"huber[:k]"``, ``"cauchy[:k]"``."""
     first_pose_sigma: tuple[float, float, float] = (1e-6, 1e-6, 1e-6)
@@ -69,19 +65,10 @@ class GraphOptions:
     CPU (``docs/victoria-park.md``)."""
 
     def __post_init__(self) -> None:
-        if self.association not in ASSOCIATIONS:
-            raise ValueError(
-                f"association must be one of {', '.join(ASSOCIATIONS)}, got {self.association!r}"
-            )
         if not isinstance(self.data_association, AssociationConfig):
             raise ValueError(
                 "data_association must be an AssociationConfig, got "
                 f"{type(self.data_association).__name__}"
-            )
-        if self.association == "own" and self.data_association.method != "nn":
-            raise ValueError(
-                "association 'own' searches by nearest neighbour only: "
-                f"data_association.method must be 'nn', got {self.data_association.method!r}"
             )
         for name in ("first_pose_sigma", "tie_sigma", "max_anchor_std"):
             v = getattr(self, name)

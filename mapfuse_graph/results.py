@@ -1,5 +1,6 @@
-"""What a graph solver returns (:class:`GraphResult` and its parts) and how poses,
-landmarks and the anchor are read off a solution."""
+"""What a graph run reports beyond the :class:`~mapfuse_core.estimate.EstimatorResult`
+every estimator returns (:class:`GraphDetails`), and how poses, landmarks and the anchor
+are read off a solution."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions
+from mapfuse_core.estimate import Anchor, MapEstimate
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import FeatureKind, line_from_normal
 from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
@@ -20,7 +21,7 @@ from mapfuse_graph.factors import pose_of
 from mapfuse_graph.keys import anchor_key, key_map, landmark_key, pose_key, radius_key
 from mapfuse_graph.marginals import _body_to_abs, body_to_abs_cov
 
-__all__ = ["GraphAnchor", "GraphLandmarks", "GraphResult", "JointPoseCovariance", "LMReport"]
+__all__ = ["GraphDetails", "JointPoseCovariance", "LMReport"]
 
 
 @dataclass(frozen=True)
@@ -40,44 +41,6 @@ class LMReport:
 
 
 @dataclass(frozen=True)
-class GraphAnchor:
-    """The pose of ``Wglobal`` in the known map, as :class:`ekf_reference.AnchorResult`."""
-
-    x_Wknown_Wglobal: FloatArray
-    """(3,) pose of ``Wglobal`` in ``Wknown`` (inverse of the graph's ``A = x^Wglobal_Wknown``)."""
-    cov: FloatArray
-    """(3, 3) its absolute covariance."""
-    accepted_at_step: int
-    """Step at which the anchor entered the graph."""
-    source: str
-    """Where its initial value came from: ``"ekf"``, ``"fit"`` (truth pairings), ``"ccda"``,
-    ``"given"``."""
-    pairings: tuple[tuple[int, int], ...]
-    """(true world id of the landmark or −1, known-map id) per tie: the id most of the
-    landmark's observations carry (:func:`~mapfuse_core.evaluation.landmark_labels`)."""
-
-
-@dataclass(frozen=True)
-class GraphLandmarks:
-    """The estimated landmarks in ``Wglobal``."""
-
-    kinds: np.ndarray
-    """(L,) int8 feature kinds."""
-    params: FloatArray
-    """(L, 3) SPmap lines (origin at the mean foot of their observations) / circles."""
-    covs: FloatArray
-    """(L, 3, 3) covariance of :attr:`params` (lines: zero along the line)."""
-    variables: FloatArray
-    """(L, 3) the graph variables: ``(ρ, α, NaN)`` for lines, ``(x, y, r)`` for circles."""
-    known_ids: np.ndarray
-    """(L,) known-map id each landmark is tied to, −1 if none."""
-    true_ids: np.ndarray
-    """(L,) world id of each landmark's first observation (−1 unknown)."""
-    n_obs: np.ndarray
-    """(L,) observations per landmark."""
-
-
-@dataclass(frozen=True)
 class JointPoseCovariance:
     """Smoothed joint covariance of a subset of the poses (batch, ``joint_stride``)."""
 
@@ -88,35 +51,11 @@ class JointPoseCovariance:
     block ``(i, i)`` is ``covs[steps[i]]``."""
 
 
-@dataclass(frozen=True)
-class GraphResult:
-    """Result of :func:`run_graph`."""
+@dataclass(frozen=True, eq=False)
+class GraphDetails:
+    """What only a graph backend reports, beside its
+    :class:`~mapfuse_core.estimate.EstimatorResult` (``result.details``)."""
 
-    scenario: str
-    """Scenario name of the log."""
-    seed: int
-    """Seed of the log."""
-    backend: str
-    """``"batch"``, ``"isam2"`` or ``"fixedlag"``."""
-    fusion: bool
-    """Whether the known map was fused."""
-    association: str
-    """Association source used."""
-    poses: FloatArray
-    """(N, 3) final (smoothed) pose ``x^Wglobal_R`` of every step (fixedlag: each pose as
-    it left the window, see :mod:`mapfuse_graph.fixedlag`)."""
-    covs: FloatArray
-    """(N, 3, 3) smoothed marginal covariances, absolute ``(x, y, θ)`` (NaN if not computed;
-    fixedlag: the marginal of :attr:`poses` when it was read)."""
-    filtered_poses: FloatArray | None
-    """(N, 3) iSAM2 and fixedlag: estimate of ``X_k`` right after update ``k`` (uses steps 0..k):
-    its linearisation point moved by the exact solution of that update's linear system."""
-    filtered_covs: FloatArray | None
-    """(N, 3, 3) iSAM2 and fixedlag: its absolute covariance."""
-    step_time_s: FloatArray
-    """(N,) iSAM2, fixedlag: wall time of each step (build + update + filtered estimate and
-    marginal).  Batch: each step's build time plus an equal share of the solve and the
-    marginals, so that the sum is the run's cost (per-step percentiles are meaningless)."""
     build_time_s: float
     """Validation and factor construction (batch); included in step times for iSAM2."""
     solve_time_s: float
@@ -124,15 +63,12 @@ class GraphResult:
     marginals_time_s: float
     """Time spent on the final smoothed marginals."""
     total_time_s: float
-    """Wall time of the whole :func:`run_graph` call."""
+    """Wall time of the whole :func:`~mapfuse_graph.solvers.run_graph` call."""
     total_cpu_s: float
     """CPU time of this process during the call (robust to other load on the machine)."""
-    anchor: GraphAnchor | None
-    """The anchor, or ``None`` without fusion or if it never entered the graph."""
-    landmarks: GraphLandmarks
-    """Final landmark estimates."""
-    obs_landmark: np.ndarray
-    """(M,) dense landmark index of every logged observation, −1 if not in the graph."""
+    landmark_variables: FloatArray
+    """(L, 3) the graph variables of the result's map features, in order: ``(ρ, α, NaN)``
+    for lines, ``(x, y, r)`` for circles."""
     n_factors: int
     """Factors in the final graph."""
     n_variables: int
@@ -146,22 +82,18 @@ class GraphResult:
     joint_pose_cov: JointPoseCovariance | None = None
     """Batch with ``joint_stride``: the joint covariance of every ``joint_stride``-th pose,
     for consistency statistics that need it (``evaluation.nees_mean_distribution``)."""
-    ccda_reasons: dict[str, int] | None = None
-    """``association="own"``: CCDA calls per outcome (a
-    :data:`~mapfuse_core.matching.ccda.REASONS` entry, or ``"anchor refused"`` for an
-    accepted match the anchor check turned down); ``None`` with any other association."""
     step_cpu_s: FloatArray | None = None
     """(N,) iSAM2 and fixedlag: CPU time of this process in each step (the same span as
-    :attr:`step_time_s`); unlike wall time, it does not grow with other load on the
-    machine."""
-    graph: gtsam.NonlinearFactorGraph | None = field(default=None, compare=False, repr=False)
+    the result's ``step_time_s``); unlike wall time, it does not grow with other load on
+    the machine."""
+    graph: gtsam.NonlinearFactorGraph | None = field(default=None, repr=False)
     """The final nonlinear factor graph, to optimise with another solver or export
     (:mod:`mapfuse_graph.export`); its keys are named by :attr:`keys`.  The observation
     and tie factors are Python ``CustomFactor`` objects: GTSAM's serialisation and
     ``writeG2o`` cannot hold them."""
-    values: gtsam.Values | None = field(default=None, compare=False, repr=False)
+    values: gtsam.Values | None = field(default=None, repr=False)
     """The final estimate of every variable."""
-    initial: gtsam.Values | None = field(default=None, compare=False, repr=False)
+    initial: gtsam.Values | None = field(default=None, repr=False)
     """The values the solver started from (batch: Levenberg–Marquardt's start; iSAM2
     and fixed-lag: each variable's value when it was added)."""
 
@@ -171,22 +103,6 @@ class GraphResult:
         if self.values is None:
             return {}
         return key_map(self.values)
-
-    @property
-    def obs_known_id(self) -> np.ndarray:
-        """(M,) known-map id of every observation's landmark, −1 if none (or not in the graph)."""
-        lm, known = self.obs_landmark, self.landmarks.known_ids
-        if not known.size:
-            return np.full(lm.shape, -1, dtype=np.int64)
-        return np.asarray(np.where(lm >= 0, known[np.clip(lm, 0, None)], -1), dtype=np.int64)
-
-    @property
-    def decisions(self) -> AssociationDecisions:
-        """The association decisions the graph was built with, and its anchor."""
-        anchor = None
-        if self.anchor is not None:
-            anchor = AnchorDecision(self.anchor.x_Wknown_Wglobal, self.anchor.accepted_at_step)
-        return AssociationDecisions(self.obs_landmark, self.obs_known_id, anchor)
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,17 +122,19 @@ class _Solved:
     filtered_covs: FloatArray | None
     """(N, 3, 3) their covariances (iSAM2), else ``None``."""
     step_time_s: FloatArray
-    """(N,) per-step wall time (see :attr:`GraphResult.step_time_s`)."""
+    """(N,) per-step wall time (the result's ``step_time_s``)."""
     build_time_s: float
     """Factor construction time outside the steps (batch), else 0."""
     solve_time_s: float
     """Optimisation time."""
     marginals_time_s: float
     """Final marginals time."""
-    anchor: GraphAnchor | None
+    anchor: Anchor | None
     """The anchor estimate."""
-    landmarks: GraphLandmarks
+    landmarks: MapEstimate
     """The landmark estimates."""
+    variables: FloatArray
+    """(L, 3) the landmarks' graph variables (:attr:`GraphDetails.landmark_variables`)."""
     lm: LMReport | None
     """Batch: the Levenberg–Marquardt report."""
     extra: dict[str, Any]
@@ -234,7 +152,8 @@ def _landmarks(
     values: gtsam.Values,
     cov_of: Callable[[int], FloatArray] | None,
     poses: FloatArray,
-) -> GraphLandmarks:
+) -> tuple[MapEstimate, FloatArray]:
+    """The landmarks of a solution as a map, and their graph variables."""
     log = builder.log
     lms = builder.landmarks
     n = len(lms)
@@ -274,20 +193,20 @@ def _landmarks(
         params[i] = f
         covs[i] = J[:, :2] @ P @ J[:, :2].T
     true_first = log.feat_true_id[builder.landmark_first_obs()] if n else np.zeros(0, np.int64)
-    return GraphLandmarks(
+    landmarks = MapEstimate(
         kinds=kinds,
         params=params,
         covs=covs,
-        variables=variables,
         known_ids=builder.landmark_known_ids(),
         true_ids=np.asarray(true_first, dtype=np.int64),
         n_obs=builder.landmark_n_obs(),
     )
+    return landmarks, variables
 
 
 def _anchor(
     builder: GraphBuilder, values: gtsam.Values, cov_of: Callable[[int], FloatArray] | None
-) -> GraphAnchor | None:
+) -> Anchor | None:
     if not builder.anchor_added or not values.exists(anchor_key()):
         return None
     A = pose_of(values.atPose2(anchor_key()))
@@ -305,12 +224,12 @@ def _anchor(
         (label, int(builder.known.ids[r]))
         for (_, r), label in zip(builder.pairings, labels, strict=True)
     )
-    return GraphAnchor(
+    return Anchor(
         x_Wknown_Wglobal=x,
         cov=J @ P @ J.T,
         accepted_at_step=builder.anchor_step,
-        source=builder.anchor_source,
         pairings=pairings,
+        source=builder.anchor_source,
     )
 
 

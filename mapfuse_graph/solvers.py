@@ -34,7 +34,13 @@ from typing import Literal
 
 import numpy as np
 
-from mapfuse_core.estimate.decisions import AssociationDecisions
+from mapfuse_core.estimate import (
+    AnchorDecision,
+    AssociationDecisions,
+    EstimatorResult,
+    MatchAttempts,
+    PoseTrack,
+)
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.batch import LMOptions, _run_batch, levenberg_marquardt
@@ -47,21 +53,13 @@ from mapfuse_graph.isam2 import _ISAM2Estimate as _ISAM2Estimate
 from mapfuse_graph.isam2 import _newest_last as _newest_last
 from mapfuse_graph.isam2 import _newest_pose_marginal as _newest_pose_marginal
 from mapfuse_graph.marginals import body_to_abs_cov, tree_marginals
-from mapfuse_graph.options import ASSOCIATIONS, GraphOptions
-from mapfuse_graph.results import (
-    GraphAnchor,
-    GraphLandmarks,
-    GraphResult,
-    JointPoseCovariance,
-    LMReport,
-)
+from mapfuse_graph.options import ASSOCIATIONS, AssociationName, GraphOptions
+from mapfuse_graph.results import GraphDetails, JointPoseCovariance, LMReport
 
 __all__ = [
     "BACKENDS",
     "FixedLagOptions",
-    "GraphAnchor",
-    "GraphLandmarks",
-    "GraphResult",
+    "GraphDetails",
     "ISAM2Options",
     "JointPoseCovariance",
     "LMOptions",
@@ -78,39 +76,44 @@ Backend = Literal["batch", "isam2", "fixedlag"]
 
 def run_graph(
     log: MeasurementLog,
-    backend: str = "isam2",
-    fusion: bool = True,
-    association: str = "ekf",
-    decisions: AssociationDecisions | None = None,
-    robust: str | None = None,
+    backend: Backend = "isam2",
     *,
+    fusion: bool = True,
+    association: AssociationName = "given",
+    decisions: AssociationDecisions | None = None,
     options: GraphOptions | None = None,
-    associations: tuple[np.ndarray, np.ndarray] | None = None,
     lm: LMOptions | None = None,
     isam2: ISAM2Options | None = None,
     fixedlag: FixedLagOptions | None = None,
     steps: int | None = None,
-    init: str = "auto",
+    init: Literal["auto", "given", "odometry"] = "auto",
     init_poses: FloatArray | None = None,
     marginals: bool = True,
     progress: Callable[[int, int], None] | None = None,
     joint_stride: int | None = None,
-) -> GraphResult:
+) -> EstimatorResult:
     """Build the factor graph of ``log`` and solve it with ``backend``.
 
     ``backend``: ``"batch"`` (Levenberg–Marquardt over all steps), ``"isam2"`` (one
     update per step; also gives per-step filtered estimates) or ``"fixedlag"`` (iSAM2
-    over a window of ``fixedlag.lag_s`` seconds, :mod:`mapfuse_graph.fixedlag`).  ``association``:
-    ``"ekf"`` (needs ``decisions``, the EKF's), ``"truth"`` or ``"own"`` (for
-    ``batch``, decided by an iSAM2 pass first); ``associations`` (arrays) overrides it.
-    ``fusion`` and ``robust`` override the same fields of ``options``.  ``steps`` solves
-    only the first ``steps`` steps.  ``init`` (batch): ``"given"`` starts from
-    ``init_poses`` (e.g. the EKF's, one per step of the log), ``"odometry"`` from dead
-    reckoning, ``"auto"`` from ``init_poses`` when given.
-    ``marginals=False`` skips the smoothed marginals (covariances NaN).
-    ``joint_stride`` (batch, with marginals) also computes the joint covariance of every
-    ``joint_stride``-th pose (:attr:`GraphResult.joint_pose_cov`); its cost grows with
-    the cube of the number of poses it keeps.
+    over a window of ``fixedlag.lag_s`` seconds, :mod:`mapfuse_graph.fixedlag`).
+    ``association`` (:mod:`mapfuse_graph.builder`): ``"given"`` takes the landmarks,
+    known-map pairings and anchor of ``decisions`` (e.g. another estimator's, or
+    arrays wrapped in an :class:`~mapfuse_core.estimate.AssociationDecisions`);
+    ``"truth"`` the simulator's ids (and the anchor of ``decisions`` when given);
+    ``"own"`` decides while the graph grows (for ``batch``, by an iSAM2 pass first).
+    ``fusion``: whether the known map enters the graph.  ``steps`` solves only the
+    first ``steps`` steps.  ``init`` (batch): ``"given"`` starts from ``init_poses``
+    (e.g. the EKF's, one per step of the log), ``"odometry"`` from dead reckoning,
+    ``"auto"`` from ``init_poses`` when given.  ``marginals=False`` skips the smoothed
+    marginals (covariances NaN).  ``joint_stride`` (batch, with marginals) also computes
+    the joint covariance of every ``joint_stride``-th pose
+    (:attr:`GraphDetails.joint_pose_cov`); its cost grows with the cube of the number
+    of poses it keeps.
+
+    Returns the :class:`~mapfuse_core.estimate.EstimatorResult` every estimator returns
+    (estimator ``backend``; the smoothed track, and the filtered one for iSAM2 and
+    fixed-lag), with :class:`GraphDetails` as its ``details``.
     """
     t_start = time.perf_counter()
     cpu_start = time.process_time()
@@ -141,38 +144,9 @@ def run_graph(
             )
         if not np.all(np.isfinite(init_poses)):
             raise ValueError("init_poses has non-finite values")
-    base = options or GraphOptions()
-    opts = GraphOptions(
-        **{**base.__dict__, "fusion": bool(fusion), "association": association, "robust": robust}
-    )
-    anchor_given: tuple[FloatArray, int, str] | None = None
-    pre_reasons: dict[str, int] | None = None
-    if backend == "batch" and associations is None and association == "own":
-        # Own association is decided against an incremental estimate: run iSAM2 first.
-        pre = GraphBuilder(log, opts, decisions, None, steps)
-        _run_isam2(pre, isam2, False, None)
-        associations = _arrays_of(pre)
-        if pre.anchor_added:
-            assert pre.anchor_init is not None
-            anchor_given = (pre.anchor_init, pre.anchor_step, pre.anchor_source)
-        pre_reasons = pre.ccda_reasons
-    label = association if associations is None else "given"
+    opts = options or GraphOptions()
+    builder = _builder(log, backend, opts, fusion, association, decisions, fixedlag, isam2, steps)
     fl = fixedlag or FixedLagOptions()
-    if backend == "fixedlag" and fl.landmarks == "window":
-        if associations is None and association == "own":
-            raise ValueError(
-                "fixedlag with landmarks='window' needs a fixed association ('ekf', 'truth' "
-                "or arrays): a marginalised landmark cannot be matched again"
-            )
-        pre = GraphBuilder(log, opts, decisions, associations, steps)
-        lm_ids, kn_ids = pre.planned_arrays()
-        associations = (
-            split_by_lag(lm_ids, kn_ids, log.feat_step, log.timestamps, fl.lag_s),
-            kn_ids,
-        )
-    builder = GraphBuilder(log, opts, decisions, associations, steps)
-    if anchor_given is not None:
-        builder.anchor_init, builder.anchor_step, builder.anchor_source = anchor_given
     n = builder.n_steps
     if backend == "batch":
         if init == "given" and init_poses is None:
@@ -183,43 +157,117 @@ def run_graph(
         out = _run_fixedlag(builder, fl, isam2, marginals, progress)
     else:
         out = _run_isam2(builder, isam2, marginals, progress)
-    return GraphResult(
+    filtered = None
+    if out.filtered_poses is not None and out.filtered_covs is not None:
+        filtered = PoseTrack(out.filtered_poses, out.filtered_covs)
+    reasons = builder.ccda_reasons if association == "own" else None
+    anchor = out.anchor
+    return EstimatorResult(
+        estimator=backend,
         scenario=log.scenario,
         seed=log.seed,
-        backend=backend,
-        fusion=opts.fusion,
-        association=label,
-        poses=out.poses,
-        covs=out.covs,
-        filtered_poses=out.filtered_poses,
-        filtered_covs=out.filtered_covs,
+        fusion=builder.fusion,
+        timestamps=np.asarray(log.timestamps[:n], dtype=float),
         step_time_s=out.step_time_s,
-        build_time_s=out.build_time_s,
-        solve_time_s=out.solve_time_s,
-        marginals_time_s=out.marginals_time_s,
-        total_time_s=time.perf_counter() - t_start,
-        total_cpu_s=time.process_time() - cpu_start,
-        anchor=out.anchor,
-        landmarks=out.landmarks,
-        obs_landmark=builder.obs_landmark.copy(),
-        n_factors=int(out.graph.size()),
-        n_variables=int(out.values.size()),
-        final_error=float(out.graph.error(out.values)),
-        lm=out.lm,
-        extra=out.extra,
-        joint_pose_cov=out.joint_pose_cov,
-        ccda_reasons=(
-            dict(pre_reasons)
-            if pre_reasons is not None
-            else dict(builder.ccda_reasons)
-            if association == "own" and associations is None
-            else None
+        map=out.landmarks,
+        filtered=filtered,
+        smoothed=PoseTrack(out.poses, out.covs),
+        anchor=anchor,
+        decisions=AssociationDecisions(
+            builder.obs_landmark.copy(),
+            _obs_known_id(builder.obs_landmark, out.landmarks.known_ids),
+            None
+            if anchor is None
+            else AnchorDecision(anchor.x_Wknown_Wglobal, anchor.accepted_at_step),
         ),
-        step_cpu_s=out.step_cpu_s,
-        graph=out.graph,
-        values=out.values,
-        initial=out.initial,
+        association=association,
+        matching=None
+        if reasons is None or not builder.fusion
+        else MatchAttempts(sum(reasons.values()), dict(reasons)),
+        details=GraphDetails(
+            build_time_s=out.build_time_s,
+            solve_time_s=out.solve_time_s,
+            marginals_time_s=out.marginals_time_s,
+            total_time_s=time.perf_counter() - t_start,
+            total_cpu_s=time.process_time() - cpu_start,
+            landmark_variables=out.variables,
+            n_factors=int(out.graph.size()),
+            n_variables=int(out.values.size()),
+            final_error=float(out.graph.error(out.values)),
+            lm=out.lm,
+            extra=out.extra,
+            joint_pose_cov=out.joint_pose_cov,
+            step_cpu_s=out.step_cpu_s,
+            graph=out.graph,
+            values=out.values,
+            initial=out.initial,
+        ),
     )
+
+
+def _builder(
+    log: MeasurementLog,
+    backend: Backend,
+    opts: GraphOptions,
+    fusion: bool,
+    association: AssociationName,
+    decisions: AssociationDecisions | None,
+    fixedlag: FixedLagOptions | None,
+    isam2: ISAM2Options | None,
+    steps: int | None,
+) -> GraphBuilder:
+    """The builder of the graph to solve, its association fixed first where the backend
+    cannot decide it while it solves: batch with ``"own"`` (an iSAM2 pass decides), a
+    fixed-lag window that marginalises landmarks (a landmark is split at each lag)."""
+    fl = fixedlag or FixedLagOptions()
+    if backend == "batch" and association == "own":
+        # Own association is decided against an incremental estimate: run iSAM2 first.
+        pre = GraphBuilder(log, opts, fusion=fusion, association="own", steps=steps)
+        _run_isam2(pre, isam2, False, None)
+        lm, kn = _arrays_of(pre)
+        builder = GraphBuilder(
+            log,
+            opts,
+            fusion=fusion,
+            association="given",
+            decisions=AssociationDecisions(lm, kn),
+            steps=steps,
+        )
+        if pre.anchor_added:
+            assert pre.anchor_init is not None
+            builder.anchor_init, builder.anchor_step = pre.anchor_init, pre.anchor_step
+            builder.anchor_source = pre.anchor_source
+        builder.ccda_reasons = dict(pre.ccda_reasons)
+        return builder
+    if backend == "fixedlag" and fl.landmarks == "window":
+        if association == "own":
+            raise ValueError(
+                "fixedlag with landmarks='window' needs a fixed association ('given' or "
+                "'truth'): a marginalised landmark cannot be matched again"
+            )
+        pre = GraphBuilder(
+            log, opts, fusion=fusion, association=association, decisions=decisions, steps=steps
+        )
+        lm_ids, kn_ids = pre.planned_arrays()
+        split = AssociationDecisions(
+            split_by_lag(lm_ids, kn_ids, log.feat_step, log.timestamps, fl.lag_s),
+            kn_ids,
+            None if decisions is None else decisions.anchor,
+        )
+        return GraphBuilder(
+            log, opts, fusion=fusion, association="given", decisions=split, steps=steps
+        )
+    return GraphBuilder(
+        log, opts, fusion=fusion, association=association, decisions=decisions, steps=steps
+    )
+
+
+def _obs_known_id(obs_landmark: np.ndarray, known_ids: np.ndarray) -> np.ndarray:
+    """(M,) known-map id of every observation's landmark, −1 if none (or not in the graph)."""
+    if not known_ids.size:
+        return np.full(obs_landmark.shape, -1, dtype=np.int64)
+    out = np.where(obs_landmark >= 0, known_ids[np.clip(obs_landmark, 0, None)], -1)
+    return np.asarray(out, dtype=np.int64)
 
 
 def _arrays_of(builder: GraphBuilder) -> tuple[np.ndarray, np.ndarray]:

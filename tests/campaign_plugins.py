@@ -7,7 +7,7 @@ import os
 import time
 from typing import Any
 
-from mapfuse.result import EstimatorResult
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.measlog import MeasurementLog
 from tests.toy_estimator import DeadReckoning, DeadReckoningOptions
 

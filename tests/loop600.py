@@ -70,7 +70,7 @@ def loop600_log(seed: int) -> MeasurementLog:
 def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
     """The EKF reference on the loop600 log of ``seed``."""
     return _shared(
-        f"ekf-{seed}-{fusion}", lambda: run_ekf(loop600_log(seed), EKFConfig(fusion=fusion))
+        f"ekf-{seed}-{fusion}", lambda: run_ekf(loop600_log(seed), EKFConfig(), fusion=fusion)
     )
 
 
@@ -79,7 +79,7 @@ def loop600_ekf_carry(seed: int) -> EKFResult:
     """The fused EKF with ``carry_seen_steps=1`` on the loop600 log of ``seed``."""
     return _shared(
         f"ekf-carry-{seed}",
-        lambda: run_ekf(loop600_log(seed), EKFConfig(fusion=True, carry_seen_steps=1)),
+        lambda: run_ekf(loop600_log(seed), EKFConfig(carry_seen_steps=1), fusion=True),
     )
 
 

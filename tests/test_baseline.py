@@ -35,7 +35,7 @@ from mapfuse.baseline import (
 )
 from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import build_metrics, run_metrics
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse.testing import assert_no_worse_than_baseline
 from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
@@ -111,7 +111,7 @@ def test_a_worsened_estimator_fails_naming_the_metric(
 
 
 def test_perturbed_poses_fail_on_accuracy(log: MeasurementLog) -> None:
-    res = run_ekf(log, EKFConfig(fusion=True))
+    res = run_ekf(log, EKFConfig(), fusion=True)
     base = record_baseline(run_metrics(to_result(res, log), log))
     # A bias along x on every pose after the first, twice the RMSE limit: the RMS of
     # (error + bias) is at least |bias| − RMSE > limit, whatever the baseline is.

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mapfuse.run
+import mapfuse.runner
 from mapfuse.cli import main
 from mapfuse.profiles import default_options, profile_of
 from mapfuse.registry import get
@@ -165,7 +165,7 @@ def test_bad_carmen_inputs_fail_before_any_work(
     def fail(*a: object, **kw: object) -> None:
         raise AssertionError("work started before the options were checked")
 
-    monkeypatch.setattr(mapfuse.run, "prepare_log", fail)
+    monkeypatch.setattr(mapfuse.runner, "prepare_log", fail)
     assert main(["run", *args, *_out(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert message in err
@@ -206,7 +206,7 @@ def test_carmen_profile_applies_to_every_carmen_log_and_only_to_them() -> None:
 
 
 def test_an_override_of_a_nested_option_keeps_the_profiles_other_settings() -> None:
-    from mapfuse.run import make_options
+    from mapfuse.options import make_options
     from mapfuse_graph.options import GraphOptions
 
     carmen = dataclasses.replace(synthetic_log(5, 0), scenario="carmen:any-name.log")
@@ -264,7 +264,7 @@ def test_changes_of_a_carmen_log_use_its_own_scanner_and_raw_scans(
 ) -> None:
     from mapfuse.carmen_input import carmen_change_params, load_carmen_input
     from mapfuse.changes import detect_changes
-    from mapfuse.run import run
+    from mapfuse.runner import run
     from mapfuse_core.evaluation.changes import ChangeParams
 
     log = load_carmen_input(f"carmen:{room_log}")

@@ -176,7 +176,7 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
     # in the match: only its exclusion gives a correct anchor at the refusal's step.
     swap = _Swapping(persistent=exclusions > 0 and joint_test)
     monkeypatch.setattr(pipeline, "ccda_match", swap)
-    cfg = EKFConfig(fusion=True)
+    cfg = EKFConfig()
     assoc = dataclasses.replace(
         cfg.data_association, match_joint_test=joint_test, match_exclusions=exclusions
     )
@@ -184,7 +184,7 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
     with warnings.catch_warnings():
         # The corrupted match, fused, does not converge and says so.
         warnings.simplefilter("ignore", RuntimeWarning)
-        res = run_ekf(log, cfg)
+        res = run_ekf(log, cfg, fusion=True)
     assert sum(res.ccda_reasons.values()) == res.ccda_attempts == len(swap.calls)
     assert res.anchor is not None
     wrong = [(t, kid) for t, kid in res.anchor.pairings if t != kid]

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-import mapfuse.run
+import mapfuse.runner
 from mapfuse.cli import EXIT_INTERRUPTED, _parser, main
 from mapfuse_core.measlog import save_log
 from tests.synthetic import synthetic_log
@@ -34,7 +34,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     def fail(*args: object, **kwargs: object) -> None:
         raise AssertionError("work started before the options were checked")
 
-    monkeypatch.setattr(mapfuse.run, "prepare_log", fail)
+    monkeypatch.setattr(mapfuse.runner, "prepare_log", fail)
 
 
 def _env() -> dict[str, str]:
@@ -242,7 +242,7 @@ def test_ctrl_c_is_one_line_and_exit_130(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mapfuse.run, "prepare_log", interrupted)
+    monkeypatch.setattr(mapfuse.runner, "prepare_log", interrupted)
     assert main(["run", str(log_npz), "--out", str(tmp_path / "o")]) == EXIT_INTERRUPTED
     assert capsys.readouterr().err == "mapfuse: interrupted\n"
 

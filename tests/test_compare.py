@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse.compare import FIGURE_FILES, Comparison, compare, write_comparison
+from mapfuse.comparison import FIGURE_FILES, Comparison, compare, write_comparison
 from mapfuse.figures import (
     ccda_figure,
     fig6_errors_bounds,
@@ -19,7 +19,7 @@ from mapfuse.figures import (
     run_label,
     timing_figure,
 )
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.matching.ccda import ccda_match
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from mapfuse.compare import (
+from mapfuse.comparison import (
     PAPER_REGIME,
     Comparison,
     beside_lines,

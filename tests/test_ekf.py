@@ -99,7 +99,7 @@ def circles_only_log(steps: int, seed: int = 1) -> MeasurementLog:
 def test_robotcentric_local_map_agrees_with_absolute_ekf() -> None:
     log = circles_only_log(steps=60)
     # One local map for the whole run: no joining, pure robotcentric EKF.
-    res = run_ekf(log, EKFConfig(fusion=False, local_map_steps=10_000))
+    res = run_ekf(log, EKFConfig(local_map_steps=10_000), fusion=False)
     ref_poses, ref_covs = absolute_ekf(log)
     d = res.poses - ref_poses
     d[:, 2] = wrap_angle(d[:, 2])
@@ -128,8 +128,8 @@ def test_carried_features_make_local_maps_agree_with_absolute_ekf() -> None:
     assert until >= 45, until
     sig = np.sqrt(np.diagonal(ref_covs, axis1=1, axis2=2))[1:until]
     var = np.diagonal(ref_covs, axis1=1, axis2=2)[1:until]
-    cfg = EKFConfig(fusion=False, local_map_steps=size, carry_seen_steps=1)
-    res = run_ekf(log, cfg)
+    cfg = EKFConfig(local_map_steps=size, carry_seen_steps=1)
+    res = run_ekf(log, cfg, fusion=False)
     assert res.global_map.params.shape[0] == len({int(t) for t in log.feat_true_id})
     d = res.poses[1:until] - ref_poses[1:until]
     d[:, 2] = wrap_angle(d[:, 2])
@@ -140,7 +140,7 @@ def test_carried_features_make_local_maps_agree_with_absolute_ekf() -> None:
     # The paper's local maps start empty: between joins the vehicle ignores the
     # landmarks it keeps seeing, so its variance is far above the EKF's (the check
     # above would catch a carry that did nothing).
-    paper = run_ekf(log, EKFConfig(fusion=False, local_map_steps=size))
+    paper = run_ekf(log, EKFConfig(local_map_steps=size), fusion=False)
     ratio = np.diagonal(paper.covs, axis1=1, axis2=2)[1:until] / var
     assert ratio.max() > 1.5
 
@@ -169,9 +169,9 @@ def test_carried_lines_make_local_maps_agree_with_one_local_map() -> None:
     assert (log.feat_kind == int(FeatureKind.LINE)).sum() >= 100
     until = _covered_until(log, size)
     assert until >= 100, until
-    ref = run_ekf(log, EKFConfig(fusion=False, local_map_steps=10_000))
+    ref = run_ekf(log, EKFConfig(local_map_steps=10_000), fusion=False)
     var = np.diagonal(ref.covs, axis1=1, axis2=2)[1:until]
-    res = run_ekf(log, EKFConfig(fusion=False, local_map_steps=size, carry_seen_steps=1))
+    res = run_ekf(log, EKFConfig(local_map_steps=size, carry_seen_steps=1), fusion=False)
     d = res.poses[1:until] - ref.poses[1:until]
     d[:, 2] = wrap_angle(d[:, 2])
     # Measured 0.7 % of σ and 0.9 % on variances.  A carried line's reference point
@@ -180,7 +180,7 @@ def test_carried_lines_make_local_maps_agree_with_one_local_map() -> None:
     # shows up at tens of per cent.
     assert np.all(np.abs(d) <= 0.02 * np.sqrt(var))
     np.testing.assert_allclose(np.diagonal(res.covs, axis1=1, axis2=2)[1:until], var, rtol=0.02)
-    paper = run_ekf(log, EKFConfig(fusion=False, local_map_steps=size))
+    paper = run_ekf(log, EKFConfig(local_map_steps=size), fusion=False)
     assert (np.diagonal(paper.covs, axis1=1, axis2=2)[1:until] / var).max() > 1.5
 
 
@@ -202,8 +202,8 @@ def test_prediction_moves_features_by_the_inverse_increment() -> None:
 @pytest.mark.parametrize("carry", [False, True], ids=["paper", "carry"])
 def test_joining_keeps_covariance_symmetric_positive_definite(carry: bool) -> None:
     log = synthetic_log(steps=240, seed=2)
-    config = EKFConfig(fusion=True, local_map_steps=20, carry_seen_steps=int(carry))
-    run = _Run(log, config)
+    config = EKFConfig(local_map_steps=20, carry_seen_steps=int(carry))
+    run = _Run(log, config, fusion=True)
     checked = 0
     for k in range(log.n_steps):
         if k > 0:
@@ -227,7 +227,7 @@ def test_joining_keeps_covariance_symmetric_positive_definite(carry: bool) -> No
 @pytest.mark.parametrize("fusion", [False, True])
 def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) -> None:
     log = synthetic_log(steps=400, seed=0)
-    res = run_ekf(log, EKFConfig(fusion=fusion, carry_seen_steps=int(carry)))
+    res = run_ekf(log, EKFConfig(carry_seen_steps=int(carry)), fusion=fusion)
     err = pose_errors(res.poses, truth_in_global(log.true_poses))
     nees = nees_series(err.dx, res.covs)[1:]
     # A consistent 3-dof filter: ≥ 90 % of steps under χ²(3, 0.95) = 7.815 (the paper's
@@ -242,7 +242,7 @@ def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) ->
 
 
 def test_no_fusion_has_no_anchor() -> None:
-    res = run_ekf(synthetic_log(steps=120, seed=3), EKFConfig(fusion=False))
+    res = run_ekf(synthetic_log(steps=120, seed=3), EKFConfig(), fusion=False)
     assert res.anchor is None
     assert res.ccda_attempts == 0
     assert np.all(np.isnan(res.poses_in_known))
@@ -251,7 +251,7 @@ def test_no_fusion_has_no_anchor() -> None:
 @pytest.mark.parametrize("keep", [[], [0]], ids=["empty", "one-feature"])
 def test_too_small_known_map_is_a_documented_no_match(keep: list[int]) -> None:
     log = with_known(synthetic_log(steps=120, seed=4), keep)
-    res = run_ekf(log, EKFConfig(fusion=True))
+    res = run_ekf(log, EKFConfig(), fusion=True)
     assert res.anchor is None  # "no match": SLAM without fusion, reported as such
     assert np.all(np.isfinite(res.poses))
 
@@ -281,8 +281,8 @@ def test_bad_config_is_refused() -> None:
 
 def test_jcbb_gives_same_associations_on_clean_data() -> None:
     log = synthetic_log(steps=120, seed=6)
-    nn = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="nn")))
-    jc = run_ekf(log, EKFConfig(fusion=False, data_association=AssociationConfig(method="jcbb")))
+    nn = run_ekf(log, EKFConfig(data_association=AssociationConfig(method="nn")), fusion=False)
+    jc = run_ekf(log, EKFConfig(data_association=AssociationConfig(method="jcbb")), fusion=False)
     np.testing.assert_allclose(nn.poses, jc.poses, atol=1e-9)
 
 
@@ -314,7 +314,7 @@ def test_two_segments_of_one_wall_in_one_scan_make_one_landmark() -> None:
         feat_n_points=np.full(2, 20, dtype=np.int64),
         feat_extent=np.array([e for _, _, e in segs]),
     )
-    run = _Run(log, EKFConfig(fusion=False))
+    run = _Run(log, EKFConfig(), fusion=False)
     run.observe(0)
     lines = [e for e in run.local.elements if e.kind == ElementKind.LINE]
     assert len(lines) == 1
@@ -366,8 +366,8 @@ def test_line_landmarks_take_several_observations_circles_one(method: str) -> No
 
 def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
     log = synthetic_log(steps=160, seed=5)
-    base = run_ekf(log, EKFConfig(fusion=False))
-    res = run_ekf(log, EKFConfig(fusion=False, min_obs_to_join=3))
+    base = run_ekf(log, EKFConfig(), fusion=False)
+    res = run_ekf(log, EKFConfig(min_obs_to_join=3), fusion=False)
     # Measured: 6 observations (of local features seen once or twice) are dropped here;
     # every other observation keeps a landmark, and the dropped ones take no map entry.
     dropped = res.obs_landmark < 0
@@ -376,7 +376,7 @@ def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
     assert len(res.global_map.kinds) <= len(base.global_map.kinds)
     # The filter still works: the poses stay close to the run that kept everything.
     assert np.max(np.abs(res.poses[:, :2] - base.poses[:, :2])) < 0.05
-    same = run_ekf(log, EKFConfig(fusion=False, min_obs_to_join=1))
+    same = run_ekf(log, EKFConfig(min_obs_to_join=1), fusion=False)
     np.testing.assert_array_equal(same.poses, base.poses)
     with pytest.raises(ValueError, match="min_obs_to_join"):
         EKFConfig(min_obs_to_join=0)

@@ -13,7 +13,7 @@ from tests.synthetic import synthetic_log
 
 def _run():
     log = synthetic_log(steps=300, seed=3, known_fraction=0.5)
-    return log, run_ekf(log, EKFConfig(fusion=True))
+    return log, run_ekf(log, EKFConfig(), fusion=True)
 
 
 def test_landmarks_in_wknown_are_the_anchor_composed_with_their_wglobal_estimate():
@@ -41,7 +41,7 @@ def test_landmarks_in_wknown_are_the_anchor_composed_with_their_wglobal_estimate
         assert np.all(np.linalg.eigvalsh(gm.covs_known[f]) > -1e-12)
     assert np.all(np.isnan(gm.params_known[~apart]))
     assert set(gm.tracks[apart].tolist()) <= set(res.obs_landmark.tolist())
-    none = run_ekf(log, EKFConfig(fusion=False)).global_map
+    none = run_ekf(log, EKFConfig(), fusion=False).global_map
     assert none.params_known is not None
     assert np.all(np.isnan(none.params_known))
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ekf_reference.config import EKFConfig
-from mapfuse.run import Run, run
+from mapfuse.runner import Run, run
 from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log, with_clutter
 

@@ -277,7 +277,7 @@ def test_window_policy_refuses_own_association() -> None:
 def test_fixedlag_runs_as_a_registered_estimator() -> None:
     from mapfuse import registry
     from mapfuse.estimators.graph import FixedLagEstimator
-    from mapfuse.run import run
+    from mapfuse.runner import run
 
     if "fixedlag" not in registry.available():
         registry.register(FixedLagEstimator())

@@ -76,7 +76,7 @@ def test_isam2_filtered_agrees_with_ekf(seed: int, scale: float, tol: float) -> 
     scale 0.3, 0.03 σ at scale 0.03), so it is not a model difference.
     """
     log = _scaled_log(60, seed, scale)
-    ekf = run_ekf(log, EKFConfig(fusion=False, local_map_steps=10_000))
+    ekf = run_ekf(log, EKFConfig(local_map_steps=10_000), fusion=False)
     res = run_graph(
         log, "isam2", fusion=False, association="ekf", decisions=ekf.decisions, marginals=False
     )

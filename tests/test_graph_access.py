@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph.export import export_graph
 from mapfuse_graph.keys import describe_key, symbol_name

@@ -69,7 +69,7 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(ekf_reference.pipeline, "ccda_match", spy("ekf"))
     monkeypatch.setattr(mapfuse_graph.own_association, "ccda_match", spy("graph"))
     log = synthetic_log(steps=120, seed=0)
-    run_ekf(log, EKFConfig(fusion=True, data_association=cfg))
+    run_ekf(log, EKFConfig(data_association=cfg), fusion=True)
     opts = GraphOptions(association="own", data_association=cfg)
     run_graph(log, "isam2", fusion=True, association="own", options=opts)
     assert seen["ekf"]
@@ -131,7 +131,7 @@ def test_graph_options_refuse_a_bad_association_config() -> None:
 
 def test_ekf_association_with_fusion_uses_the_ekf_anchor() -> None:
     log = synthetic_log(steps=120, seed=0)
-    ekf = run_ekf(log, EKFConfig(fusion=True))
+    ekf = run_ekf(log, EKFConfig(), fusion=True)
     assert ekf.anchor is not None
     res = run_graph(log, "isam2", fusion=True, association="ekf", decisions=ekf.decisions)
     assert res.anchor is not None
@@ -149,7 +149,7 @@ def test_a_graph_cut_before_the_ekf_matched_has_no_anchor_and_equals_the_unfused
     backend: str,
 ) -> None:
     log = synthetic_log(steps=120, seed=0)
-    ekf = run_ekf(log, EKFConfig(fusion=True))
+    ekf = run_ekf(log, EKFConfig(), fusion=True)
     assert ekf.anchor is not None
     cut = ekf.anchor.accepted_at_step  # steps 0 .. cut - 1: the match is not known yet
     assert cut > 5

@@ -14,12 +14,13 @@ from ekf_reference import EKFConfig
 from ekf_reference.loops import LoopClosureParams
 from mapfuse.estimators.graph import GraphRunOptions
 from mapfuse.metrics import run_metrics
+from mapfuse.options import make_options
 from mapfuse.outputs import write_outputs
 from mapfuse.profiles import PROFILES, default_options
 from mapfuse.registry import get
-from mapfuse.result import EstimatorResult, MapEstimate, PoseTrack
-from mapfuse.run import fusion_for, make_options, run
+from mapfuse.runner import fusion_for, run
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
+from mapfuse_core.estimate import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions, load_associations
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog

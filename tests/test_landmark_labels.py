@@ -46,7 +46,7 @@ def test_ekf_pairing_of_a_landmark_started_by_clutter_carries_its_majority_label
     pairing of it must carry 31, not the clutter's −1."""
     import dataclasses
 
-    from mapfuse.run import run
+    from mapfuse.runner import run
     from mapfuse_core.sim.clutter import ClutterParams
     from mapfuse_core.sim.scenario import load_scenario
     from mapfuse_core.sim.simulate import simulate

@@ -18,7 +18,7 @@ from scipy.stats import chi2
 
 from ekf_reference import EKFConfig, run_ekf
 from mapfuse.estimators.ekf import to_result
-from mapfuse.run import Run, run
+from mapfuse.runner import Run, run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -237,7 +237,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     log = loop600_log(seed)
     walls = np.flatnonzero(log.known_map.kinds == int(FeatureKind.LINE)).tolist()
     log = with_known(log, walls)
-    ekf = run_ekf(log, EKFConfig(fusion=True))
+    ekf = run_ekf(log, EKFConfig(), fusion=True)
     assert ekf.anchor is not None
     graph = run(log, "batch", fusion=True, upstream=to_result(ekf, log)).result.extras["graph"]
     assert graph is not None

@@ -16,8 +16,8 @@ import pytest
 
 from mapfuse import registry
 from mapfuse.baseline import check_log_against_baseline, record_baselines
-from mapfuse.compare import FIGURE_FILES, compare, write_comparison
-from mapfuse.run import run
+from mapfuse.comparison import FIGURE_FILES, compare, write_comparison
+from mapfuse.runner import run
 from mapfuse_core.evaluation import pose_errors, truth_in_global
 from mapfuse_core.measlog import MeasurementLog, save_log
 from tests.synthetic import synthetic_log

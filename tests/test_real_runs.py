@@ -15,9 +15,9 @@ import pytest
 
 from ekf_reference.loops import LoopClosureParams
 from mapfuse.cli import main
-from mapfuse.compare import Comparison, compare, write_comparison
+from mapfuse.comparison import Comparison, compare, write_comparison
 from mapfuse.figures import gps_errors
-from mapfuse.run import run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets import (
     CarGeometry,
     OdometryNoise,

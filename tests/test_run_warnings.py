@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from mapfuse.cli import main
-from mapfuse.compare import compare
+from mapfuse.comparison import compare
 from mapfuse.metrics import run_metrics
-from mapfuse.result import MatchAttempts, PoseTrack
-from mapfuse.run import Run, prepare_log, run
+from mapfuse.runner import Run, prepare_log, run
+from mapfuse_core.estimate import MatchAttempts, PoseTrack
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog, save_log
 from tests.synthetic import synthetic_log, with_known

@@ -11,9 +11,9 @@ from evo.core import metrics as evo_metrics
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 
-from mapfuse.compare import compare, write_comparison
+from mapfuse.comparison import compare, write_comparison
 from mapfuse.outputs import write_outputs
-from mapfuse.run import Run, run
+from mapfuse.runner import Run, run
 from mapfuse.trajectories import TRAJECTORY_FILES
 from mapfuse_core.evaluation import truth_in_global
 from mapfuse_core.geometry.se2 import compose, wrap_angle

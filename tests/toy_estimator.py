@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.result import EstimatorResult, MapEstimate, PoseTrack
+from mapfuse_core.estimate import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.geometry.se2 import compose_jacobians
 from mapfuse_core.measlog import MeasurementLog
 

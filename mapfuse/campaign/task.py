@@ -5,15 +5,13 @@ It returns plain data (:class:`RunOutcome`: table rows and per-step arrays), nev
 writes files, so a worker on another machine needs no access to the campaign
 directory.  An estimator that consumes another's result (the graph backends, the
 EKF's association decisions) gets that estimator's run of the same fusion setting,
-as in :func:`mapfuse.compare.compare`.  An estimator that raises is recorded with its
-error (so are its consumers), and the others go on; a log that cannot be made fails
-every row of the run.
+as in :func:`mapfuse.comparison.compare` (both plan through :mod:`mapfuse.plan`).  An
+estimator that raises is recorded with its error (so are its consumers), and the others
+go on; a log that cannot be made fails every row of the run.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import math
 import time
 import traceback
@@ -26,12 +24,12 @@ import numpy as np
 
 from mapfuse import registry
 from mapfuse.campaign.spec import CampaignSpec
-from mapfuse.result import EstimatorResult
-from mapfuse.run import consumer_options, fusion_for, make_options, resolve, run
-from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors, truth_in_global
+from mapfuse.metrics import run_metrics
+from mapfuse.plan import RunRequest, RunResult, execute, plan_runs
+from mapfuse.runner import Run, simulate
+from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario, load_scenario
-from mapfuse_core.sim.simulate import simulate
 
 __all__ = [
     "ARRAY_FIELDS",
@@ -77,16 +75,7 @@ def plugins_registered(plugins: tuple[str, ...]) -> Iterator[None]:
     added: list[str] = []
     try:
         for spec in plugins:
-            module, _, attr = spec.partition(":")
-            if not module or not attr:
-                raise ValueError(f"a plugin must look like module:attribute, got {spec!r}")
-            try:
-                obj: Any = importlib.import_module(module)
-                for part in attr.split("."):
-                    obj = getattr(obj, part)
-            except (ImportError, AttributeError) as e:
-                raise ValueError(f"plugin {spec!r} cannot be loaded: {e}") from None
-            est = registry.register(obj, replace=True)
+            est = registry.register(registry.load_plugin(spec), replace=True)
             if est.name not in before:
                 added.append(est.name)
         yield
@@ -107,14 +96,10 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
 
 def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
     """The log of run ``seed``, simulated in this process, of its first ``spec.steps``
-    steps.  A drive through waypoints is simulated for those steps only (its draws come
-    step by step, so the log is the head of the full one); a drive by a table of
-    controls is simulated whole and cut."""
+    steps (:func:`mapfuse.runner.simulate`)."""
     scenario = run_scenario(spec, seed)
-    if spec.steps is not None and not scenario.controls and spec.steps < scenario.steps:
-        scenario = dataclasses.replace(scenario, steps=spec.steps)
-    log = simulate(scenario, seed=seed, workers=1).log
-    return log if spec.steps is None else log.head(spec.steps)
+    steps = None if spec.steps is None else min(spec.steps, scenario.steps)
+    return simulate(scenario, seed, steps=steps, workers=1)
 
 
 def _error_text(exc: BaseException) -> str:
@@ -126,19 +111,16 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _row_and_arrays(
-    result: EstimatorResult, log: MeasurementLog, metrics: dict[str, Any]
-) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def _row_and_arrays(run: Run) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The table row and per-step arrays of one finished estimator run."""
+    result, log, metrics = run.result, run.log, run.metrics
     assert log.true_poses is not None
-    n = result.n_steps
-    truth = truth_in_global(log.true_poses[:n])
-    err = pose_errors(result.poses, truth)
-    nees = nees_series(err.dx, result.covs)
-    sigma = np.sqrt(np.clip(np.diagonal(result.covs, axis1=1, axis2=2), 0.0, None))
-    pe = metrics["position_error_m"]
-    nm = metrics["nees"]
-    a = metrics["anchor"]
+    err = run.errors
+    if err.dx is None or err.nees is None or err.sigma is None:
+        raise ValueError(f"{result.estimator}: a campaign run needs errors against truth")
+    pe, nm, head, a = metrics.position_error, metrics.nees, metrics.heading_error, metrics.anchor
+    if pe is None or nm is None or head is None:
+        raise ValueError(f"{result.estimator}: a campaign run needs errors against truth")
     anchor_nees = None
     if result.anchor is not None:
         d = pose_errors(result.anchor.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None])
@@ -147,25 +129,25 @@ def _row_and_arrays(
         "status": "ok",
         "error": None,
         "estimate": result.estimate,
-        "steps": n,
-        "rmse_m": pe["rmse"],
-        "max_m": pe["max"],
-        "final_m": pe["final"],
-        "heading_rmse_rad": metrics["heading_error_rad"]["rmse"],
-        "nees_mean": _finite(nm["mean"]),
-        "nees_within": _finite(nm["fraction_within_chi2_95"]),
+        "steps": result.n_steps,
+        "rmse_m": pe.rmse,
+        "max_m": pe.max,
+        "final_m": pe.final,
+        "heading_rmse_rad": head.rmse,
+        "nees_mean": _finite(nm.mean),
+        "nees_within": _finite(nm.fraction_within_chi2_95),
         "anchor": a is not None,
-        "anchor_m": None if a is None else a["position_error_m"],
-        "anchor_rad": None if a is None else a["heading_error_rad"],
+        "anchor_m": None if a is None else a.position_error_m,
+        "anchor_rad": None if a is None else a.heading_error_rad,
         "anchor_nees": _finite(anchor_nees),
-        "accepted_at_step": None if a is None else a["accepted_at_step"],
-        "pairings": None if a is None else a["pairings"],
-        "wrong_pairings": None if a is None else a["pairings"] - a["correct_pairings"],
-        "map_features": metrics["map"]["features"],
-        "matched_known": metrics["map"]["matched_known"],
-        "runtime_s": metrics["runtime_s"]["total"],
+        "accepted_at_step": None if a is None else a.accepted_at_step,
+        "pairings": None if a is None else a.pairings,
+        "wrong_pairings": None if a is None else a.pairings - a.correct_pairings,
+        "map_features": metrics.map.features,
+        "matched_known": metrics.map.matched_known,
+        "runtime_s": metrics.runtime.total,
     }
-    arrays = {"dx": err.dx, "nees": nees, "sigma": sigma, "position_error": err.position}
+    arrays = {"dx": err.dx, "nees": err.nees, "sigma": err.sigma, "position_error": err.position}
     return row, arrays
 
 
@@ -205,37 +187,36 @@ def _run(spec: CampaignSpec, seed: int, clock: Callable[[], float], t0: float) -
         text = _error_text(exc)
         rows = {k: _failed_row(f"simulation failed: {text}") for k in keys}
         return _outcome(seed, keys, rows, arrays, "", clock() - t0)
-    for fusion in spec.fusions:
-        done: dict[str, EstimatorResult] = {}
-        failed: dict[str, str] = {}
-        wanted = [resolve(e) for e in spec.estimators]
-        consumed = [c for e in wanted if (c := getattr(e, "consumes", None)) is not None]
-        order = list(dict.fromkeys([*consumed, *spec.estimators]))
-        for name in order:
-            est = resolve(name)
-            upstream = getattr(est, "consumes", None)
-            if upstream is not None and upstream in failed:
-                failed[name] = f"its upstream {upstream} failed: {failed[upstream]}"
-            else:
-                try:
-                    options = (
-                        consumer_options(est, log, done)
-                        if upstream is not None
-                        else make_options(est, log)
-                    )
-                    r = run(log, est, fusion=fusion_for(log, fusion), options=options)
-                    done[name] = r.result
-                    if name in spec.estimators:
-                        row, arr = _row_and_arrays(r.result, log, r.metrics)
-                        rows[(name, fusion)] = row
-                        for k, v in arr.items():
-                            arrays[array_key(name, fusion, k)] = v
-                except Exception as exc:
-                    failed[name] = _error_text(exc)
-            if name in failed and name in spec.estimators:
-                rows[(name, fusion)] = _failed_row(failed[name])
+    requests = [RunRequest(e, f) for f in spec.fusions for e in spec.estimators]
+    plan = plan_runs(requests, len(log.known_map) > 0)
+    done = execute(plan, log, errors="record")
+    for req in requests:
+        d = _made(done, req, log)
+        key = (req.estimator, req.fusion)
+        if d.result is None:
+            rows[key] = _failed_row(d.error or "failed")
+            continue
+        try:
+            row, arr = _row_and_arrays(Run(d.result, log, run_metrics(d.result, log)))
+        except Exception as exc:
+            rows[key] = _failed_row(_error_text(exc))
+            continue
+        rows[key] = row
+        for k, v in arr.items():
+            arrays[array_key(req.estimator, req.fusion, k)] = v
     arrays["timestamps"] = np.asarray(log.timestamps, dtype=float)
     return _outcome(seed, keys, rows, arrays, log.scenario, clock() - t0)
+
+
+def _made(done: tuple[RunResult, ...], req: RunRequest, log: MeasurementLog) -> RunResult:
+    """The run of the plan that made ``req`` (the one without fusion where nothing can
+    be fused)."""
+    for fusion in (req.fusion and len(log.known_map) > 0, False):
+        for d in done:
+            p = d.planned
+            if p.estimator == req.estimator and p.fusion is fusion and p.reported:
+                return d
+    raise AssertionError(f"the plan has no run of {req}")
 
 
 def _outcome(

@@ -3,6 +3,6 @@
 * :mod:`mapfuse.interop.networkx` — CCDA's correspondence graph as a ``networkx.Graph``.
 
 The TUM trajectories for evo are :mod:`mapfuse.trajectories`; the GTSAM graph and its
-g2o export are :attr:`mapfuse_graph.solvers.GraphResult.graph` and
+g2o export are :attr:`mapfuse_graph.results.GraphDetails.graph` and
 :mod:`mapfuse_graph.export`.
 """

@@ -1,4 +1,4 @@
-"""Evaluation shared by every backend: errors, NEES, the ``metrics.json`` schema, TUM files.
+"""Evaluation shared by every backend: errors, NEES, the parts of a run's metrics, TUM files.
 
 All backends report the vehicle pose ``x^Wglobal_R`` (``Wglobal`` = the vehicle at
 step 0) with a covariance of the absolute ``(x, y, θ)`` perturbation, so one
@@ -15,6 +15,7 @@ from mapfuse_core.evaluation.metrics import (
     gps_position_metrics,
     interpolate_positions,
     known_map_draw_offset,
+    nees_summary,
     path_length,
     pose_errors,
     pose_metrics,
@@ -56,6 +57,7 @@ __all__ = [
     "nees_mean_distribution",
     "nees_mean_interval",
     "nees_series",
+    "nees_summary",
     "path_length",
     "pooled_nees_mean_distribution",
     "pose_errors",

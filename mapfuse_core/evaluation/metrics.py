@@ -1,15 +1,24 @@
-"""Metrics shared by every backend: pose errors, GPS errors, the anchor block,
-``metrics.json`` and TUM trajectory files."""
+"""Metrics shared by every backend: pose errors, GPS errors, the anchor, run times
+(the parts of :class:`~mapfuse_core.estimate.metrics.RunMetrics`) and TUM trajectory
+files."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Literal
 
 import numpy as np
 
+from mapfuse_core.estimate.metrics import (
+    AnchorMetrics,
+    HeadingError,
+    NeesSummary,
+    PositionError,
+    RuntimeMetrics,
+)
 from mapfuse_core.evaluation.nees import CHI2_3_95, nees_mean_interval, nees_series
 from mapfuse_core.geometry.features import FeatureKind, express_in, transform_feature
 from mapfuse_core.geometry.se2 import (
@@ -31,6 +40,7 @@ __all__ = [
     "gps_position_metrics",
     "interpolate_positions",
     "known_map_draw_offset",
+    "nees_summary",
     "path_length",
     "pose_errors",
     "pose_metrics",
@@ -90,43 +100,45 @@ def pose_errors(est: FloatArray, truth: FloatArray) -> PoseErrors:
     return PoseErrors(dx=d, position=np.hypot(d[:, 0], d[:, 1]), heading=np.abs(d[:, 2]))
 
 
-def summary_stats(x: FloatArray) -> dict[str, float]:
-    """rmse, mean, median, max and final of a non-negative series."""
-    return {
-        "rmse": float(np.sqrt(np.mean(np.square(x)))),
-        "mean": float(np.mean(x)),
-        "median": float(np.median(x)),
-        "max": float(np.max(x)),
-        "final": float(x[-1]),
-    }
+def summary_stats(x: FloatArray) -> PositionError:
+    """rmse, mean, median, max and final of a non-negative series of distances (m)."""
+    return PositionError(
+        rmse=float(np.sqrt(np.mean(np.square(x)))),
+        mean=float(np.mean(x)),
+        median=float(np.median(x)),
+        max=float(np.max(x)),
+        final=float(x[-1]),
+    )
 
 
-def pose_metrics(est: FloatArray, covs: FloatArray, truth: FloatArray) -> dict[str, Any]:
-    """The pose part of ``metrics.json``: position/heading errors and NEES.
+def nees_summary(nees: FloatArray) -> NeesSummary:
+    """Mean, fraction within χ²(3, 0.95) and the mean's acceptance region of a 3-dof
+    NEES series (its finite values)."""
+    valid = nees[np.isfinite(nees)]
+    return NeesSummary(
+        mean=float(np.mean(valid)) if valid.size else math.nan,
+        fraction_within_chi2_95=float(np.mean(valid <= CHI2_3_95)) if valid.size else math.nan,
+        bound=CHI2_3_95,
+        steps=int(valid.size),
+        mean_interval=nees_mean_interval(valid) if valid.size else None,
+    )
 
-    ``nees.mean_interval`` is the 95 % interval of the mean NEES corrected for the
-    autocorrelation of the series (:func:`nees_mean_interval`): the mean is consistent
-    when inside it.
+
+def pose_metrics(
+    est: FloatArray, covs: FloatArray, truth: FloatArray
+) -> tuple[PositionError, HeadingError, NeesSummary]:
+    """Position and heading errors and the NEES of ``est`` (covariances ``covs``)
+    against ``truth``, all (N, 3) in one frame.
+
+    The NEES summary's ``mean_interval`` is the 95 % acceptance region of the mean
+    NEES corrected for the autocorrelation of the series (:func:`nees_mean_interval`):
+    the mean is consistent when inside it.
     """
     err = pose_errors(est, truth)
-    nees = nees_series(err.dx, covs)
-    valid = nees[np.isfinite(nees)]
-    return {
-        "position_error_m": summary_stats(err.position),
-        "heading_error_rad": {
-            "rmse": float(np.sqrt(np.mean(np.square(err.heading)))),
-            "max": float(np.max(err.heading)),
-        },
-        "nees": {
-            "mean": float(np.mean(valid)) if valid.size else math.nan,
-            "fraction_within_chi2_95": float(np.mean(valid <= CHI2_3_95))
-            if valid.size
-            else math.nan,
-            "bound": CHI2_3_95,
-            "steps": int(valid.size),
-            "mean_interval": nees_mean_interval(valid) if valid.size else None,
-        },
-    }
+    heading = HeadingError(
+        rmse=float(np.sqrt(np.mean(np.square(err.heading)))), max=float(np.max(err.heading))
+    )
+    return summary_stats(err.position), heading, nees_summary(nees_series(err.dx, covs))
 
 
 def interpolate_positions(
@@ -205,7 +217,7 @@ def gps_position_metrics(
     gps_times: FloatArray,
     gps_xy: FloatArray,
     x_ref_Wglobal: FloatArray | None = None,
-) -> dict[str, Any] | None:
+) -> PositionError | None:
     """Position error against GPS fixes, the ``position_error_m`` block of real data.
 
     The estimate (poses in ``Wglobal``) is interpolated at the GPS times inside the run,
@@ -219,29 +231,28 @@ def gps_position_metrics(
     _, est, ref = _gps_pairs(timestamps, poses, gps_times, gps_xy)
     if est.shape[0] < 2:
         return None
+    alignment: Literal["anchor", "best_fit"]
     if x_ref_Wglobal is None:
         T, alignment = rigid_alignment(est, ref), "best_fit"
     else:
         T, alignment = np.asarray(x_ref_Wglobal, dtype=float), "anchor"
-    out: dict[str, Any] = summary_stats(np.hypot(*(transform_point(T, est) - ref).T))
-    out.update(
-        {
-            "reference": "gps",
-            "alignment": alignment,
-            "fixes": int(est.shape[0]),
-            "x_gps_Wglobal": [float(v) for v in T],
-        }
+    stats = summary_stats(np.hypot(*(transform_point(T, est) - ref).T))
+    return dataclasses.replace(
+        stats,
+        reference="gps",
+        alignment=alignment,
+        fixes=int(est.shape[0]),
+        x_gps_Wglobal=tuple(float(v) for v in T),
     )
-    return out
 
 
-def runtime_metrics(step_time_s: FloatArray) -> dict[str, float]:
-    """The ``runtime_s`` block: total and per-step percentiles."""
-    return {
-        "total": float(np.sum(step_time_s)),
-        "per_step_p50": float(np.percentile(step_time_s, 50)),
-        "per_step_p99": float(np.percentile(step_time_s, 99)),
-    }
+def runtime_metrics(step_time_s: FloatArray) -> RuntimeMetrics:
+    """Total and per-step percentiles of the step times."""
+    return RuntimeMetrics(
+        total=float(np.sum(step_time_s)),
+        per_step_p50=float(np.percentile(step_time_s, 50)),
+        per_step_p99=float(np.percentile(step_time_s, 99)),
+    )
 
 
 def write_tum(
@@ -280,21 +291,17 @@ def anchor_metrics(
     truth: FloatArray | None,
     accepted_at_step: int,
     pairings: list[tuple[int, int]] | tuple[tuple[int, int], ...],
-) -> dict[str, Any]:
-    """The ``anchor`` block: estimate of ``x^Wknown_Wglobal`` against truth."""
-    out: dict[str, Any] = {
-        "estimate": [float(v) for v in estimate],
-        "truth": None if truth is None else [float(v) for v in truth],
-        "position_error_m": None,
-        "heading_error_rad": None,
-        "accepted_at_step": int(accepted_at_step),
-        "pairings": len(pairings),
-        "correct_pairings": sum(1 for t, k in pairings if t == k and t >= 0),
-    }
-    if truth is not None:
-        out["position_error_m"] = float(math.hypot(*(estimate[:2] - truth[:2])))
-        out["heading_error_rad"] = float(abs(wrap_angle(estimate[2] - truth[2])))
-    return out
+) -> AnchorMetrics:
+    """The anchor's estimate of ``x^Wknown_Wglobal`` against truth."""
+    return AnchorMetrics(
+        estimate=tuple(float(v) for v in estimate),
+        truth=None if truth is None else tuple(float(v) for v in truth),
+        position_error_m=None if truth is None else float(math.hypot(*(estimate[:2] - truth[:2]))),
+        heading_error_rad=None if truth is None else float(abs(wrap_angle(estimate[2] - truth[2]))),
+        accepted_at_step=int(accepted_at_step),
+        pairings=len(pairings),
+        correct_pairings=sum(1 for t, k in pairings if t == k and t >= 0),
+    )
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from mapfuse_core.estimate.metrics import NeesMeanInterval
 from mapfuse_core.geometry.se2 import FloatArray
 
 __all__ = [
@@ -73,8 +74,9 @@ def integrated_autocorrelation_time(x: FloatArray, window_factor: float = 5.0) -
     return max(tau, 1.0)
 
 
-def nees_mean_interval(nees: FloatArray, dof: int = 3, p: float = 0.95) -> dict[str, float]:
-    """Two-sided ``p`` interval of the mean NEES of a consistent estimator, honestly.
+def nees_mean_interval(nees: FloatArray, dof: int = 3, p: float = 0.95) -> NeesMeanInterval:
+    """Two-sided ``p`` acceptance region of the mean NEES of a consistent estimator,
+    honestly.
 
     Consecutive NEES values of a smoother (or a slowly mixing filter) are strongly
     correlated: on loop600 the whitened smoothed errors have τ of 300–470 steps, so a
@@ -97,7 +99,9 @@ def nees_mean_interval(nees: FloatArray, dof: int = 3, p: float = 0.95) -> dict[
     n_eff = max(v.size / tau, 1.0)
     lo = float(chi2.ppf(0.5 * (1.0 - p), dof * n_eff) / n_eff)
     hi = float(chi2.ppf(0.5 * (1.0 + p), dof * n_eff) / n_eff)
-    return {"autocorrelation_steps": tau, "effective_samples": n_eff, "interval_95": [lo, hi]}
+    return NeesMeanInterval(
+        autocorrelation_steps=tau, effective_samples=n_eff, interval_95=(lo, hi)
+    )
 
 
 @dataclass(frozen=True)

@@ -33,9 +33,11 @@ from mapfuse.figures import (
     nees_figure,
     timing_figure,
 )
+from mapfuse.metrics import run_metrics
 from mapfuse.outputs import write_outputs
-from mapfuse.result import EstimatorResult
-from mapfuse.run import Run, consumer_options, fusion_for, labelled, resolve, run
+from mapfuse.plan import RunRequest, execute, plan_runs, resolve
+from mapfuse.runner import Run, fusion_for
+from mapfuse_core.estimate import RunMetrics
 from mapfuse_core.evaluation import CHI2_3_95, path_length
 from mapfuse_core.geometry.se2 import wrap_scalar
 from mapfuse_core.measlog import MeasurementLog
@@ -46,7 +48,7 @@ if TYPE_CHECKING:
     from mapfuse_core.sim.scenario import Scenario
 
 __all__ = [
-    "DEFAULT_BACKENDS",
+    "DEFAULT_ESTIMATORS",
     "FIGURE_FILES",
     "PAPER_REGIME",
     "RUNS_DIR",
@@ -79,25 +81,25 @@ _NEEDS_TRUTH = ("fig6_errors_bounds.png", "fig7_error_fusion.png", "nees.png")
 
 Progress = Callable[[str, int, int], None]
 
-#: What :func:`compare` runs when no backends are named.
-DEFAULT_BACKENDS: tuple[str, ...] = tuple(registry.BUILTIN)
+#: What :func:`compare` runs when no estimators are named.
+DEFAULT_ESTIMATORS: tuple[str, ...] = tuple(registry.BUILTIN)
 
 
 @dataclass(frozen=True)
 class Comparison:
-    """Every backend on one log, for each fusion setting."""
+    """Every estimator on one log, for each fusion setting."""
 
     log: MeasurementLog
     """The log all runs consumed."""
     runs: tuple[Run, ...]
     """Runs ordered by fusion setting (as requested; only without fusion on a log without a
-    known map), then backend (as requested, those whose results others consume first)."""
+    known map), then estimator (as requested, those whose results others consume first)."""
     wall_time_s: float
     """Wall time of the whole :func:`compare` call (s)."""
 
     @property
-    def metrics(self) -> list[dict[str, Any]]:
-        """The ``metrics.json`` object of every run, in :attr:`runs` order."""
+    def metrics(self) -> list[RunMetrics]:
+        """The metrics of every run, in :attr:`runs` order."""
         return [r.metrics for r in self.runs]
 
     @property
@@ -109,93 +111,77 @@ class Comparison:
     def has_gps(self) -> bool:
         """Whether every run has position errors against GPS (real data with GPS)."""
         return all(
-            isinstance(m.get("position_error_m"), dict)
-            and m["position_error_m"].get("reference") == "gps"
+            m.position_error is not None and m.position_error.reference == "gps"
             for m in self.metrics
         )
 
-    def run(self, backend: str, fusion: bool) -> Run:
-        """The run of ``backend`` with or without fusion; :class:`KeyError` if not run."""
+    def get(self, estimator: str, fusion: bool) -> Run:
+        """The run of ``estimator`` with or without fusion; :class:`KeyError` if not run."""
         for r in self.runs:
-            if r.metrics["backend"] == backend and bool(r.metrics["fusion"]) is bool(fusion):
+            if r.estimator == estimator and r.fusion is bool(fusion):
                 return r
         have = ", ".join(
-            f"{r.metrics['backend']}/{'fusion' if r.metrics['fusion'] else 'no fusion'}"
-            for r in self.runs
+            f"{r.estimator}/{'fusion' if r.fusion else 'no fusion'}" for r in self.runs
         )
-        raise KeyError(f"no {backend} run {'with' if fusion else 'without'} fusion (have {have})")
+        raise KeyError(f"no {estimator} run {'with' if fusion else 'without'} fusion (have {have})")
 
-    def find(self, backend: str, fusion: bool) -> Run | None:
-        """:meth:`run`, or ``None`` when that run was not made."""
+    def find(self, estimator: str, fusion: bool) -> Run | None:
+        """:meth:`get`, or ``None`` when that run was not made."""
         try:
-            return self.run(backend, fusion)
+            return self.get(estimator, fusion)
         except KeyError:
             return None
 
 
-def _label_of(backend: str, fusion: bool) -> str:
-    return f"{backend} {'with' if fusion else 'without'} fusion"
-
-
 def compare(
     log: MeasurementLog,
-    progress: Progress | None = None,
-    backends: Sequence[str] | None = None,
+    estimators: Sequence[str] | None = None,
+    *,
     fusions: Sequence[bool] = (True, False),
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    progress: Progress | None = None,
 ) -> Comparison:
-    """Run ``backends`` × ``fusions`` on ``log``.
+    """Run ``estimators`` × ``fusions`` on ``log``.
 
-    ``backends``: registered estimator names (default :data:`DEFAULT_BACKENDS`).  An
+    ``estimators``: registered estimator names (default :data:`DEFAULT_ESTIMATORS`).  An
     estimator that consumes another's result (the graph backends: the EKF's association
     decisions) gets that estimator's run of the same fusion setting, made once per
-    setting (also when it is not among ``backends``: it is then used but not reported).
-    ``progress(label, k, n)`` is called as each run advances, ``label`` naming the run
-    (e.g. ``"isam2 without fusion"``).  A log without a known map (Victoria Park) has
-    nothing to fuse, so there each backend runs once, without fusion, whatever
-    ``fusions`` asks.  ``overrides``: option fields per estimator name (e.g.
-    ``{"batch": {"robust": "huber"}}``, :func:`mapfuse.run.make_options`); a name not
-    among ``backends`` is an error.
+    setting (also when it is not among ``estimators``: it is then used but not
+    reported; :mod:`mapfuse.plan`).  ``progress(label, k, n)`` is called as each run
+    advances, ``label`` naming the run (e.g. ``"isam2 without fusion"``).  A log
+    without a known map (Victoria Park) has nothing to fuse, so there each estimator
+    runs once, without fusion, whatever ``fusions`` asks.  ``overrides``: option fields
+    per estimator name (e.g. ``{"batch": {"graph": {"robust": "huber"}}}``,
+    :func:`mapfuse.options.make_options`); a name not among ``estimators`` is an error.
     """
-    names = DEFAULT_BACKENDS if backends is None else tuple(backends)
+    names = DEFAULT_ESTIMATORS if estimators is None else tuple(estimators)
     if not names or len(set(names)) != len(names):
-        raise ValueError(f"backends must be distinct estimator names, got {list(names)}")
-    estimators = [resolve(b) for b in names]
+        raise ValueError(f"estimators must be distinct registered names, got {list(names)}")
+    ests = [resolve(b) for b in names]
     overrides = dict(overrides or {})
     stray = sorted(set(overrides) - set(names))
     if stray:
-        raise ValueError(f"overrides for {', '.join(stray)}, which are not among the backends")
-    consumed = {getattr(e, "consumes", None) for e in estimators}
-    # Estimators whose results others consume run first (stable otherwise).
-    estimators.sort(key=lambda e: e.name not in consumed)
+        raise ValueError(f"overrides for {', '.join(stray)}, which are not among the estimators")
     if not fusions or len(set(fusions)) != len(fusions):
         raise ValueError(f"fusions must be distinct booleans, got {list(fusions)}")
-    # Settings that run alike (any, without a known map) run once.
-    fusions = tuple(dict.fromkeys(fusion_for(log, f) for f in fusions))
+    consumed = {e.capabilities.consumes for e in ests}
+    # Estimators whose results others consume come first (stable otherwise).
+    ests.sort(key=lambda e: e.name not in consumed)
+    requests = [RunRequest(e.name, f, overrides.get(e.name, {})) for f in fusions for e in ests]
     t0 = time.perf_counter()
-    runs: list[Run] = []
-    for fusion in fusions:
-        done: dict[str, EstimatorResult] = {}
-        needed = [c for e in estimators if (c := getattr(e, "consumes", None)) is not None]
-        for name in dict.fromkeys(needed):
-            if name not in names:
-                p = labelled(progress, _label_of(name, fusion))
-                done[name] = run(log, name, fusion=fusion, progress=p).result
-        for est in estimators:
-            p = labelled(progress, _label_of(est.name, fusion))
-            options = consumer_options(est, log, done, **overrides.get(est.name, {}))
-            r = run(log, est, fusion=fusion, options=options, progress=p)
-            done.setdefault(est.name, r.result)
-            if any(
-                x.estimator == r.estimator and x.fusion is r.fusion for x in runs
-            ):  # an estimator that cannot fuse reports the same run twice
-                continue
-            runs.append(r)
+    plan = plan_runs(requests, len(log.known_map) > 0)
+    done = execute(plan, log, progress=progress)
+    runs = [
+        Run(result=d.result, log=log, metrics=run_metrics(d.result, log))
+        for d in done
+        if d.planned.reported and d.result is not None
+    ]
     # By the fusion each run reports (an estimator that cannot fuse reports none).
-    order = [e.name for e in estimators]
+    order = [e.name for e in ests]
+    fused = [fusion_for(log, f) for f in fusions]
     runs.sort(
         key=lambda r: (
-            fusions.index(r.fusion) if r.fusion in fusions else len(fusions),
+            fused.index(r.fusion) if r.fusion in fused else len(fused),
             order.index(r.estimator) if r.estimator in order else len(order),
         )
     )
@@ -215,18 +201,15 @@ def comparison_figures(
     """
     runs = comparison.runs
     out: dict[str, Figure] = {}
-    ekf_fused = comparison.find("ekf", True)
     if comparison.has_truth:
-        if ekf_fused is not None:
-            out["fig6_errors_bounds.png"] = fig6_errors_bounds(ekf_fused)
+        first_fused = next((r for r in runs if r.fusion), None)
+        if first_fused is not None:
+            out["fig6_errors_bounds.png"] = fig6_errors_bounds(first_fused)
         out["fig7_error_fusion.png"] = fig7_error_fusion(runs)
-    # The fused EKF and one fused graph run (batch, else iSAM2); the unfused runs when
-    # nothing was fused.
-    fused = [r for r in runs if r.metrics["fusion"]]
-    pool = fused if fused else list(runs)
-    panels = [r for r in pool if r.metrics["backend"] == "ekf"]
-    graph = [r for r in pool if r.metrics["backend"] != "ekf"]
-    panels += graph[:1]
+    # The first two fused runs (the unfused ones when nothing was fused): the consumed
+    # estimator first, then the first that consumes it.
+    fused = [r for r in runs if r.fusion]
+    panels = (fused if fused else list(runs))[:2]
     out["fig10_maps.png"] = fig10_maps(panels, None if scenario is None else scenario.world)
     if comparison.has_truth:
         out["nees.png"] = nees_figure(runs)
@@ -249,21 +232,21 @@ def _num(v: Any, digits: int = 3, scale: float = 1.0) -> str:
     return f"{scale * x:.{digits}f}"
 
 
-def _label(m: Mapping[str, Any]) -> str:
-    return f"{m['backend']} {'with' if m['fusion'] else 'without'} fusion"
+def _label(m: RunMetrics) -> str:
+    return f"{m.estimator} {'with' if m.fusion else 'without'} fusion"
 
 
-def _run_name(m: Mapping[str, Any]) -> str:
+def _run_name(m: RunMetrics) -> str:
     """Label of a row, marking smoothed estimates."""
-    return f"{_label(m)}{' (smoothed)' if m.get('estimate') == 'smoothed' else ''}"
+    return f"{_label(m)}{' (smoothed)' if m.estimate == 'smoothed' else ''}"
 
 
-def _map_and_runtime(m: Mapping[str, Any]) -> list[str]:
+def _map_and_runtime(m: RunMetrics) -> list[str]:
     """The map-size and run-time cells every table ends with."""
-    mp, rt = m["map"], m["runtime_s"]
+    mp, rt = m.map, m.runtime
     return [
-        f"{mp['features']} ({mp['matched_known']})",
-        f"{_num(rt['total'], 2)} ({_num(rt['per_step_p50'], 2, 1e3)})",
+        f"{mp.features} ({mp.matched_known})",
+        f"{_num(rt.total, 2)} ({_num(rt.per_step_p50, 2, 1e3)})",
     ]
 
 
@@ -277,66 +260,61 @@ def _row(cells: Sequence[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
-def _metric_row(m: Mapping[str, Any], has_truth: bool) -> list[str]:
-    pos, head, nees, anchor = (
-        m.get("position_error_m"),
-        m.get("heading_error_rad"),
-        m.get("nees"),
-        m.get("anchor"),
-    )
+def _metric_row(m: RunMetrics, has_truth: bool) -> list[str]:
+    pos, head, nees, anchor = m.position_error, m.heading_error, m.nees, m.anchor
     no = "no truth"
     cells = [_run_name(m)]
     if has_truth and pos is not None and head is not None and nees is not None:
         cells += [
-            _num(pos["rmse"]),
-            _num(pos["max"]),
-            _num(head["rmse"], 2, 1e3),
-            _num(nees["mean"], 2),
-            _num(nees["fraction_within_chi2_95"], 3),
+            _num(pos.rmse),
+            _num(pos.max),
+            _num(head.rmse, 2, 1e3),
+            _num(nees.mean, 2),
+            _num(nees.fraction_within_chi2_95, 3),
         ]
     else:
         cells += [no] * 5
     if anchor is None:
         cells.append("none")
-    elif anchor.get("position_error_m") is None:
-        cells.append(f"{no} ({anchor['pairings']} pairings)")
+    elif anchor.position_error_m is None:
+        cells.append(f"{no} ({anchor.pairings} pairings)")
     else:
         cells.append(
-            f"{_num(anchor['position_error_m'])}, {_num(anchor['heading_error_rad'], 2, 1e3)}"
-            f" ({anchor['correct_pairings']}/{anchor['pairings']} pairings correct)"
+            f"{_num(anchor.position_error_m)}, {_num(anchor.heading_error_rad, 2, 1e3)}"
+            f" ({anchor.correct_pairings}/{anchor.pairings} pairings correct)"
         )
     return cells + _map_and_runtime(m)
 
 
-def _filtered_row(m: Mapping[str, Any]) -> list[str] | None:
-    pos, nees = m.get("position_error_filtered_m"), m.get("nees_filtered")
+def _filtered_row(m: RunMetrics) -> list[str] | None:
+    pos, nees = m.position_error_filtered, m.nees_filtered
     if pos is None or nees is None:
         return None
     return [
         f"{_label(m)} (filtered)",
-        _num(pos["rmse"]),
-        _num(pos["max"]),
+        _num(pos.rmse),
+        _num(pos.max),
         "",
-        _num(nees["mean"], 2),
-        _num(nees["fraction_within_chi2_95"], 3),
+        _num(nees.mean, 2),
+        _num(nees.fraction_within_chi2_95, 3),
         "",
         "",
         "",
     ]
 
 
-def _gps_row(m: Mapping[str, Any]) -> list[str]:
-    pos, anchor = m["position_error_m"], m.get("anchor")
-    cells = [_run_name(m), str(pos["alignment"]).replace("_", " ")]
-    cells += [_num(pos[k]) for k in ("median", "rmse", "max", "final")]
-    filtered = m.get("position_error_filtered_m")
-    cells.append(_num(filtered["median"]) if isinstance(filtered, dict) else "")
+def _gps_row(m: RunMetrics) -> list[str]:
+    pos, anchor = m.position_error, m.anchor
+    assert pos is not None  # a GPS table holds runs with GPS errors only
+    cells = [_run_name(m), str(pos.alignment).replace("_", " ")]
+    cells += [_num(v) for v in (pos.median, pos.rmse, pos.max, pos.final)]
+    filtered = m.position_error_filtered
+    cells.append(_num(filtered.median) if filtered is not None else "")
     if anchor is None:
         cells.append("none")
     else:
         cells.append(
-            f"step {anchor['accepted_at_step']}: "
-            f"{anchor['correct_pairings']}/{anchor['pairings']} correct"
+            f"step {anchor.accepted_at_step}: {anchor.correct_pairings}/{anchor.pairings} correct"
         )
     return cells + _map_and_runtime(m)
 
@@ -375,9 +353,9 @@ def _gps_table(comparison: Comparison) -> list[str]:
     return lines
 
 
-def _warning_lines(metrics: Sequence[Mapping[str, Any]]) -> list[str]:
-    """A *Warnings* section: every run's ``metrics.json`` warnings (docs/warnings.md)."""
-    items = [f"- {_label(m)}: {w}" for m in metrics for w in m.get("warnings", ())]
+def _warning_lines(metrics: Sequence[RunMetrics]) -> list[str]:
+    """A *Warnings* section: every run's warnings (docs/warnings.md)."""
+    items = [f"- {_label(m)}: {w}" for m in metrics for w in m.warnings]
     return ["", "Warnings:", "", *items] if items else []
 
 
@@ -431,7 +409,7 @@ def results_table(comparison: Comparison) -> list[str]:
     ]
     lines = [_row(header), _row(["---"] * len(header))]
     for fusion in (True, False):
-        sel = [m for m in metrics if bool(m["fusion"]) is fusion]
+        sel = [m for m in metrics if m.fusion is fusion]
         if not sel:
             continue
         for m in sel:
@@ -573,7 +551,9 @@ def write_comparison(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {"comparison": out / "comparison.json"}
-    paths["comparison"].write_text(json.dumps(comparison.metrics, indent=2) + "\n")
+    paths["comparison"].write_text(
+        json.dumps([m.to_json() for m in comparison.metrics], indent=2) + "\n"
+    )
     figures = comparison_figures(comparison, scenario)
     for name, fig in figures.items():
         p = out / name
@@ -582,7 +562,8 @@ def write_comparison(
     if beside:
         paths["beside"] = out / "beside.json"
         paths["beside"].write_text(
-            json.dumps({b.log.scenario: b.metrics for b in beside}, indent=2) + "\n"
+            json.dumps({b.log.scenario: [m.to_json() for m in b.metrics] for b in beside}, indent=2)
+            + "\n"
         )
     paths["report"] = out / "report.md"
     paths["report"].write_text(report_markdown(comparison, tuple(figures), scenario, beside))
