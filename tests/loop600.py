@@ -17,9 +17,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from ekf_reference import EKFConfig, EKFResult, run_ekf
-from mapfuse.estimators.ekf import to_result
+from ekf_reference import EKFConfig, run_ekf
 from mapfuse.metrics import run_metrics
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
@@ -67,7 +67,7 @@ def loop600_log(seed: int) -> MeasurementLog:
 
 
 @functools.lru_cache(maxsize=10)
-def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
+def loop600_ekf(seed: int, fusion: bool) -> EstimatorResult:
     """The EKF reference on the loop600 log of ``seed``."""
     return _shared(
         f"ekf-{seed}-{fusion}", lambda: run_ekf(loop600_log(seed), EKFConfig(), fusion=fusion)
@@ -75,7 +75,7 @@ def loop600_ekf(seed: int, fusion: bool) -> EKFResult:
 
 
 @functools.lru_cache(maxsize=5)
-def loop600_ekf_carry(seed: int) -> EKFResult:
+def loop600_ekf_carry(seed: int) -> EstimatorResult:
     """The fused EKF with ``carry_seen_steps=1`` on the loop600 log of ``seed``."""
     return _shared(
         f"ekf-carry-{seed}",
@@ -83,6 +83,6 @@ def loop600_ekf_carry(seed: int) -> EKFResult:
     )
 
 
-def ekf_metrics(result: EKFResult, log: MeasurementLog) -> dict[str, Any]:
+def ekf_metrics(result: EstimatorResult, log: MeasurementLog) -> dict[str, Any]:
     """``metrics.json`` of an EKF result on ``log``."""
-    return run_metrics(to_result(result, log), log)
+    return run_metrics(result, log).to_json()

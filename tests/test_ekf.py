@@ -130,7 +130,7 @@ def test_carried_features_make_local_maps_agree_with_absolute_ekf() -> None:
     var = np.diagonal(ref_covs, axis1=1, axis2=2)[1:until]
     cfg = EKFConfig(local_map_steps=size, carry_seen_steps=1)
     res = run_ekf(log, cfg, fusion=False)
-    assert res.global_map.params.shape[0] == len({int(t) for t in log.feat_true_id})
+    assert res.map.params.shape[0] == len({int(t) for t in log.feat_true_id})
     d = res.poses[1:until] - ref_poses[1:until]
     d[:, 2] = wrap_angle(d[:, 2])
     # Same tolerances as the single local map above: CI local maps lose nothing in a
@@ -244,8 +244,8 @@ def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) ->
 def test_no_fusion_has_no_anchor() -> None:
     res = run_ekf(synthetic_log(steps=120, seed=3), EKFConfig(), fusion=False)
     assert res.anchor is None
-    assert res.ccda_attempts == 0
-    assert np.all(np.isnan(res.poses_in_known))
+    assert res.matching is None  # no map matching attempted
+    assert np.all(np.isnan(res.details.poses_in_known))
 
 
 @pytest.mark.parametrize("keep", [[], [0]], ids=["empty", "one-feature"])
@@ -370,10 +370,10 @@ def test_rarely_seen_local_features_can_be_kept_out_of_the_global_map() -> None:
     res = run_ekf(log, EKFConfig(min_obs_to_join=3), fusion=False)
     # Measured: 6 observations (of local features seen once or twice) are dropped here;
     # every other observation keeps a landmark, and the dropped ones take no map entry.
-    dropped = res.obs_landmark < 0
-    assert np.sum(base.obs_landmark < 0) == 0
+    dropped = res.decisions.obs_landmark < 0
+    assert np.sum(base.decisions.obs_landmark < 0) == 0
     assert 0 < dropped.sum() < 20
-    assert len(res.global_map.kinds) <= len(base.global_map.kinds)
+    assert len(res.map.kinds) <= len(base.map.kinds)
     # The filter still works: the poses stay close to the run that kept everything.
     assert np.max(np.abs(res.poses[:, :2] - base.poses[:, :2])) < 0.05
     same = run_ekf(log, EKFConfig(min_obs_to_join=1), fusion=False)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse.estimators.ekf import to_result
+from mapfuse.runner import run
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from tests.synthetic import synthetic_log
 
@@ -22,7 +22,7 @@ def test_landmarks_in_wknown_are_the_anchor_composed_with_their_wglobal_estimate
     without an anchor, carry NaN; every track id names the decisions' landmark."""
     log, res = _run()
     assert res.anchor is not None
-    gm = res.global_map
+    gm = res.map
     assert gm.params_known is not None
     assert gm.covs_known is not None
     assert gm.tracks is not None
@@ -40,8 +40,8 @@ def test_landmarks_in_wknown_are_the_anchor_composed_with_their_wglobal_estimate
             assert abs(np.angle(np.exp(1j * (got[2] - via[2])))) < 1e-9
         assert np.all(np.linalg.eigvalsh(gm.covs_known[f]) > -1e-12)
     assert np.all(np.isnan(gm.params_known[~apart]))
-    assert set(gm.tracks[apart].tolist()) <= set(res.obs_landmark.tolist())
-    none = run_ekf(log, EKFConfig(), fusion=False).global_map
+    assert set(gm.tracks[apart].tolist()) <= set(res.decisions.obs_landmark.tolist())
+    none = run_ekf(log, EKFConfig(), fusion=False).map
     assert none.params_known is not None
     assert np.all(np.isnan(none.params_known))
 
@@ -54,7 +54,7 @@ def test_landmarks_in_wknown_are_consistent_and_tighter_than_the_marginals_compo
     log, res = _run()
     assert res.anchor is not None
     assert log.world is not None
-    gm = res.global_map
+    gm = res.map
     assert gm.params_known is not None
     assert gm.covs_known is not None
     world = {int(i): p for i, p in zip(log.world.ids, log.world.params, strict=True)}
@@ -76,7 +76,7 @@ def test_landmarks_in_wknown_are_consistent_and_tighter_than_the_marginals_compo
 
 def test_the_harness_result_carries_them():
     log, res = _run()
-    m = to_result(res, log).map
+    m = run(log, "ekf").result.map
     assert m.tracks is not None
-    np.testing.assert_array_equal(m.tracks, res.global_map.tracks)
-    np.testing.assert_array_equal(m.params_known, res.global_map.params_known)
+    np.testing.assert_array_equal(m.tracks, res.map.tracks)
+    np.testing.assert_array_equal(m.params_known, res.map.params_known)

@@ -30,10 +30,10 @@ def paper(clean: MeasurementLog) -> Run:
 
 
 def test_the_papers_method_keeps_every_spurious_detection(cluttered: MeasurementLog) -> None:
-    m = run(cluttered, "ekf").metrics["map"]
+    m = run(cluttered, "ekf").metrics.map
     # Clutter is drawn uniformly, so nearly every detection is a new feature seen once.
-    assert m["seen_once"] >= 0.95 * STEPS * CLUTTER
-    assert m["tentative_dropped"] == 0
+    assert m.seen_once >= 0.95 * STEPS * CLUTTER
+    assert m.tentative_dropped == 0
 
 
 def test_two_sightings_drop_nearly_all_clutter_and_keep_the_estimate(
@@ -41,15 +41,15 @@ def test_two_sightings_drop_nearly_all_clutter_and_keep_the_estimate(
 ) -> None:
     r = run(cluttered, "ekf", tentative_min_sightings=2)
     m, p = r.metrics, paper.metrics
-    assert m["map"]["tentative_dropped"] >= 0.99 * STEPS * CLUTTER
-    assert m["map"]["seen_once"] == 0
+    assert m.map.tentative_dropped >= 0.99 * STEPS * CLUTTER
+    assert m.map.seen_once == 0
     # At most a few clutter features seen twice by chance survive (measured: 2).
-    assert m["map"]["features"] <= p["map"]["features"] + 5
-    assert m["map"]["matched_known"] == p["map"]["matched_known"]
+    assert m.map.features <= p.map.features + 5
+    assert m.map.matched_known == p.map.matched_known
     # Same estimate as the clean run to 5 % (measured: 0.032 against 0.0317 m RMSE).
-    assert m["position_error_m"]["rmse"] == pytest.approx(p["position_error_m"]["rmse"], rel=0.05)
-    assert m["anchor"] is not None
-    assert m["anchor"]["correct_pairings"] == m["anchor"]["pairings"]
+    assert m.position_error.rmse == pytest.approx(p.position_error.rmse, rel=0.05)
+    assert m.anchor is not None
+    assert m.anchor.correct_pairings == m.anchor.pairings
     # The dropped detections' observations are unassociated in the decisions.
     assert r.result.decisions is not None
     spurious = np.asarray(cluttered.feat_true_id) < 0
@@ -59,10 +59,10 @@ def test_two_sightings_drop_nearly_all_clutter_and_keep_the_estimate(
 
 def test_without_clutter_two_sightings_change_nothing(clean: MeasurementLog, paper: Run) -> None:
     m, p = run(clean, "ekf", tentative_min_sightings=2).metrics, paper.metrics
-    assert m["map"]["features"] == p["map"]["features"]
-    assert m["anchor"]["pairings"] == p["anchor"]["pairings"]
-    assert m["position_error_m"]["rmse"] == pytest.approx(p["position_error_m"]["rmse"], rel=1e-2)
-    assert m["nees"]["mean"] == pytest.approx(p["nees"]["mean"], rel=1e-2)
+    assert m.map.features == p.map.features
+    assert m.anchor.pairings == p.anchor.pairings
+    assert m.position_error.rmse == pytest.approx(p.position_error.rmse, rel=1e-2)
+    assert m.nees.mean == pytest.approx(p.nees.mean, rel=1e-2)
 
 
 @pytest.mark.parametrize(

@@ -78,12 +78,11 @@ def test_isam2_filtered_agrees_with_ekf(seed: int, scale: float, tol: float) -> 
     log = _scaled_log(60, seed, scale)
     ekf = run_ekf(log, EKFConfig(local_map_steps=10_000), fusion=False)
     res = run_graph(
-        log, "isam2", fusion=False, association="ekf", decisions=ekf.decisions, marginals=False
+        log, "isam2", fusion=False, association="given", decisions=ekf.decisions, marginals=False
     )
-    assert res.filtered_poses is not None
-    assert res.filtered_covs is not None
-    assert _rel_diff(res.filtered_poses, ekf.poses, ekf.covs).max() <= tol
-    ratio = np.einsum("kii->ki", res.filtered_covs[1:]) / np.einsum("kii->ki", ekf.covs[1:])
+    assert res.filtered is not None
+    assert _rel_diff(res.filtered.poses, ekf.poses, ekf.covs).max() <= tol
+    ratio = np.einsum("kii->ki", res.filtered.covs[1:]) / np.einsum("kii->ki", ekf.covs[1:])
     assert ratio.min() >= 0.97
     assert ratio.max() <= 1.03
 
@@ -92,15 +91,14 @@ def test_batch_on_steps_0_to_k_is_the_filtered_estimate() -> None:
     """Batch over steps 0..k gives iSAM2's filtered X_k (measured ≤ 0.01 σ)."""
     log = synthetic_log(steps=60, seed=0)
     inc = run_graph(log, "isam2", fusion=False, association="truth", marginals=False)
-    assert inc.filtered_poses is not None
-    assert inc.filtered_covs is not None
+    assert inc.filtered is not None
     for k in (5, 30, 59):
         batch = run_graph(log, "batch", fusion=False, association="truth", steps=k + 1)
-        d = batch.poses[k] - inc.filtered_poses[k]
+        d = batch.poses[k] - inc.filtered.poses[k]
         d[2] = float(wrap_angle(d[2]))
-        sig = np.sqrt(np.diag(inc.filtered_covs[k]))
+        sig = np.sqrt(np.diag(inc.filtered.covs[k]))
         assert np.all(np.abs(d) <= 0.03 * sig)
-        np.testing.assert_allclose(np.diag(batch.covs[k]), np.diag(inc.filtered_covs[k]), rtol=0.02)
+        np.testing.assert_allclose(np.diag(batch.covs[k]), np.diag(inc.filtered.covs[k]), rtol=0.02)
 
 
 @pytest.mark.parametrize(
@@ -112,7 +110,9 @@ def test_isam2_final_equals_batch(association: str, partial: bool, error_rtol: f
     opts = ISAM2Options(partial_relinearization_check=partial)
     inc = run_graph(log, "isam2", fusion=True, association=association, isam2=opts)
     bat = run_graph(log, "batch", fusion=True, association=association)
-    np.testing.assert_array_equal(inc.obs_landmark, bat.obs_landmark)
+    assert inc.decisions is not None
+    assert bat.decisions is not None
+    np.testing.assert_array_equal(inc.decisions.obs_landmark, bat.decisions.obs_landmark)
     # With the final Gauss–Newton step both stop at the optimum (measured: 1.6e-4 σ,
     # variances within 1e-4, error 8e-10 relative): bounds about 30× that.  The partial
     # relinearisation check leaves one known wall 22 cm from the optimum on this log
@@ -126,7 +126,7 @@ def test_isam2_final_equals_batch(association: str, partial: bool, error_rtol: f
     assert bat.anchor is not None
     d = inc.anchor.x_Wknown_Wglobal - bat.anchor.x_Wknown_Wglobal
     assert np.all(np.abs(d) <= 0.005 * np.sqrt(np.diag(bat.anchor.cov)))
-    assert inc.final_error == pytest.approx(bat.final_error, rel=error_rtol)
+    assert inc.details.final_error == pytest.approx(bat.details.final_error, rel=error_rtol)
 
 
 def test_final_gauss_newton_step_removes_the_lag_of_the_relinearisation_thresholds() -> None:
@@ -143,10 +143,10 @@ def test_final_gauss_newton_step_removes_the_lag_of_the_relinearisation_threshol
             association="truth",
             isam2=ISAM2Options(final_gauss_newton=step),
         )
-        out[step] = (_rel_diff(inc.poses, bat.poses, bat.covs).max(), inc.final_error)
-        assert (inc.extra["final_gauss_newton_step_max"] > 0.0) == step
+        out[step] = (_rel_diff(inc.poses, bat.poses, bat.covs).max(), inc.details.final_error)
+        assert (inc.details.extra["final_gauss_newton_step_max"] > 0.0) == step
     assert out[False][0] > 0.01
-    assert out[False][1] > bat.final_error * (1.0 + 1e-3)
+    assert out[False][1] > bat.details.final_error * (1.0 + 1e-3)
     assert out[True][0] < out[False][0] / 20.0
 
 
@@ -155,7 +155,7 @@ def test_filtered_estimate_is_isam2s_own_solve_and_marginal() -> None:
     mid-run) equals iSAM2's full linear solve and its own marginal covariance."""
     log = synthetic_log(steps=60, seed=2)
     n = log.n_steps
-    b = GraphBuilder(log, GraphOptions(association="truth"))
+    b = GraphBuilder(log, GraphOptions(), association="truth")
     isam = gtsam.ISAM2()
     lin_point = isam.getLinearizationPoint()
     est = _ISAM2Estimate(isam, np.zeros((n, 3, 3)))
@@ -175,7 +175,7 @@ def test_tree_marginals_equal_gtsam_marginals() -> None:
     """One pass down the Bayes tree gives GTSAM's marginal of every variable (poses, 2-dim
     lines, 3-dim circles, anchor, known features)."""
     log = synthetic_log(steps=50, seed=4)
-    b = GraphBuilder(log, GraphOptions(association="truth"))
+    b = GraphBuilder(log, GraphOptions(), association="truth")
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     est = _ValuesEstimate(values)
     for k in range(log.n_steps):
@@ -223,21 +223,21 @@ def test_split_circles_is_the_same_model(backend: str) -> None:
     split = run_graph(
         log, backend, fusion=False, association="truth", options=GraphOptions(split_circles=True)
     )
-    circles = split.landmarks.kinds == int(FeatureKind.CIRCLE)
+    circles = split.map.kinds == int(FeatureKind.CIRCLE)
     assert np.any(circles)
-    assert split.n_variables == joint.n_variables + int(circles.sum())
+    assert split.details.n_variables == joint.details.n_variables + int(circles.sum())
     # Measured 6e-8 σ (batch) and 2e-6 σ (isam2, whose linearisation points lag a little
     # differently when the radius has its own relinearisation threshold).
     tol = 1e-6 if backend == "batch" else 1e-4
     assert _rel_diff(split.poses, joint.poses, joint.covs).max() <= tol
-    assert split.final_error == pytest.approx(joint.final_error, rel=1e-6)
-    sig = np.sqrt(np.einsum("kii->ki", joint.landmarks.covs))
-    d = np.abs(split.landmarks.variables - joint.landmarks.variables)
+    assert split.details.final_error == pytest.approx(joint.details.final_error, rel=1e-6)
+    sig = np.sqrt(np.einsum("kii->ki", joint.map.covs))
+    d = np.abs(split.details.landmark_variables - joint.details.landmark_variables)
     assert np.nanmax(d[circles] / sig[circles]) <= tol
     np.testing.assert_allclose(
-        split.landmarks.covs[circles], joint.landmarks.covs[circles], rtol=1e-6, atol=1e-15
+        split.map.covs[circles], joint.map.covs[circles], rtol=1e-6, atol=1e-15
     )
-    assert np.all(split.landmarks.covs[circles][:, :2, 2] == 0.0)
+    assert np.all(split.map.covs[circles][:, :2, 2] == 0.0)
 
 
 def _known_frame_solution(log: MeasurementLog) -> np.ndarray:
@@ -348,14 +348,16 @@ def test_body_to_abs_cov_matches_sampled_retractions() -> None:
 def test_robust_kernel_on_clean_data_changes_little() -> None:
     log = synthetic_log(steps=60, seed=2)
     plain = run_graph(log, "batch", fusion=True, association="truth")
-    huber = run_graph(log, "batch", fusion=True, association="truth", robust="huber")
+    huber = run_graph(
+        log, "batch", fusion=True, association="truth", options=GraphOptions(robust="huber")
+    )
     assert _rel_diff(huber.poses, plain.poses, plain.covs).max() <= 0.5
 
 
 def test_joint_pose_covariance_is_the_marginals_in_the_absolute_frame() -> None:
     log = synthetic_log(steps=200, seed=1)
     res = run_graph(log, "batch", fusion=True, association="truth", joint_stride=20)
-    J = res.joint_pose_cov
+    J = res.details.joint_pose_cov
     assert J is not None
     assert J.steps.tolist() == list(range(20, 200, 20))
     n = J.steps.size
@@ -364,18 +366,18 @@ def test_joint_pose_covariance_is_the_marginals_in_the_absolute_frame() -> None:
     np.testing.assert_allclose(blocks, res.covs[J.steps], rtol=1e-8, atol=1e-14)
     # A coarser stride picks the same sub-blocks: GTSAM's block order is the keys' order.
     coarse = run_graph(log, "batch", fusion=True, association="truth", joint_stride=40)
-    assert coarse.joint_pose_cov is not None
-    pick = np.flatnonzero(np.isin(J.steps, coarse.joint_pose_cov.steps))
+    assert coarse.details.joint_pose_cov is not None
+    pick = np.flatnonzero(np.isin(J.steps, coarse.details.joint_pose_cov.steps))
     rows = (3 * pick[:, None] + np.arange(3)).ravel()
     np.testing.assert_allclose(
-        J.cov[np.ix_(rows, rows)], coarse.joint_pose_cov.cov, rtol=1e-8, atol=1e-14
+        J.cov[np.ix_(rows, rows)], coarse.details.joint_pose_cov.cov, rtol=1e-8, atol=1e-14
     )
     # The poses share the anchor and the map: errors 160 steps apart are still correlated.
     sd = np.sqrt(np.diag(J.cov))
     corr = J.cov[0:3, 3 * n - 3 :] / np.outer(sd[0:3], sd[3 * n - 3 :])
     print(f"\ncorrelation of steps 20 and 180: max {np.abs(corr).max():.2f}")
     assert np.abs(corr).max() > 0.3
-    assert run_graph(log, "batch", fusion=True, association="truth").joint_pose_cov is None
+    assert run_graph(log, "batch", fusion=True, association="truth").details.joint_pose_cov is None
 
 
 def test_joint_pose_covariance_turns_every_block_by_both_headings() -> None:
