@@ -63,13 +63,13 @@ def test_split_circles_only_where_it_is_the_same_model(log: MeasurementLog) -> N
 
     def variables(lg: MeasurementLog, **overrides: object) -> int:
         done = run(lg, "isam2", fusion=False, association="truth", **overrides)
-        g = done.result.extras["graph"]
-        return int(g.n_variables) - int(np.sum(g.landmarks.kinds == int(FeatureKind.CIRCLE)))
+        g = done.result
+        return int(g.details.n_variables) - int(np.sum(g.map.kinds == int(FeatureKind.CIRCLE)))
 
     # Split: one radius variable more per circle landmark.
     split, plain = variables(vp), variables(log)
     assert split > plain
-    assert variables(vp, robust="huber") == plain
+    assert variables(vp, graph={"robust": "huber"}) == plain
     cov = vp.feat_cov.copy()
     j = int(np.nonzero(vp.feat_kind == int(FeatureKind.CIRCLE))[0][0])
     cov[j, 1, 2] = cov[j, 2, 1] = 1e-6
@@ -88,26 +88,27 @@ def test_fusion_needs_a_known_map(log: MeasurementLog) -> None:
     for name in ("ekf", "batch"):
         done = run(no_map, name, fusion=True)
         assert done.fusion is False
-        assert done.metrics["fusion"] is False
+        assert done.metrics.fusion is False
 
 
 def test_metrics_of_each_estimate(log: MeasurementLog) -> None:
     isam2 = run(log, "isam2", association="truth")
     m = isam2.metrics
-    assert (m["backend"], m["association"], m["estimate"]) == ("isam2", "truth", "smoothed")
-    assert {"nees_filtered", "position_error_filtered_m"} <= set(m)
-    assert m["anchor"]["correct_pairings"] == m["anchor"]["pairings"] > 0
+    assert (m.estimator, m.association, m.estimate) == ("isam2", "truth", "smoothed")
+    assert {"nees_filtered", "position_error_filtered_m"} <= set(m.to_json())
+    assert m.anchor is not None
+    assert m.anchor.correct_pairings == m.anchor.pairings > 0
     f = run_metrics(isam2.result, log, "filtered")
-    assert f["estimate"] == "filtered"
-    assert f["position_error_m"] == m["position_error_filtered_m"]
+    assert f.estimate == "filtered"
+    assert f.position_error == m.position_error_filtered
     batch = run(log, "batch", association="truth")
     with pytest.raises(ValueError, match="the batch result has no filtered estimate"):
         run_metrics(batch.result, log, "filtered")
     with pytest.raises(ValueError, match="which must be"):
         run_metrics(batch.result, log, "final")
     ekf = run(log, "ekf")
-    assert "estimate" not in ekf.metrics
-    assert "association" not in ekf.metrics
+    assert "estimate" not in ekf.metrics.to_json()
+    assert "association" not in ekf.metrics.to_json()
     assert ekf.result.estimate == "filtered"
 
 
@@ -159,7 +160,9 @@ def test_association_decisions_round_trip(tmp_path: Path) -> None:
 def test_outputs_and_saved_decisions_feed_a_graph_run(log: MeasurementLog, tmp_path: Path) -> None:
     ekf = run(log, "ekf")
     paths = write_outputs(ekf, tmp_path / "ekf")
-    assert json.loads(Path(paths["metrics"]).read_text()) == json.loads(json.dumps(ekf.metrics))
+    assert json.loads(Path(paths["metrics"]).read_text()) == json.loads(
+        json.dumps(ekf.metrics.to_json())
+    )
     decisions = load_associations(paths["associations"], log.n_features)
     # Graph runs fed the saved decisions are the runs fed the EKF's result directly.
     direct = run(log, "isam2")

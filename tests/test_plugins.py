@@ -45,21 +45,22 @@ def test_registered_estimator_runs_and_is_scored(log: MeasurementLog, toy: DeadR
     assert registry.get("toy") is toy
     done = run(log, "toy", fusion=True)
     m = done.metrics
-    assert (m["backend"], m["fusion"], m["steps"]) == ("toy", False, log.n_steps)
-    assert m["anchor"] is None
-    assert m["map"] == {
+    assert (m.estimator, m.fusion, m.steps) == ("toy", False, log.n_steps)
+    assert m.anchor is None
+    assert m.to_json()["map"] == {
         "features": 0,
         "matched_known": 0,
         "seen_once": 0,
         "tentative_dropped": 0,
     }
-    assert "association" not in m
-    assert "estimate" not in m
+    assert "association" not in m.to_json()
+    assert "estimate" not in m.to_json()
     # Dead reckoning from the true start: its error is the odometry's drift, which the
     # metrics report exactly as computed from the poses.
     assert log.true_poses is not None
     err = pose_errors(done.poses, truth_in_global(log.true_poses)).position
-    assert m["position_error_m"]["max"] == pytest.approx(float(err.max()), rel=1e-12)
+    assert m.position_error is not None
+    assert m.position_error.max == pytest.approx(float(err.max()), rel=1e-12)
     assert float(err[0]) < 1e-12  # truth_in_global's round-off at the start
     # Options come from the estimator's own type and can be overridden by field.
     wide = run(log, "toy", noise_scale=4.0)
@@ -83,9 +84,9 @@ def test_register_refuses_a_taken_name_and_a_non_estimator(toy: DeadReckoning) -
 def test_compare_reports_and_draws_the_plugin(
     log: MeasurementLog, toy: DeadReckoning, tmp_path: Path
 ) -> None:
-    c = compare(log, backends=("ekf", "isam2", "toy"))
+    c = compare(log, ("ekf", "isam2", "toy"))
     # The toy cannot fuse: one run of it, reported without fusion.
-    got = [(m["backend"], m["fusion"]) for m in c.metrics]
+    got = [(m.estimator, m.fusion) for m in c.metrics]
     assert got == [("ekf", True), ("isam2", True), ("ekf", False), ("isam2", False), ("toy", False)]
     paths = write_comparison(c, tmp_path)
     report = (tmp_path / "report.md").read_text()
@@ -95,7 +96,7 @@ def test_compare_reports_and_draws_the_plugin(
         assert (tmp_path / name).read_bytes()[:8] == PNG, name
         assert paths[name.removesuffix(".png")] == str(tmp_path / name)
     # Without the EKF the toy alone still gets every figure that does not need it.
-    alone = compare(log, backends=("toy",), fusions=(False,))
+    alone = compare(log, ("toy",), fusions=(False,))
     write_comparison(alone, tmp_path / "alone")
     for name in drawn:
         if name != "fig6_errors_bounds.png":  # the EKF with fusion's own figure
@@ -103,8 +104,8 @@ def test_compare_reports_and_draws_the_plugin(
 
 
 def test_baseline_records_and_checks_the_plugin(log: MeasurementLog, toy: DeadReckoning) -> None:
-    entries = record_baselines(log, backends=("toy",))
-    assert [(e["metrics"]["backend"], e["metrics"]["fusion"]) for e in entries] == [("toy", False)]
+    entries = record_baselines(log, estimators=("toy",))
+    assert [(e.metrics.estimator, e.metrics.fusion) for e in entries] == [("toy", False)]
     reports = check_log_against_baseline(log, entries)
     assert [r.passed for r in reports] == [True]
     assert any(c.status == "pass" for c in reports[0].checks)
@@ -119,7 +120,7 @@ def test_baseline_records_and_checks_the_plugin(log: MeasurementLog, toy: DeadRe
 class _ScaledToy(DeadReckoning):
     """The toy with every odometry increment tripled (a broken estimator)."""
 
-    def run(self, log, options, *, fusion, progress=None):  # type: ignore[no-untyped-def]
+    def run(self, log, options, *, fusion, upstream=None, progress=None):  # type: ignore[no-untyped-def]
         import dataclasses
 
         odo = log.odometry.copy()

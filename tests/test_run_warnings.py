@@ -55,12 +55,12 @@ def _distinct_known(r: Run) -> int:
 
 def test_a_clean_fused_run_has_no_warning_and_reports_its_match(ekf_run: Run) -> None:
     m = ekf_run.metrics
-    assert m["warnings"] == []
-    match = m["matching"]
-    assert (match["requested"], match["achieved"], match["ccda_by"]) == (True, True, "ekf")
-    assert match["ccda_reasons"]["accepted"] == 1
-    assert sum(match["ccda_reasons"].values()) == match["ccda_attempts"]
-    assert match["search_limit"] == 0
+    assert m.warnings == ()
+    match = m.matching
+    assert (match.requested, match.achieved, match.ccda_by) == (True, True, "ekf")
+    assert match.ccda_reasons["accepted"] == 1
+    assert sum(match.ccda_reasons.values()) == match.ccda_attempts
+    assert match.search_limit == 0
 
 
 def test_matched_known_counts_known_features_paired_with_observations_in_both(
@@ -78,10 +78,10 @@ def test_matched_known_counts_known_features_paired_with_observations_in_both(
     assert 999 in ekf_map.known_ids.tolist()  # carried, never observed
     assert int(ekf_map.n_obs[ekf_map.known_ids == 999][0]) == 0
     for r in (ekf, batch, own):
-        assert r.metrics["map"]["matched_known"] == _distinct_known(r), r.estimator
-        assert r.metrics["map"]["matched_known"] < len(far.known_map)
+        assert r.metrics.map.matched_known == _distinct_known(r), r.estimator
+        assert r.metrics.map.matched_known < len(far.known_map)
     # Same decisions, same count.
-    assert ekf.metrics["map"]["matched_known"] == batch.metrics["map"]["matched_known"]
+    assert ekf.metrics.map.matched_known == batch.metrics.map.matched_known
     # The EKF's known features count the observations paired with them.
     assert ekf.result.decisions is not None
     kn = np.asarray(ekf.result.decisions.obs_known_id)
@@ -94,27 +94,27 @@ def test_fusion_without_a_match_is_reported_as_such(log: MeasurementLog) -> None
     two = with_known(log, [0, 1])  # two known features: CCDA can never accept
     for r in (run(two, "ekf"), run(two, "isam2", association="own")):
         m = r.metrics
-        assert m["fusion"] is True
-        assert m["anchor"] is None
-        match = m["matching"]
-        assert (match["requested"], match["achieved"]) == (True, False)
-        assert match["ccda_attempts"] >= 1
-        assert sum(match["ccda_reasons"].values()) == match["ccda_attempts"]
-        assert "accepted" not in match["ccda_reasons"]
-        (w,) = [w for w in m["warnings"] if w.startswith("fusion requested, no match found")]
-        assert f"{match['ccda_attempts']} CCDA attempts" in w
+        assert m.fusion is True
+        assert m.anchor is None
+        match = m.matching
+        assert (match.requested, match.achieved) == (True, False)
+        assert match.ccda_attempts >= 1
+        assert sum(match.ccda_reasons.values()) == match.ccda_attempts
+        assert "accepted" not in match.ccda_reasons
+        (w,) = [w for w in m.warnings if w.startswith("fusion requested, no match found")]
+        assert f"{match.ccda_attempts} CCDA attempts" in w
     # Without fusion nothing is requested and nothing is said.
     m = run(two, "ekf", fusion=False).metrics
-    assert m["matching"]["requested"] is False
-    assert m["warnings"] == []
+    assert m.matching.requested is False
+    assert m.warnings == ()
 
 
 def test_a_graph_consuming_the_ekf_reports_the_ekf_matchings(
     log: MeasurementLog, ekf_run: Run
 ) -> None:
     m = run(log, "batch", upstream=ekf_run.result).metrics
-    assert m["matching"]["ccda_by"] == "ekf"
-    assert m["matching"]["ccda_reasons"] == ekf_run.metrics["matching"]["ccda_reasons"]
+    assert m.matching.ccda_by == "ekf"
+    assert m.matching.ccda_reasons == ekf_run.metrics.matching.ccda_reasons
 
 
 def test_search_limit_outcomes_are_counted_and_named(log: MeasurementLog, ekf_run: Run) -> None:
@@ -124,9 +124,9 @@ def test_search_limit_outcomes_are_counted_and_named(log: MeasurementLog, ekf_ru
         matching=MatchAttempts(3, {"search_limit": 2, "ambiguous": 1}),
     )
     m = run_metrics(failed, log)
-    assert m["matching"]["search_limit"] == 2
-    assert m["matching"]["ccda_reasons"] == {"ambiguous": 1, "search_limit": 2}
-    (w,) = [w for w in m["warnings"] if w.startswith("fusion requested")]
+    assert m.matching.search_limit == 2
+    assert m.matching.ccda_reasons == {"ambiguous": 1, "search_limit": 2}
+    (w,) = [w for w in m.warnings if w.startswith("fusion requested")]
     assert "search_limit 2, ambiguous 1" in w
 
 
@@ -134,22 +134,22 @@ def test_known_lines_without_extents_warn_that_the_anchor_degrades(log: Measurem
     bare = dataclasses.replace(log, known_map=dataclasses.replace(log.known_map, extents=None))
     n_lines = int(np.sum(log.known_map.kinds == FeatureKind.LINE))
     assert n_lines > 0
-    fused = run(bare, "ekf").metrics["warnings"]
+    fused = run(bare, "ekf").metrics.warnings
     (w,) = [w for w in fused if w.startswith("known map without extents")]
     assert f"for {n_lines} of its {n_lines} lines" in w
     assert "anchor accuracy can degrade" in w
     # Nothing to degrade without fusion.
-    assert run(bare, "ekf", fusion=False).metrics["warnings"] == []
+    assert run(bare, "ekf", fusion=False).metrics.warnings == ()
 
 
 def test_an_overconfident_run_is_reported_inconsistent(log: MeasurementLog) -> None:
     # The odometry claims a tenth of its real σ: the filter is overconfident.
     tight = dataclasses.replace(log, odometry_cov=0.01 * np.asarray(log.odometry_cov))
     m = run(tight, "ekf", fusion=False).metrics
-    assert m["nees"]["mean"] > 6.0
-    (w,) = [w for w in m["warnings"] if w.startswith("estimator inconsistent on this run")]
-    assert f"mean {m['nees']['mean']:.2f}" in w
-    assert run(log, "ekf", fusion=False).metrics["warnings"] == []
+    assert m.nees.mean > 6.0
+    (w,) = [w for w in m.warnings if w.startswith("estimator inconsistent on this run")]
+    assert f"mean {m.nees.mean:.2f}" in w
+    assert run(log, "ekf", fusion=False).metrics.warnings == ()
 
 
 def test_non_finite_covariances_are_counted(log: MeasurementLog, ekf_run: Run) -> None:
@@ -160,7 +160,7 @@ def test_non_finite_covariances_are_counted(log: MeasurementLog, ekf_run: Run) -
     bad = dataclasses.replace(ekf_run.result, filtered=PoseTrack(track.poses, covs))
     m = run_metrics(bad, log)
     # Step 0's zero covariance is Wglobal's origin, not a fault: only the three count.
-    assert f"vehicle NEES not finite on 3 of {STEPS} steps" in m["warnings"][0]
+    assert f"vehicle NEES not finite on 3 of {STEPS} steps" in m.warnings[0]
 
 
 def test_options_that_do_not_apply_are_errors_in_the_library(
@@ -171,7 +171,7 @@ def test_options_that_do_not_apply_are_errors_in_the_library(
     with pytest.raises(ValueError, match="the ekf estimator has no option association"):
         run(log, "ekf", association="own")
     with pytest.raises(ValueError, match="no option robust"):
-        compare(log, backends=["ekf"], fusions=(True,), overrides={"ekf": {"robust": "huber"}})
+        compare(log, ["ekf"], fusions=(True,), overrides={"ekf": {"robust": "huber"}})
     path = save_log(log, tmp_path / "log.npz")
     with pytest.raises(ValueError, match="seed does not apply to a saved log"):
         prepare_log(str(path), seed=3)
@@ -213,17 +213,17 @@ def test_a_grid_of_identical_trees_reports_the_ambiguous_matchings() -> None:
         np.arange(100, 100 + n), np.ones(n, np.int8), trees, np.zeros((n, 3, 3)), None
     )
     m = run(synthetic_log(60, 0, world=world, radius=16.0), "ekf").metrics
-    assert m["anchor"] is None
-    reasons = m["matching"]["ccda_reasons"]
+    assert m.anchor is None
+    reasons = m.matching.ccda_reasons
     assert reasons.get("ambiguous", 0) >= 1
     assert "accepted" not in reasons
-    assert any(w.startswith("fusion requested, no match found") for w in m["warnings"])
+    assert any(w.startswith("fusion requested, no match found") for w in m.warnings)
 
 
 def test_batch_with_its_own_association_reports_its_matchings(log: MeasurementLog) -> None:
     # Batch decides its own associations in an iSAM2 pass first: its CCDA calls count.
     m = run(log, "batch", association="own").metrics
-    assert m["matching"]["ccda_by"] == "batch"
-    assert m["matching"]["ccda_attempts"] >= 1
-    assert m["matching"]["achieved"] is (m["anchor"] is not None)
-    assert sum(m["matching"]["ccda_reasons"].values()) == m["matching"]["ccda_attempts"]
+    assert m.matching.ccda_by == "batch"
+    assert m.matching.ccda_attempts >= 1
+    assert m.matching.achieved is (m.anchor is not None)
+    assert sum(m.matching.ccda_reasons.values()) == m.matching.ccda_attempts

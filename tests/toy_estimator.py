@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from mapfuse.estimator import Capabilities
 from mapfuse_core.estimate import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.geometry.se2 import compose_jacobians
 from mapfuse_core.measlog import MeasurementLog
@@ -30,6 +31,7 @@ class DeadReckoning:
 
     name = "toy"
     options_type = DeadReckoningOptions
+    capabilities = Capabilities(tracks=frozenset({"filtered"}), fuses=False)
 
     def run(
         self,
@@ -37,6 +39,7 @@ class DeadReckoning:
         options: DeadReckoningOptions,
         *,
         fusion: bool,
+        upstream: EstimatorResult | None = None,
         progress: Any = None,
     ) -> EstimatorResult:
         n = log.n_steps
