@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
+from mapfuse_core.estimate import AssociationDecisions, EstimatorResult
 from mapfuse_core.evaluation import pose_errors, truth_in_global
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import wrap_angle
@@ -17,7 +18,7 @@ from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAParams
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.graph import GraphBuilder, GraphOptions
-from mapfuse_graph.solvers import GraphResult, ISAM2Options, run_graph
+from mapfuse_graph.solvers import ISAM2Options, run_graph
 from tests.synthetic import synthetic_log
 
 pytestmark = pytest.mark.usefixtures("jacobian_checks")
@@ -38,8 +39,9 @@ def _purity(lm: np.ndarray, true_ids: np.ndarray) -> float:
 def test_own_association_recovers_the_world() -> None:
     log = synthetic_log(steps=200, seed=0)
     res = run_graph(log, "isam2", fusion=True, association="own")
-    assert _purity(res.obs_landmark, log.feat_true_id) == 1.0
-    assert len(res.landmarks.kinds) == len(np.unique(log.feat_true_id))
+    assert res.decisions is not None
+    assert _purity(res.decisions.obs_landmark, log.feat_true_id) == 1.0
+    assert len(res.map.kinds) == len(np.unique(log.feat_true_id))
     assert res.anchor is not None
     assert res.anchor.source == "ccda"
     assert all(t == k for t, k in res.anchor.pairings)
@@ -70,12 +72,12 @@ def test_ekf_and_graph_read_one_association_config(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(mapfuse_graph.own_association, "ccda_match", spy("graph"))
     log = synthetic_log(steps=120, seed=0)
     run_ekf(log, EKFConfig(data_association=cfg), fusion=True)
-    opts = GraphOptions(association="own", data_association=cfg)
+    opts = GraphOptions(data_association=cfg)
     run_graph(log, "isam2", fusion=True, association="own", options=opts)
     assert seen["ekf"]
     assert seen["graph"]
     assert all(p is cfg.ccda for p in seen["ekf"] + seen["graph"])
-    b = GraphBuilder(log, opts)
+    b = GraphBuilder(log, opts, association="own")
     assert b._gate == {2: chi2_gate(0.995, 2), 3: chi2_gate(0.995, 3)}
 
 
@@ -91,12 +93,13 @@ def test_mapfuse_defaults_give_the_graph_the_ekfs_association_config(
     assert graph.ccda.min_pairings == 8
 
 
-def _line_landmarks_taking_two_segments(res: GraphResult, log: MeasurementLog) -> int:
+def _line_landmarks_taking_two_segments(res: EstimatorResult, log: MeasurementLog) -> int:
     """Scans in which one line landmark takes two or more observations."""
+    assert res.decisions is not None
     n = 0
     for k in range(log.n_steps):
         sl = log.feature_slice(k)
-        lm = res.obs_landmark[sl][(log.feat_kind[sl] == int(FeatureKind.LINE))]
+        lm = res.decisions.obs_landmark[sl][(log.feat_kind[sl] == int(FeatureKind.LINE))]
         lm = lm[lm >= 0]
         n += int(lm.size - np.unique(lm).size)
     return n
@@ -114,30 +117,38 @@ def test_own_association_gives_a_wall_every_segment_of_a_scan() -> None:
     log = simulate(dc.replace(load_scenario("loop600"), steps=120), seed=0).log
     res = run_graph(log, "isam2", fusion=False, association="own", marginals=False)
     assert _line_landmarks_taking_two_segments(res, log) > 10
-    assert _purity(res.obs_landmark, log.feat_true_id) == 1.0
+    assert res.decisions is not None
+    assert _purity(res.decisions.obs_landmark, log.feat_true_id) == 1.0
     strict = GraphOptions(data_association=AssociationConfig(one_observation_per_line=True))
     res1 = run_graph(log, "isam2", fusion=False, association="own", options=strict, marginals=False)
     assert _line_landmarks_taking_two_segments(res1, log) == 0
-    assert len(res1.landmarks.kinds) > len(res.landmarks.kinds)
+    assert len(res1.map.kinds) > len(res.map.kinds)
 
 
-def test_graph_options_refuse_a_bad_association_config() -> None:
+def test_graph_options_refuse_a_bad_association_config(small_log: MeasurementLog) -> None:
     with pytest.raises(ValueError, match="data_association must be an AssociationConfig"):
         GraphOptions(data_association={"gate_prob": 0.99})  # type: ignore[arg-type]
+    jcbb = GraphOptions(data_association=AssociationConfig(method="jcbb"))
     with pytest.raises(ValueError, match="nearest neighbour only"):
-        GraphOptions(association="own", data_association=AssociationConfig(method="jcbb"))
-    assert GraphOptions(data_association=AssociationConfig(method="jcbb")).association == "ekf"
+        GraphBuilder(small_log, jcbb, association="own")
+    with pytest.raises(ValueError, match="nearest neighbour only"):
+        run_graph(small_log, "isam2", association="own", options=jcbb)
+    # The other associations decide nothing by search: the setting is theirs to carry.
+    assert GraphBuilder(small_log, jcbb, association="truth").association == "truth"
+    given = AssociationDecisions(*GraphBuilder(small_log, association="truth").planned_arrays())
+    assert GraphBuilder(small_log, jcbb, decisions=given).association == "given"
 
 
 def test_ekf_association_with_fusion_uses_the_ekf_anchor() -> None:
     log = synthetic_log(steps=120, seed=0)
     ekf = run_ekf(log, EKFConfig(), fusion=True)
     assert ekf.anchor is not None
-    res = run_graph(log, "isam2", fusion=True, association="ekf", decisions=ekf.decisions)
+    res = run_graph(log, "isam2", fusion=True, association="given", decisions=ekf.decisions)
     assert res.anchor is not None
-    assert res.anchor.source == "ekf"
+    assert res.anchor.source == "given"
     assert res.anchor.accepted_at_step == ekf.anchor.accepted_at_step
-    merged = {int(k) for k in ekf.obs_known_id if k >= 0}
+    assert ekf.decisions is not None
+    merged = {int(k) for k in ekf.decisions.obs_known_id if k >= 0}
     assert {k for _, k in res.anchor.pairings} == merged
     assert log.true_poses is not None
     err = pose_errors(res.poses, truth_in_global(log.true_poses)).position
@@ -153,7 +164,7 @@ def test_a_graph_cut_before_the_ekf_matched_has_no_anchor_and_equals_the_unfused
     assert ekf.anchor is not None
     cut = ekf.anchor.accepted_at_step  # steps 0 .. cut - 1: the match is not known yet
     assert cut > 5
-    common = {"association": "ekf", "decisions": ekf.decisions, "steps": cut}
+    common = {"association": "given", "decisions": ekf.decisions, "steps": cut}
     fused = run_graph(log, backend, fusion=True, **common)
     plain = run_graph(log, backend, fusion=False, **common)
     assert fused.anchor is None
@@ -170,24 +181,31 @@ def test_fusion_off_has_no_anchor_and_no_known_variables() -> None:
     log = synthetic_log(steps=40, seed=0)
     res = run_graph(log, "batch", fusion=False, association="truth")
     assert res.anchor is None
-    n_lm = len(res.landmarks.kinds)
-    assert res.n_variables == log.n_steps + n_lm
-    assert np.all(res.landmarks.known_ids == -1)
+    n_lm = len(res.map.kinds)
+    assert res.details.n_variables == log.n_steps + n_lm
+    assert np.all(res.map.known_ids == -1)
 
 
 def test_graph_result_decisions_round_trip_the_associations() -> None:
     log = synthetic_log(steps=40, seed=0)
     res = run_graph(log, "isam2", fusion=True, association="truth")
-    assert isinstance(res, GraphResult)
+    assert isinstance(res, EstimatorResult)
     d = res.decisions
+    assert d is not None
     assert d.anchor is not None
     assert res.anchor is not None
     np.testing.assert_array_equal(d.anchor.x_Wknown_Wglobal, res.anchor.x_Wknown_Wglobal)
-    np.testing.assert_array_equal(d.obs_landmark, res.obs_landmark)
-    known = res.landmarks.known_ids
-    for i in np.nonzero(res.obs_landmark >= 0)[0][:50]:
-        assert d.obs_known_id[i] == known[res.obs_landmark[i]]
-    again = run_graph(log, "isam2", fusion=True, associations=d.arrays)
+    # Truth association: every associated observation names the map feature of its id.
+    associated = np.nonzero(d.obs_landmark >= 0)[0]
+    np.testing.assert_array_equal(
+        res.map.true_ids[d.obs_landmark[associated]], log.feat_true_id[associated]
+    )
+    known = res.map.known_ids
+    for i in associated[:50]:
+        assert d.obs_known_id[i] == known[d.obs_landmark[i]]
+    again = run_graph(
+        log, "isam2", fusion=True, association="given", decisions=AssociationDecisions(*d.arrays)
+    )
     np.testing.assert_allclose(again.poses, res.poses, atol=1e-9)
 
 
@@ -211,7 +229,11 @@ def test_split_circles_refuses_what_would_change_the_model(small_log: Measuremen
         run_graph(small_log, "isam2", fusion=False, association="own", options=split)
     with pytest.raises(ValueError, match="robust"):
         run_graph(
-            small_log, "isam2", fusion=False, association="truth", robust="huber", options=split
+            small_log,
+            "isam2",
+            fusion=False,
+            association="truth",
+            options=GraphOptions(split_circles=True, robust="huber"),
         )
     with pytest.raises(ValueError, match="known map with circles"):
         run_graph(small_log, "isam2", fusion=True, association="truth", options=split)
@@ -265,31 +287,63 @@ def test_rejects_bad_association_arrays(small_log: MeasurementLog) -> None:
     m = small_log.n_features
     lm = np.arange(m, dtype=np.int64)
     with pytest.raises(ValueError, match="shape"):
-        run_graph(small_log, "isam2", associations=(lm[:-1], np.full(m, -1)))
+        run_graph(
+            small_log,
+            "isam2",
+            association="given",
+            decisions=AssociationDecisions(lm[:-1], np.full(m, -1)),
+        )
+    with pytest.raises(ValueError, match=f"shape \\({m - 1},\\), the log has {m} observations"):
+        run_graph(
+            small_log,
+            "isam2",
+            association="given",
+            decisions=AssociationDecisions(lm[:-1], np.full(m - 1, -1)),
+        )
     with pytest.raises(ValueError, match="missing from the map"):
-        run_graph(small_log, "isam2", associations=(lm, np.full(m, 999_999)))
+        run_graph(
+            small_log,
+            "isam2",
+            association="given",
+            decisions=AssociationDecisions(lm, np.full(m, 999_999)),
+        )
     kinds_differ = np.zeros(m, dtype=np.int64)  # one landmark for lines and circles
     with pytest.raises(ValueError, match="observed both as a"):
-        run_graph(small_log, "isam2", associations=(kinds_differ, np.full(m, -1)))
+        run_graph(
+            small_log,
+            "isam2",
+            association="given",
+            decisions=AssociationDecisions(kinds_differ, np.full(m, -1)),
+        )
     orphan = lm.copy()
     orphan[0] = -1
     kn = np.full(m, -1)
     kn[0] = int(small_log.known_map.ids[0])
     with pytest.raises(ValueError, match="has no landmark"):
-        run_graph(small_log, "isam2", associations=(orphan, kn))
+        run_graph(
+            small_log, "isam2", association="given", decisions=AssociationDecisions(orphan, kn)
+        )
     with pytest.raises(ValueError, match="integers"):
-        run_graph(small_log, "isam2", associations=(lm + 0.5, np.full(m, -1)))
+        run_graph(
+            small_log,
+            "isam2",
+            association="given",
+            decisions=AssociationDecisions(lm + 0.5, np.full(m, -1)),
+        )
 
 
 def test_rejects_bad_arguments(small_log: MeasurementLog) -> None:
     with pytest.raises(ValueError, match="needs decisions"):
-        run_graph(small_log, "isam2", association="ekf")
+        run_graph(small_log, "isam2", association="given")
+    none = np.full(small_log.n_features, -1, dtype=np.int64)
+    with pytest.raises(ValueError, match="makes its own decisions"):
+        run_graph(small_log, "isam2", association="own", decisions=AssociationDecisions(none, none))
     with pytest.raises(ValueError, match="backend"):
         run_graph(small_log, "lm", association="truth")
     with pytest.raises(ValueError, match="association"):
         run_graph(small_log, "isam2", association="nn")
     with pytest.raises(ValueError, match="robust"):
-        run_graph(small_log, "isam2", association="truth", robust="tukey")
+        run_graph(small_log, "isam2", association="truth", options=GraphOptions(robust="tukey"))
     with pytest.raises(ValueError, match="steps"):
         run_graph(small_log, "isam2", association="truth", steps=0)
     with pytest.raises(ValueError, match="relinearize_threshold"):
@@ -307,7 +361,7 @@ def test_rejects_bad_arguments(small_log: MeasurementLog) -> None:
 
 
 def test_builder_refuses_out_of_order_steps(small_log: MeasurementLog) -> None:
-    b = GraphBuilder(small_log, GraphOptions(association="truth"))
+    b = GraphBuilder(small_log, GraphOptions(), association="truth")
     with pytest.raises(ValueError, match="in order"):
         b.step(1, None)  # type: ignore[arg-type]
 
@@ -320,4 +374,4 @@ def test_isam2_survives_rejected_input(small_log: MeasurementLog) -> None:
         run_graph(_tampered(small_log, feat_kind=kinds), "isam2", association="truth")
     res = run_graph(small_log, "isam2", association="truth")
     assert np.all(np.isfinite(res.poses))
-    assert math.isfinite(res.final_error)
+    assert math.isfinite(res.details.final_error)
