@@ -93,7 +93,7 @@ def _from_json(tp: Any, value: Any, where: str) -> Any:
         return float(value)
     if tp is int or tp is bool or tp is str:
         if not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
-            raise ValueError(f"metrics: {where} must be a {tp.__name__}, got {value!r}")
+            raise ValueError(f"metrics: {where} must be of type {tp.__name__}, got {value!r}")
         return value
     return value  # Mapping[str, Any] blocks are kept as parsed
 
