@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_graph.fixedlag import split_by_lag
 from mapfuse_graph.isam2 import isam2_params
-from mapfuse_graph.solvers import FixedLagOptions, GraphResult, ISAM2Options, run_graph
+from mapfuse_graph.solvers import FixedLagOptions, ISAM2Options, run_graph
 from tests.loop600 import loop600_log
 from tests.synthetic import synthetic_log
 
@@ -40,7 +41,7 @@ def _fixedlag(
     steps: int | None = None,
     isam2: ISAM2Options | None = None,
     **kw: object,
-) -> GraphResult:
+) -> EstimatorResult:
     return run_graph(
         log,
         "fixedlag",
@@ -64,7 +65,7 @@ def test_infinite_lag_equals_batch_on_loop600() -> None:
     log = loop600_log(0)
     fl = _fixedlag(log, INF, steps=300)
     bat = run_graph(log, "batch", fusion=True, association="truth", steps=300)
-    assert fl.extra["window_steps"] == 300
+    assert fl.details.extra["window_steps"] == 300
     d = _abs_diff(fl.poses, bat.poses)
     assert d[:, :2].max() <= 1e-5
     assert d[:, 2].max() <= 1e-6
@@ -72,7 +73,7 @@ def test_infinite_lag_equals_batch_on_loop600() -> None:
     np.testing.assert_allclose(
         np.einsum("kii->ki", fl.covs[1:]), np.einsum("kii->ki", bat.covs[1:]), rtol=1e-3
     )
-    assert fl.final_error == pytest.approx(bat.final_error, rel=1e-7)
+    assert fl.details.final_error == pytest.approx(bat.details.final_error, rel=1e-7)
 
 
 @pytest.mark.slow
@@ -85,20 +86,18 @@ def test_zero_lag_filter_equals_isam2_filter_on_loop600() -> None:
     log = loop600_log(0)
     fl = _fixedlag(log, 0.0, steps=300)
     inc = run_graph(log, "isam2", fusion=True, association="truth", steps=300)
-    assert fl.filtered_poses is not None
-    assert fl.filtered_covs is not None
-    assert inc.filtered_poses is not None
-    assert inc.filtered_covs is not None
-    assert fl.extra["window_steps"] == 1
-    rel = _rel_diff(fl.filtered_poses, inc.filtered_poses, inc.filtered_covs)
+    assert fl.filtered is not None
+    assert inc.filtered is not None
+    assert fl.details.extra["window_steps"] == 1
+    rel = _rel_diff(fl.filtered.poses, inc.filtered.poses, inc.filtered.covs)
     assert rel.max() <= 0.25
     assert rel.mean() <= 0.05
     np.testing.assert_allclose(
-        np.einsum("kii->ki", fl.filtered_covs[1:]),
-        np.einsum("kii->ki", inc.filtered_covs[1:]),
+        np.einsum("kii->ki", fl.filtered.covs[1:]),
+        np.einsum("kii->ki", inc.filtered.covs[1:]),
         rtol=0.05,
     )
-    np.testing.assert_array_equal(fl.poses[:-1], fl.filtered_poses[:-1])
+    np.testing.assert_array_equal(fl.poses[:-1], fl.filtered.poses[:-1])
 
 
 @pytest.mark.parametrize("partial", [False, True])
@@ -109,9 +108,9 @@ def test_infinite_lag_equals_isam2_on_a_synthetic_loop(partial: bool) -> None:
     opts = ISAM2Options(partial_relinearization_check=partial)
     fl = _fixedlag(log, INF, isam2=opts)
     inc = run_graph(log, "isam2", fusion=True, association="truth", isam2=opts)
-    assert fl.filtered_poses is not None
-    assert inc.filtered_poses is not None
-    assert _abs_diff(fl.filtered_poses, inc.filtered_poses).max() <= 1e-6
+    assert fl.filtered is not None
+    assert inc.filtered is not None
+    assert _abs_diff(fl.filtered.poses, inc.filtered.poses).max() <= 1e-6
     assert _rel_diff(fl.poses, inc.poses, inc.covs).max() <= 1e-3
     assert fl.anchor is not None
     assert inc.anchor is not None
@@ -189,14 +188,14 @@ def test_final_step_of_the_window_starts_from_the_smoothers_optimum() -> None:
     window's poses off by several σ."""
     log = synthetic_log(steps=200, seed=1)
     fl = _fixedlag(log, 1.0)
-    assert fl.extra["final_gauss_newton_step_max"] <= 0.01
-    assert fl.filtered_poses is not None
-    w = fl.extra["window_steps"]
+    assert fl.details.extra["final_gauss_newton_step_max"] <= 0.01
+    assert fl.filtered is not None
+    w = fl.details.extra["window_steps"]
     assert w == 9
     # The last pose, smoothed at the end, stays within a fraction of its σ of its
     # filtered estimate (both have the same information).
     sig = np.sqrt(np.diag(fl.covs[-1]))
-    assert np.all(_abs_diff(fl.poses[-1:], fl.filtered_poses[-1:])[0] <= 0.05 * sig)
+    assert np.all(_abs_diff(fl.poses[-1:], fl.filtered.poses[-1:])[0] <= 0.05 * sig)
 
 
 # --------------------------------------------------------------------------- the window
@@ -209,7 +208,7 @@ def test_poses_leave_the_window_after_the_lag() -> None:
     lag = 2.0
     fl = _fixedlag(log, lag)
     t = log.timestamps[:120]
-    assert fl.extra["window_steps"] == int(np.sum(t >= t[-1] - lag))
+    assert fl.details.extra["window_steps"] == int(np.sum(t >= t[-1] - lag))
     assert np.all(np.isfinite(fl.poses))
     assert np.all(np.isfinite(fl.covs))
     # The full smoother refines each final pose with the steps after it left the window:
@@ -224,13 +223,13 @@ def test_window_policy_marginalises_unobserved_landmarks() -> None:
     log = synthetic_log(steps=160, seed=5)
     kept = _fixedlag(log, 0.5)
     win = _fixedlag(log, 0.5, landmarks="window")
-    assert kept.extra["marginalised_landmarks"] == 0
-    assert win.extra["marginalised_landmarks"] > 0
-    assert len(win.landmarks.kinds) > len(kept.landmarks.kinds)
+    assert kept.details.extra["marginalised_landmarks"] == 0
+    assert win.details.extra["marginalised_landmarks"] > 0
+    assert len(win.map.kinds) > len(kept.map.kinds)
     assert np.all(np.isfinite(win.poses))
     assert win.anchor is not None
     # Tied landmarks keep one label each.
-    tied = win.landmarks.known_ids[win.landmarks.known_ids >= 0]
+    tied = win.map.known_ids[win.map.known_ids >= 0]
     assert tied.size == np.unique(tied).size > 0
 
 
@@ -285,5 +284,6 @@ def test_fixedlag_runs_as_a_registered_estimator() -> None:
     r = run(log, "fixedlag", fusion=True, association="truth", fixedlag=FixedLagOptions(lag_s=1.0))
     assert r.estimator == "fixedlag"
     assert r.result.filtered is not None
-    assert r.metrics["nees"] is not None
-    assert r.metrics["position_error_m"]["rmse"] < 0.5
+    assert r.metrics.nees is not None
+    assert r.metrics.position_error is not None
+    assert r.metrics.position_error.rmse < 0.5
