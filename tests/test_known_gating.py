@@ -9,9 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from ekf_reference import EKFConfig, EKFResult, run_ekf
+from ekf_reference import EKFConfig, run_ekf
 from ekf_reference.known_gating import KnownGate, KnownGatingParams
-from mapfuse_core.estimate.decisions import AssociationDecisions, KnownMapGating, load_associations
+from mapfuse_core.estimate import (
+    AssociationDecisions,
+    EstimatorResult,
+    KnownMapGating,
+    load_associations,
+)
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import inverse
 from mapfuse_core.matching import AssociationConfig
@@ -46,7 +51,7 @@ def _moved(ids: tuple[int, ...], dx: float) -> MeasurementLog:
 
 
 @functools.lru_cache(maxsize=4)
-def _run(name: str, gating: bool = True) -> EKFResult:
+def _run(name: str, gating: bool = True) -> EstimatorResult:
     logs = {
         "unchanged": _log,
         "later_moved": lambda: _moved(LATER, 0.4),
@@ -55,15 +60,23 @@ def _run(name: str, gating: bool = True) -> EKFResult:
     return run_ekf(logs[name](), EKFConfig(known_map_gating=gating))
 
 
-def _gating(res: EKFResult) -> KnownMapGating:
-    assert res.known_gating is not None
-    return res.known_gating
+def _decisions(res: EstimatorResult) -> AssociationDecisions:
+    assert res.decisions is not None
+    return res.decisions
 
 
-def _fused_after_unfuse(res: EKFResult, log: MeasurementLog) -> int:
+def _gating(res: EstimatorResult) -> KnownMapGating:
+    kg = _decisions(res).known_gating
+    assert kg is not None
+    return kg
+
+
+def _fused_after_unfuse(res: EstimatorResult, log: MeasurementLog) -> int:
     late = 0
     for kid, step in _gating(res).unfused.items():
-        late += int(np.count_nonzero((res.obs_known_id == kid) & (log.feat_step > step)))
+        late += int(
+            np.count_nonzero((_decisions(res).obs_known_id == kid) & (log.feat_step > step))
+        )
     return late
 
 
@@ -75,8 +88,7 @@ def test_unchanged_map_stays_fused_and_the_gate_changes_nothing():
     assert sum(kg.accepted.values()) > 100
     # Nothing un-fused, so the gate only watched: the same run to the last bit.
     np.testing.assert_array_equal(on.poses, off.poses)
-    assert off.known_gating is None
-    assert off.decisions.known_gating is None
+    assert _decisions(off).known_gating is None
 
 
 def test_features_moved_after_the_anchor_are_unfused_and_never_fused_again():
@@ -151,7 +163,7 @@ def test_empty_intersection_and_all_changed_maps_fuse_nothing():
     for changed in (elsewhere, _with_params(log, moved)):
         res = run_ekf(changed, EKFConfig())
         assert res.anchor is None
-        assert not np.any(res.obs_known_id >= 0)
+        assert not np.any(_decisions(res).obs_known_id >= 0)
         kg = _gating(res)
         assert (kg.accepted, kg.rejected, kg.unfused) == ({}, {}, {})
 
@@ -202,12 +214,12 @@ def test_gating_params_reject_bad_values(kwargs, match):
 
 def test_unfused_ids_survive_saving_the_decisions(tmp_path):
     res = _run("later_moved")
-    path = res.decisions.save(tmp_path / "assoc.npz")
-    back = load_associations(path, res.obs_landmark.size)
+    path = _decisions(res).save(tmp_path / "assoc.npz")
+    back = load_associations(path, _decisions(res).obs_landmark.size)
     assert back.unfused_known_ids == frozenset(_gating(res).unfused)
     assert back.known_gating is not None
     assert back.known_gating.unfused == _gating(res).unfused
-    plain = AssociationDecisions(res.obs_landmark, res.obs_known_id)
+    plain = AssociationDecisions(*_decisions(res).arrays)
     assert plain.unfused_known_ids == frozenset()
 
 
@@ -218,12 +230,20 @@ def test_graph_adds_no_tie_for_a_feature_the_ekf_unfused():
 
     log, res = _log(), _run("unchanged")
     rows_of = {int(i): r for r, i in enumerate(log.known_map.ids)}
-    opts = GraphOptions(fusion=True, association="ekf")
-    tied_all = set(GraphBuilder(log, opts, res.decisions)._planned_known.values())
+    opts = GraphOptions()
+    tied_all = set(
+        GraphBuilder(
+            log, opts, fusion=True, association="given", decisions=_decisions(res)
+        )._planned_known.values()
+    )
     # The EKF's decisions with two fused features marked un-fused (at step 150).
     gone = {LATER[0]: 150, MATCHED[0]: 150}
     gating = KnownMapGating(level=0.99999, rejected={}, accepted={}, unfused=gone)
-    decisions = dataclasses.replace(res.decisions, known_gating=gating)
-    tied = set(GraphBuilder(log, opts, decisions)._planned_known.values())
+    decisions = dataclasses.replace(_decisions(res), known_gating=gating)
+    tied = set(
+        GraphBuilder(
+            log, opts, fusion=True, association="given", decisions=decisions
+        )._planned_known.values()
+    )
     assert {rows_of[k] for k in gone} <= tied_all
     assert tied == tied_all - {rows_of[k] for k in gone}
