@@ -24,6 +24,7 @@ from ekf_reference import EKFConfig, run_ekf
 from mapfuse.baseline import (
     DEFAULT_METRICS,
     METRICS,
+    BaselineEntry,
     BaselineError,
     Tolerance,
     check_baseline,
@@ -33,10 +34,10 @@ from mapfuse.baseline import (
     record_baselines,
     save_baseline,
 )
-from mapfuse.estimators.ekf import to_result
-from mapfuse.metrics import build_metrics, run_metrics
+from mapfuse.metrics import run_metrics
 from mapfuse.runner import run
 from mapfuse.testing import assert_no_worse_than_baseline
+from mapfuse_core.estimate import PoseTrack, RunMetrics
 from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
@@ -49,12 +50,12 @@ def log() -> MeasurementLog:
 
 
 @pytest.fixture(scope="module")
-def metrics(log: MeasurementLog) -> dict[str, Any]:
+def metrics(log: MeasurementLog) -> RunMetrics:
     return run(log, "ekf", fusion=True).metrics
 
 
 @pytest.fixture(scope="module")
-def baseline(metrics: dict[str, Any]) -> dict[str, Any]:
+def baseline(metrics: RunMetrics) -> BaselineEntry:
     return record_baseline(metrics, note="test")
 
 
@@ -72,7 +73,7 @@ def _worse_log(log: MeasurementLog, kind: str) -> MeasurementLog:
 # --------------------------------------------------------------------------- real runs
 
 
-def test_the_same_run_passes(log: MeasurementLog, baseline: dict[str, Any]) -> None:
+def test_the_same_run_passes(log: MeasurementLog, baseline: BaselineEntry) -> None:
     again = run(log, "ekf", fusion=True).metrics
     report = check_baseline(again, baseline)
     assert report.passed, report.summary()
@@ -90,7 +91,7 @@ def test_the_same_run_passes(log: MeasurementLog, baseline: dict[str, Any]) -> N
     ],
 )
 def test_a_worsened_estimator_fails_naming_the_metric(
-    log: MeasurementLog, baseline: dict[str, Any], kind: str, metric: str
+    log: MeasurementLog, baseline: BaselineEntry, kind: str, metric: str
 ) -> None:
     worse = run(_worse_log(log, kind), "ekf", fusion=True).metrics
     report = check_baseline(worse, baseline)
@@ -112,34 +113,25 @@ def test_a_worsened_estimator_fails_naming_the_metric(
 
 def test_perturbed_poses_fail_on_accuracy(log: MeasurementLog) -> None:
     res = run_ekf(log, EKFConfig(), fusion=True)
-    base = record_baseline(run_metrics(to_result(res, log), log))
+    base = record_baseline(run_metrics(res, log))
     # A bias along x on every pose after the first, twice the RMSE limit: the RMS of
     # (error + bias) is at least |bias| − RMSE > limit, whatever the baseline is.
     m = "position_error_m.rmse"
-    limit = METRICS[m].tolerance.rel * base["metrics"]["position_error_m"]["rmse"]
-    limit += base["metrics"]["position_error_m"]["rmse"] + METRICS[m].tolerance.abs
+    assert base.metrics.position_error is not None
+    limit = METRICS[m].tolerance.rel * base.metrics.position_error.rmse
+    limit += base.metrics.position_error.rmse + METRICS[m].tolerance.abs
     poses = res.poses.copy()
     poses[1:, 0] += 2.0 * limit
-    worse = build_metrics(
-        scenario=log.scenario,
-        seed=log.seed,
-        backend="ekf",
-        fusion=True,
-        poses=poses,
-        covs=res.covs,
-        true_poses=log.true_poses,
-        step_time_s=res.step_time_s,
-        anchor=base["metrics"]["anchor"],
-        map_features=1,
-        matched_known=0,
-    )
+    # The same run (its anchor among the rest) with the biased poses.
+    biased = dataclasses.replace(res, filtered=PoseTrack(poses, res.covs))
+    worse = run_metrics(biased, log)
     report = check_baseline(worse, base)
     assert m in {c.metric for c in report.failures}, report.summary()
     assert report.checks[DEFAULT_METRICS.index("anchor.position_error_m")].passed
 
 
 def test_check_log_against_a_multi_run_baseline(log: MeasurementLog, tmp_path: Path) -> None:
-    entries = record_baselines(log, backends=("ekf", "isam2"), fusions=(False,))
+    entries = record_baselines(log, estimators=("ekf", "isam2"), fusions=(False,))
     path = save_baseline(entries, tmp_path / "b.json")
     reports = check_log_against_baseline(log, path)
     assert [r.run.split(" on ")[0] for r in reports] == [
@@ -158,7 +150,7 @@ def test_committed_baseline(log: MeasurementLog) -> None:
         )
         save_baseline(record_baselines(log, note=note), COMMITTED)
     entries = load_baseline(COMMITTED)
-    assert {(e["metrics"]["backend"], e["metrics"]["fusion"]) for e in entries} == {
+    assert {(e.metrics.estimator, e.metrics.fusion) for e in entries} == {
         (b, f) for b in ("ekf", "batch", "isam2") for f in (True, False)
     }
     reports = check_log_against_baseline(log, COMMITTED)
@@ -169,6 +161,8 @@ def test_committed_baseline(log: MeasurementLog) -> None:
 
 
 def _metrics(**changes: Any) -> dict[str, Any]:
+    """A complete ``metrics.json`` object of a fused EKF run, with ``changes`` made
+    (``a__b=v`` sets ``m["a"]["b"] = v``)."""
     m: dict[str, Any] = {
         "scenario": "s",
         "seed": 0,
@@ -177,10 +171,33 @@ def _metrics(**changes: Any) -> dict[str, Any]:
         "steps": 10,
         "position_error_m": {"rmse": 0.10, "mean": 0.1, "median": 0.1, "max": 0.2, "final": 0.1},
         "heading_error_rad": {"rmse": 0.01, "max": 0.02},
-        "nees": {"mean": 3.0, "fraction_within_chi2_95": 0.95, "bound": 7.8, "steps": 10},
-        "anchor": {"position_error_m": 0.03, "heading_error_rad": 0.001, "pairings": 5},
-        "map": {"features": 10, "matched_known": 5},
+        "nees": {
+            "mean": 3.0,
+            "fraction_within_chi2_95": 0.95,
+            "bound": 7.8,
+            "steps": 10,
+            "mean_interval": None,
+        },
+        "anchor": {
+            "estimate": [0.03, 0.0, 0.001],
+            "truth": [0.0, 0.0, 0.0],
+            "position_error_m": 0.03,
+            "heading_error_rad": 0.001,
+            "accepted_at_step": 3,
+            "pairings": 5,
+            "correct_pairings": 5,
+        },
+        "map": {"features": 10, "matched_known": 5, "seen_once": 0, "tentative_dropped": 0},
         "runtime_s": {"total": 1.0, "per_step_p50": 0.01, "per_step_p99": 0.02},
+        "matching": {
+            "requested": True,
+            "achieved": True,
+            "ccda_by": "ekf",
+            "ccda_attempts": 1,
+            "ccda_reasons": {"accepted": 1},
+            "search_limit": 0,
+        },
+        "warnings": [],
     }
     for path, value in changes.items():
         node = m
@@ -289,18 +306,18 @@ def test_runtime_is_checked_only_on_request() -> None:
 def test_record_from_log(log: MeasurementLog) -> None:
     calls: list[tuple[str, int, int]] = []
     entry = record_baseline(log, "ekf", fusion=False, note="n", progress=lambda *a: calls.append(a))
-    assert entry["note"] == "n"
-    assert entry["metrics"]["backend"] == "ekf"
-    assert entry["metrics"]["fusion"] is False
+    assert entry.note == "n"
+    assert entry.metrics.estimator == "ekf"
+    assert entry.metrics.fusion is False
     assert calls[-1] == ("ekf without fusion", log.n_steps, log.n_steps)
 
 
-def test_record_from_log_needs_a_backend(log: MeasurementLog) -> None:
-    with pytest.raises(ValueError, match="needs a backend"):
+def test_record_from_log_needs_an_estimator(log: MeasurementLog) -> None:
+    with pytest.raises(ValueError, match="needs an estimator"):
         record_baseline(log)
     with pytest.raises(ValueError, match="not 'batch'"):
-        record_baseline(_metrics(), backend="batch")
-    with pytest.raises(BaselineError, match="missing"):
+        record_baseline(_metrics(), estimator="batch")
+    with pytest.raises(BaselineError, match=r"not a metrics\.json object: .* has no 'scenario'"):
         record_baseline({"backend": "ekf"})
 
 
@@ -373,8 +390,12 @@ def test_helper_does_not_modify_its_input(tmp_path: Path) -> None:
     m = _metrics()
     before = copy.deepcopy(m)
     entry = record_baseline(m)
-    entry["metrics"]["seed"] = 99
+    entry.to_json()["metrics"]["seed"] = 99
     assert m == before
+    # Nor does the entry change with its input.
+    m["seed"] = 99
+    m["map"]["features"] = 0
+    assert (entry.metrics.seed, entry.metrics.map.features) == (0, 10)
 
 
 def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path) -> None:
@@ -389,11 +410,14 @@ def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path)
     out = tmp_path / "base.json"
     assert main(["baseline", "record", str(path), "--backend", "ekf", "--out", str(out)]) == 0
     entries = load_baseline(out)
-    assert [e["metrics"]["fusion"] for e in entries] == [False]
+    assert [e.metrics.fusion for e in entries] == [False]
     # Unambiguous: a run asked to fuse is reported without fusion and matches the entry.
     metrics = run(no_map, "ekf", fusion=True).metrics
-    assert metrics["fusion"] is False
+    assert metrics.fusion is False
     assert_no_worse_than_baseline(metrics, out)
-    assert record_baseline(no_map, "ekf", fusion=True)["metrics"]["fusion"] is False
-    # The harness decides it once: the estimator itself is asked not to fuse.
-    assert run(no_map, "ekf", fusion=True).result.extras["ekf"].config.fusion is False
+    assert record_baseline(no_map, "ekf", fusion=True).metrics.fusion is False
+    # The harness decides it once: the estimator itself is asked not to fuse (the EKF
+    # reports the fusion it was asked for, and made no map matching).
+    alone = run(no_map, "ekf", fusion=True).result
+    assert alone.fusion is False
+    assert alone.matching is None
