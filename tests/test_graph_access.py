@@ -10,17 +10,18 @@ import numpy as np
 import pytest
 
 from mapfuse.runner import run
+from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.geometry.se2 import wrap_angle
 from mapfuse_graph.export import export_graph
 from mapfuse_graph.keys import describe_key, symbol_name
-from mapfuse_graph.solvers import GraphResult
+from mapfuse_graph.results import GraphDetails
 from tests.synthetic import synthetic_log
 
 
 @pytest.fixture(scope="module")
-def batch() -> GraphResult:
-    g = run(synthetic_log(80, 2), "batch", fusion=True).result.extras["graph"]
-    assert isinstance(g, GraphResult)
+def batch() -> EstimatorResult:
+    g = run(synthetic_log(80, 2), "batch", fusion=True).result
+    assert isinstance(g.details, GraphDetails)
     return g
 
 
@@ -32,11 +33,11 @@ def _poses(values: gtsam.Values, n: int) -> np.ndarray:
     return np.array(out)
 
 
-def test_key_map_names_every_variable(batch: GraphResult) -> None:
-    assert batch.graph is not None
-    assert batch.values is not None
-    keys = batch.keys
-    assert len(keys) == batch.values.size() == batch.n_variables
+def test_key_map_names_every_variable(batch: EstimatorResult) -> None:
+    assert batch.details.graph is not None
+    assert batch.details.values is not None
+    keys = batch.details.keys
+    assert len(keys) == batch.details.values.size() == batch.details.n_variables
     assert keys["x0"] == "vehicle pose x^Wglobal_R of step 0 (Pose2)"
     assert list(keys)[:3] == ["x0", "x1", "x2"]
     assert keys["a0"].startswith("anchor A = x^Wglobal_Wknown")
@@ -47,15 +48,15 @@ def test_key_map_names_every_variable(batch: GraphResult) -> None:
     assert symbol_name(gtsam.symbol("l", 7)) == "l7"
 
 
-def test_users_levenberg_marquardt_gives_our_answer(batch: GraphResult) -> None:
-    assert batch.graph is not None
-    assert batch.initial is not None
+def test_users_levenberg_marquardt_gives_our_answer(batch: EstimatorResult) -> None:
+    assert batch.details.graph is not None
+    assert batch.details.initial is not None
     n = batch.poses.shape[0]
     # The start is the EKF's poses, far from the optimum in places.
-    start = _poses(batch.initial, n)
+    start = _poses(batch.details.initial, n)
     assert np.max(np.hypot(*(start[:, :2] - batch.poses[:, :2]).T)) > 1e-3
     opt = gtsam.LevenbergMarquardtOptimizer(
-        batch.graph, batch.initial, gtsam.LevenbergMarquardtParams()
+        batch.details.graph, batch.details.initial, gtsam.LevenbergMarquardtParams()
     )
     values = opt.optimize()
     got = _poses(values, n)
@@ -63,14 +64,14 @@ def test_users_levenberg_marquardt_gives_our_answer(batch: GraphResult) -> None:
     # error decrease): micrometres.
     assert np.max(np.hypot(*(got[:, :2] - batch.poses[:, :2]).T)) < 1e-6
     assert np.max(np.abs(wrap_angle(got[:, 2] - batch.poses[:, 2]))) < 1e-6
-    assert batch.graph.error(values) == pytest.approx(batch.final_error, rel=1e-9)
+    assert batch.details.graph.error(values) == pytest.approx(batch.details.final_error, rel=1e-9)
 
 
 def test_export_names_everything_the_g2o_file_leaves_out(
-    batch: GraphResult, tmp_path: Path
+    batch: EstimatorResult, tmp_path: Path
 ) -> None:
-    assert batch.graph is not None
-    assert batch.values is not None
+    assert batch.details.graph is not None
+    assert batch.details.values is not None
     ex = export_graph(batch, tmp_path)
     n = batch.poses.shape[0]
     assert (ex.vertices, ex.edges) == (n, n - 1)
@@ -88,8 +89,8 @@ def test_export_names_everything_the_g2o_file_leaves_out(
     assert np.allclose(wrap_angle(read[:, 2] - batch.poses[:, 2]), 0.0, atol=1e-9)
     # Every factor is either written or named; so is every variable.
     side = json.loads(ex.sidecar.read_text())
-    assert ex.edges + sum(side["left_out"]["factors"].values()) == batch.graph.size()
-    assert n + len(side["left_out"]["variables"]) == batch.values.size()
+    assert ex.edges + sum(side["left_out"]["factors"].values()) == batch.details.graph.size()
+    assert n + len(side["left_out"]["variables"]) == batch.details.values.size()
     factors = side["left_out"]["factors"]
     assert factors["prior on the first pose (fixes Wglobal)"] == 1
     assert factors["circle observation"] > 0
