@@ -26,13 +26,13 @@ from tests.synthetic import synthetic_log
 def main_cmp() -> Comparison:
     # A short synthetic log named as loop600, EKF only: the report path, not the numbers.
     log = dataclasses.replace(synthetic_log(80, 0), scenario="loop600")
-    return compare(log, backends=("ekf",))
+    return compare(log, ("ekf",))
 
 
 @pytest.fixture(scope="module")
 def sparse_cmp() -> Comparison:
     log: MeasurementLog = dataclasses.replace(synthetic_log(60, 1), scenario="loop600-sparse")
-    return compare(log, backends=("ekf",))
+    return compare(log, ("ekf",))
 
 
 def test_the_paper_regime_is_a_builtin_scenario_beside_loop600() -> None:
@@ -62,7 +62,9 @@ def test_beside_puts_the_other_table_and_metrics_in_the_report(
     assert "--beside loop600-sparse" not in main  # the note gives way to the table
     rows = [ln for ln in other.splitlines() if ln.startswith("| ekf with")]
     assert [r.split(" | ")[0] for r in rows] == ["| ekf with fusion", "| ekf without fusion"]
-    rmse = sparse_cmp.run("ekf", False).metrics["position_error_m"]["rmse"]
+    pe = sparse_cmp.get("ekf", False).metrics.position_error
+    assert pe is not None
+    rmse = pe.rmse
     assert f"| {rmse:.3f} |" in rows[1]
     assert "*paper: EKF without fusion*" in other
     beside = json.loads(Path(paths["beside"]).read_text())
