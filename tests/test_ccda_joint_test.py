@@ -185,28 +185,30 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
         # The corrupted match, fused, does not converge and says so.
         warnings.simplefilter("ignore", RuntimeWarning)
         res = run_ekf(log, cfg, fusion=True)
-    assert sum(res.ccda_reasons.values()) == res.ccda_attempts == len(swap.calls)
+    assert res.matching is not None
+    reasons = res.matching.reasons
+    assert sum(reasons.values()) == res.matching.attempts == len(swap.calls)
     assert res.anchor is not None
     wrong = [(t, kid) for t, kid in res.anchor.pairings if t != kid]
     if not joint_test:
-        assert JOINTLY_INCONSISTENT not in res.ccda_reasons
-        assert res.ccda_refused == ()
-        assert res.ccda_excluded == ()
+        assert JOINTLY_INCONSISTENT not in reasons
+        assert res.details.ccda_refused == ()
+        assert res.details.ccda_excluded == ()
         assert len(wrong) == 1
         return
-    assert res.ccda_reasons[JOINTLY_INCONSISTENT] == 1
-    ((step, c2, dof),) = res.ccda_refused
+    assert reasons[JOINTLY_INCONSISTENT] == 1
+    ((step, c2, dof),) = res.details.ccda_refused
     assert c2 > chi2_gate(cfg.data_association.gate_prob, dof)
     assert wrong == []
     if exclusions == 0:
         # Refused as it stands; a correct match comes at a later attempt.
-        assert res.ccda_excluded == ()
+        assert res.details.ccda_excluded == ()
         assert res.anchor.accepted_at_step > step
         return
     # The swapped pairing fails its own test; CCDA runs again at once on the same map
     # less exactly that feature, and its match is accepted at the same step.
     assert swap.row_differs
-    assert res.ccda_excluded == ((step, swap.known_id),)
+    assert res.details.ccda_excluded == ((step, swap.known_id),)
     assert res.anchor.accepted_at_step == step
     first, rerun = swap.calls[-2:]
     assert swap.feature in first
