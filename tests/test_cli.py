@@ -21,6 +21,9 @@ from tests.synthetic import synthetic_log
 
 ROOT = Path(__file__).resolve().parents[1]
 
+#: The error of a graph-only option given for the EKF alone.
+GRAPH_ONLY = "no option of ekf takes it (the graph backends do)"
+
 
 @pytest.fixture(scope="module")
 def log_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -95,23 +98,23 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     [
         (["run", "{npz}", "--backend", "batch", "--robust", "tukey"], "--robust: unknown robust"),
         (["run", "{npz}", "--backend", "batch", "--robust", "huber:-1"], "must be > 0"),
-        (["run", "{npz}", "--robust", "huber"], "only for the graph backends"),
-        (["run", "{npz}", "--association", "truth"], "only for the graph backends"),
-        (["run", "{npz}", "--backend", "ekf", "--robust", "huber"], "only for the graph"),
-        (["run", "{npz}", "--backend", "ekf", "--association", "own"], "only for the graph"),
+        (["run", "{npz}", "--robust", "huber"], GRAPH_ONLY),
+        (["run", "{npz}", "--association", "truth"], GRAPH_ONLY),
+        (["run", "{npz}", "--backend", "ekf", "--robust", "huber"], GRAPH_ONLY),
+        (["run", "{npz}", "--backend", "ekf", "--association", "own"], GRAPH_ONLY),
         (["run", "{npz}", "--seed", "3"], "--seed does not apply to a saved log"),
         (["run", "loop600", "--data", "{tmp}"], "--data applies to carpark and victoria-park"),
         (["run", "carpark"], "needs a data directory"),
         (["run", "carpark", "--data", "{tmp}/none"], "is not a directory"),
         (["run", "victoria-park", "--data", "{tmp}", "--seed", "1"], "--seed does not apply"),
         (["run", "{npz}", "--steps", "0"], "--steps must be >= 1"),
-        (["run", "{npz}", "--export-graph"], "--export-graph: only for the graph backends"),
+        (["run", "{npz}", "--export-graph"], "--export-graph: the ekf estimator holds no factor"),
         (["run", "{npz}", "--backend", "nope"], "unknown estimator 'nope'"),
         (["run", "{tmp}/missing.npz"], "does not exist"),
         (["run", "no-such-scenario"], "no-such-scenario"),
-        (["compare", "{npz}", "--backends", "ekf", "--robust", "huber"], "only for the graph"),
+        (["compare", "{npz}", "--backends", "ekf", "--robust", "huber"], GRAPH_ONLY),
         (["compare", "{npz}", "--backends", "batch", "--robust", "x"], "unknown robust kernel"),
-        (["compare", "{npz}", "--backends", "ekf", "--association", "own"], "only for the graph"),
+        (["compare", "{npz}", "--backends", "ekf", "--association", "own"], GRAPH_ONLY),
         (["compare", "{npz}", "--backends", "ekf,nope"], "unknown estimator 'nope'"),
         (["compare", "{npz}", "--backends", "ekf,ekf"], "distinct names"),
         (["compare", "{npz}", "--seed", "1"], "--seed does not apply"),
