@@ -23,6 +23,9 @@ from mapfuse_core.models import (
     line_observation_cov,
     line_residual,
     line_residual_cov,
+    observe,
+    pairing_cov,
+    pairing_residual,
 )
 from tests.jacobians import ATOL, RTOL, angle, circles, coord, numerical_jacobian, poses
 
@@ -238,22 +241,18 @@ def test_circle_observation_jacobians(X: np.ndarray, C: np.ndarray, z: np.ndarra
 
 @given(T=poses(), Z=poses(), X=poses())
 def test_features_dispatch_to_the_models(T: np.ndarray, Z: np.ndarray, X: np.ndarray) -> None:
-    for a, b in zip(
-        ft.pairing_residual(ft.FeatureKind.LINE, T, Z), line_residual(T, Z), strict=True
-    ):
+    for a, b in zip(pairing_residual(ft.FeatureKind.LINE, T, Z), line_residual(T, Z), strict=True):
         np.testing.assert_array_equal(a, b)
-    for a, b in zip(
-        ft.observe(ft.FeatureKind.LINE, Z, X, T), line_observation(X, T, Z), strict=True
-    ):
+    for a, b in zip(observe(ft.FeatureKind.LINE, Z, X, T), line_observation(X, T, Z), strict=True):
         np.testing.assert_array_equal(a, b)
     C, c = np.array([T[0], T[1], 0.4]), np.array([Z[0], Z[1], 0.5])
     for a, b in zip(
-        ft.observe(ft.FeatureKind.CIRCLE, c, X, C), circle_observation(X, C, c), strict=True
+        observe(ft.FeatureKind.CIRCLE, c, X, C), circle_observation(X, C, c), strict=True
     ):
         np.testing.assert_array_equal(a, b)
     cov = _segment_cov(Z, 4.0, 1e-4, 4e-6)
     np.testing.assert_array_equal(
-        ft.pairing_cov(ft.FeatureKind.LINE, T, Z, cov), line_residual_cov(T, Z, cov)
+        pairing_cov(ft.FeatureKind.LINE, T, Z, cov), line_residual_cov(T, Z, cov)
     )
 
 
