@@ -25,6 +25,7 @@ from mapfuse_core.data.datasets import (
     load_carpark,
     load_victoria_park,
 )
+from mapfuse_core.estimate import PositionError
 from mapfuse_core.measlog import MeasurementLog
 
 pytestmark = pytest.mark.slow
@@ -35,26 +36,26 @@ def carpark_comparison(data_dir: Path) -> Comparison:
     return compare(load_carpark(data_dir))
 
 
-def _gps(c: Comparison, backend: str, fusion: bool) -> dict[str, float]:
-    block = c.run(backend, fusion).metrics["position_error_m"]
+def _gps(c: Comparison, backend: str, fusion: bool) -> PositionError:
+    block = c.get(backend, fusion).metrics.position_error
     assert block is not None
-    assert block["reference"] == "gps"
-    assert block["alignment"] == ("anchor" if fusion else "best_fit")
-    return dict(block)
+    assert block.reference == "gps"
+    assert block.alignment == ("anchor" if fusion else "best_fit")
+    return block
 
 
 def test_carpark_ccda_finds_the_start_with_correct_pairings(
     carpark_comparison: Comparison,
 ) -> None:
-    anchor = carpark_comparison.run("ekf", True).metrics["anchor"]
+    anchor = carpark_comparison.get("ekf", True).metrics.anchor
     # 8 pairings at step 79, all on the beacon their detections' GPS label names.
     assert anchor is not None
-    assert anchor["pairings"] >= 4
-    assert anchor["correct_pairings"] == anchor["pairings"]
+    assert anchor.pairings >= 4
+    assert anchor.correct_pairings == anchor.pairings
     # The start (laser at the first scan) in the GPS frame; the first fix is 4.9 cm away.
     first_fix = carpark_comparison.log.gps_xy
     assert first_fix is not None
-    assert math.hypot(*(np.array(anchor["estimate"][:2]) - first_fix[0])) < 0.15
+    assert math.hypot(*(np.array(anchor.estimate[:2]) - first_fix[0])) < 0.15
 
 
 @pytest.mark.parametrize("backend", ["ekf", "batch", "isam2"])
@@ -64,9 +65,10 @@ def test_carpark_fusion_beats_slam_alone_against_gps(
     fused, alone = _gps(carpark_comparison, backend, True), _gps(carpark_comparison, backend, False)
     # Medians (m): EKF 0.064 vs 0.115; batch and iSAM2 0.055 vs 0.071 — although the
     # unfused runs are favoured by a best-fit alignment to GPS.
-    assert fused["median"] <= 0.15
-    assert fused["median"] < alone["median"]
-    assert fused["fixes"] > 600
+    assert fused.median <= 0.15
+    assert fused.median < alone.median
+    assert fused.fixes is not None
+    assert fused.fixes > 600
 
 
 def test_carpark_smoothing_matches_and_isam2_agrees_with_batch(
@@ -77,10 +79,11 @@ def test_carpark_smoothing_matches_and_isam2_agrees_with_batch(
     isam2 = _gps(carpark_comparison, "isam2", True)
     # Smoothing: RMSE 0.074 m against the EKF's 0.112 m (the EKF's worst moment is the
     # full-lock turn with one pole in view that the smoother repairs afterwards).
-    assert batch["rmse"] < ekf["rmse"]
-    assert isam2["median"] == pytest.approx(batch["median"], abs=0.005)
-    filt = carpark_comparison.run("isam2", True).metrics["position_error_filtered_m"]
-    assert filt["median"] <= 0.15
+    assert batch.rmse < ekf.rmse
+    assert isam2.median == pytest.approx(batch.median, abs=0.005)
+    filt = carpark_comparison.get("isam2", True).metrics.position_error_filtered
+    assert filt is not None
+    assert filt.median <= 0.15
 
 
 def test_carpark_report_and_figures(carpark_comparison: Comparison, tmp_path: Path) -> None:
@@ -152,11 +155,12 @@ def victoria_head(data_dir: Path) -> MeasurementLog:
 
 def test_victoria_ekf_follows_gps_past_t_300s(victoria_head: MeasurementLog) -> None:
     result = run(victoria_head, "ekf", fusion=False)
-    m = result.metrics["position_error_m"]
-    assert m["alignment"] == "best_fit"
+    m = result.metrics.position_error
+    assert m is not None
+    assert m.alignment == "best_fit"
     # GPS itself jumps by metres; without the calibration the run is metres off from
     # t = 300 s on (docs/victoria-park-calibration.md).
-    assert m["median"] < 1.2
+    assert m.median < 1.2
     t, e = gps_errors(result)
     late = (t >= 300.0) & (t <= 450.0)
     assert late.sum() > 100
@@ -169,7 +173,7 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir:
     (VICTORIA_PARK_ODOMETRY_NOISE) the closures turn both ways and the park's north-west
     arm follows GPS (figures without the slip: docs/victoria-park-calibration.md)."""
     result = run(load_victoria_park(data_dir), "ekf", fusion=False)
-    closures = result.result.extras["ekf"].loop_closures
+    closures = result.result.details.loop_closures
     rot = np.degrees([lc.correction[2] for lc in closures])
     # 0.3° is a sixth of the systematic turn 1 cm/√m of slip leaves, and about 1.3
     # standard errors of a mean of 6 closures.  A regression guard: the slip is chosen
@@ -183,11 +187,12 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir:
         assert 0 < lc.pairings <= lc.inliers
         assert lc.correction.shape == (3,)
         assert not lc.correction.flags.writeable
-    m = result.metrics["position_error_m"]
+    m = result.metrics.position_error
+    assert m is not None
     # GPS itself jumps by metres.  Not an independent check of the slip: GPS is what
     # shows the arm, but the value is chosen without it.
-    assert m["median"] < 1.0
-    assert m["alignment"] == "best_fit"
+    assert m.median < 1.0
+    assert m.alignment == "best_fit"
     t, e = gps_errors(result)
     arm = (t > 1285.0) & (t < 1335.0)  # the arm's tip
     assert arm.sum() > 100
