@@ -14,7 +14,6 @@ import json
 import time
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse.estimators.ekf import to_result
 from mapfuse.metrics import run_metrics
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
@@ -38,7 +37,7 @@ def main() -> None:
                 res = run_ekf(log, EKFConfig(local_map_steps=size), fusion=fusion)
                 walls.append(time.perf_counter() - t0)
             wall = min(walls)
-            m = run_metrics(to_result(res, log), log)
+            m = run_metrics(res, log).to_json()
             rows.append(
                 {
                     "fusion": fusion,
