@@ -8,7 +8,7 @@ miss it too (``--estimators``, comma-separated):
 * ``ekf`` — the EKF reference as configured by default (the paper's local maps);
 * ``ekf_carry`` — the same with ``EKFConfig(carry_seen_steps=1)``: every local map
   starts with the global features seen at the last step, shared as the known map is;
-* ``filter`` — iSAM2's filtered estimate (``GraphResult.filtered_poses``) on the same
+* ``filter`` — iSAM2's filtered estimate (the result's ``filtered`` track) on the same
   log and the default EKF's association decisions;
 * ``batch`` — the batch smoother on the same inputs (its anchor uses every step);
 * ``draw`` — the known-map draw alone: where an ideal estimator would put the anchor
@@ -35,11 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from ekf_reference import AnchorResult, EKFConfig, EKFResult, run_ekf
-from mapfuse.estimators.ekf import to_result
+from ekf_reference import EKFConfig, run_ekf
 from mapfuse.metrics import run_metrics
 from mapfuse.runner import run
-from mapfuse_core.estimate import Anchor
+from mapfuse_core.estimate import Anchor, EstimatorResult
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     anchor_truth,
@@ -70,8 +69,8 @@ CRITERIA = {
 }
 
 
-def _ekf_metrics(res: EKFResult, log: MeasurementLog) -> dict[str, Any]:
-    return run_metrics(to_result(res, log), log)
+def _ekf_metrics(res: EstimatorResult, log: MeasurementLog) -> dict[str, Any]:
+    return run_metrics(res, log).to_json()
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -110,7 +109,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
     assert log.true_poses is not None
     truth = anchor_truth(log.true_poses)
 
-    def anchor_nees(a: AnchorResult | Anchor | None) -> float | None:
+    def anchor_nees(a: Anchor | None) -> float | None:
         if a is None:
             return None
         dx = pose_errors(a.x_Wknown_Wglobal[None], truth[None]).dx
@@ -146,12 +145,10 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
             }
         }
     if "filter" in estimators:
-        upstream = to_result(default_fused, log)
-        g = run(log, "isam2", fusion=True, upstream=upstream).result.extras["graph"]
-        assert g.filtered_poses is not None
-        assert g.filtered_covs is not None
-        dx = pose_errors(g.filtered_poses, truth_in_global(log.true_poses)).dx
-        nees = nees_series(dx, g.filtered_covs)[1:]
+        g = run(log, "isam2", fusion=True, upstream=default_fused).result.filtered
+        assert g is not None
+        dx = pose_errors(g.poses, truth_in_global(log.true_poses)).dx
+        nees = nees_series(dx, g.covs)[1:]
         nees = nees[np.isfinite(nees)]
         row["filter"] = {
             "fused": {
@@ -161,8 +158,8 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
             }
         }
     if "batch" in estimators:
-        batch = run(log, "batch", fusion=True, upstream=to_result(default_fused, log))
-        m = batch.metrics
+        batch = run(log, "batch", fusion=True, upstream=default_fused)
+        m = batch.metrics.to_json()
         row["batch"] = {
             "fused": {
                 "max_m": m["position_error_m"]["max"],
