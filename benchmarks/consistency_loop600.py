@@ -53,7 +53,7 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
         raise ValueError("the log has no true poses: a simulated run is needed")
     ekf = run(log, "ekf", fusion=True)
     batch = run(log, "batch", fusion=True, upstream=ekf.result, joint_stride=stride)
-    joint = batch.result.extras["graph"].joint_pose_cov
+    joint = batch.result.details.joint_pose_cov
     assert joint is not None
     steps = joint.steps
     truth = truth_in_global(log.true_poses)
@@ -65,6 +65,8 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
     within = np.mean(drawn_nees <= CHI2_3_95, axis=1)
     max_pos = np.max(np.hypot(e[:, :, 0], e[:, :, 1]), axis=1)
     m_ekf = ekf.metrics
+    assert m_ekf.nees is not None
+    assert m_ekf.position_error is not None
     anchor: dict[str, Any] = {}
     for name, a in (("ekf", ekf.result.anchor), ("batch", batch.result.anchor)):
         if a is None:
@@ -95,8 +97,8 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
             "p_max_position_error_above_0_15": round(float(np.mean(max_pos > 0.15)), 4),
         },
         "ekf": {
-            "fraction_within": round(m_ekf["nees"]["fraction_within_chi2_95"], 4),
-            "max_position_error_m": round(m_ekf["position_error_m"]["max"], 4),
+            "fraction_within": round(m_ekf.nees.fraction_within_chi2_95, 4),
+            "max_position_error_m": round(m_ekf.position_error.max, 4),
         },
         "anchor": anchor,
     }
