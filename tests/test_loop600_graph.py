@@ -17,7 +17,6 @@ import pytest
 from scipy.stats import chi2
 
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse.estimators.ekf import to_result
 from mapfuse.runner import Run, run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
@@ -48,7 +47,7 @@ def _batch(seed: int) -> Run:
         log,
         "batch",
         fusion=True,
-        upstream=to_result(loop600_ekf(seed, True), log),
+        upstream=loop600_ekf(seed, True),
         joint_stride=JOINT_STRIDE,
     )
 
@@ -71,7 +70,7 @@ def test_pooled_smoothed_nees_is_within_its_interval() -> None:
     parts, series = [], []
     for s in SEEDS:
         b = _batch(s)
-        joint = b.result.extras["graph"].joint_pose_cov
+        joint = b.result.details.joint_pose_cov
         assert joint is not None
         truth = loop600_log(s).true_poses
         assert truth is not None
@@ -98,7 +97,9 @@ def test_smoothing_is_more_accurate_than_filtering_pooled() -> None:
     sq_batch = sq_ekf = 0.0
     ratios = []
     for s in SEEDS:
-        b = _batch(s).metrics["position_error_m"]["rmse"]
+        pe = _batch(s).metrics.position_error
+        assert pe is not None
+        b = pe.rmse
         f = ekf_metrics(loop600_ekf(s, True), loop600_log(s))["position_error_m"]["rmse"]
         sq_batch += b * b
         sq_ekf += f * f
@@ -118,15 +119,16 @@ def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
     smoother with fusion meets it on every seed, also where the EKF does not (seeds 2
     and 4, xfail in test_loop600_ekf.py): their misses are the EKF's, not the data's.
     """
-    m = _batch(seed).metrics["position_error_m"]
+    m = _batch(seed).metrics.position_error
+    assert m is not None
     # Measured: 0.091, 0.073, 0.089, 0.099, 0.112 m (EKF 0.084, 0.121, 0.151, 0.103,
     # 0.175); the largest is at the sparse north-east corner, steps 450–600.
-    assert m["max"] <= 0.15, m
+    assert m.max <= 0.15, m
 
 
 # ------------------------------------------------------------ filter against filter
 # The smoother above sees the future; a filter is the closer yardstick for the EKF.
-# iSAM2's estimate of X_k right after update k (GraphResult.filtered_poses) uses the
+# iSAM2's estimate of X_k right after update k (the result's filtered track) uses the
 # measurements of steps 0..k, relinearised, with the EKF's inputs.  Its associations
 # are the EKF's *final* decisions applied from each feature's first sighting, so it
 # knows at once what the EKF learns only at its next join.
@@ -135,7 +137,7 @@ def test_the_logs_support_the_papers_fused_max_error(seed: int) -> None:
 @functools.lru_cache(maxsize=5)
 def _isam2(seed: int) -> Run:
     log = loop600_log(seed)
-    return run(log, "isam2", fusion=True, upstream=to_result(loop600_ekf(seed, True), log))
+    return run(log, "isam2", fusion=True, upstream=loop600_ekf(seed, True))
 
 
 def _filtered(seed: int) -> tuple[float, np.ndarray]:
@@ -143,14 +145,12 @@ def _filtered(seed: int) -> tuple[float, np.ndarray]:
 
     Step 0 and non-finite values are left out of the NEES as ``ekf_metrics`` does (the
     EKF's step-0 covariance is zero; the graph's is its tiny prior's)."""
-    g = _isam2(seed).result.extras["graph"]
+    g = _isam2(seed).result.filtered
     truth = loop600_log(seed).true_poses
     assert g is not None
-    assert g.filtered_poses is not None
-    assert g.filtered_covs is not None
     assert truth is not None
-    dx = pose_errors(g.filtered_poses, truth_in_global(truth)).dx
-    nees = nees_series(dx, g.filtered_covs)[1:]
+    dx = pose_errors(g.poses, truth_in_global(truth)).dx
+    nees = nees_series(dx, g.covs)[1:]
     return float(np.hypot(dx[:, 0], dx[:, 1]).max()), nees[np.isfinite(nees)]
 
 
@@ -239,8 +239,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     log = with_known(log, walls)
     ekf = run_ekf(log, EKFConfig(), fusion=True)
     assert ekf.anchor is not None
-    graph = run(log, "batch", fusion=True, upstream=to_result(ekf, log)).result.extras["graph"]
-    assert graph is not None
+    graph = run(log, "batch", fusion=True, upstream=ekf).result
     assert graph.anchor is not None
     ratio = np.sqrt(np.diag(ekf.anchor.cov) / np.diag(graph.anchor.cov))
     nees = _anchor_nees(ekf.anchor.x_Wknown_Wglobal, ekf.anchor.cov, seed, log)
