@@ -5,7 +5,7 @@ Not a speed benchmark: the study behind ``VICTORIA_PARK_ODOMETRY_NOISE`` and
 ``VictoriaParkOptions.bearing_offset_rad`` (``docs/victoria-park-calibration.md``).  For
 each setting the whole run goes through the EKF as ``mapfuse run victoria-park`` runs it
 (``mapfuse.runner.run``; without fusion, which is the same on a log with no known map), and the
-rotations of its loop closures (``EKFResult.loop_closures``) are summarised.  Anything
+rotations of its loop closures (``EKFDetails.loop_closures``) are summarised.  Anything
 that makes every map the car builds on new ground turn the same way (a yaw error of the
 laser, or a motion model that meets sideways motion only with turns) makes the closures
 rotate with one sign when the car comes back; the setting is chosen where their mean is
@@ -45,9 +45,9 @@ def _row(data: str, slip: float, offset: float) -> dict[str, Any]:
     t0 = time.process_time()
     done = run(log, "ekf", fusion=False)
     cpu = time.process_time() - t0
-    res = done.result.extras["ekf"]
-    rot = np.degrees([lc.correction[2] for lc in res.loop_closures])
-    gps = run.metrics["position_error_m"] or {}
+    res = done.result
+    rot = np.degrees([lc.correction[2] for lc in res.details.loop_closures])
+    gps = done.metrics.position_error
     return {
         "slip_m_per_sqrt_m": slip,
         "bearing_offset_rad": offset,
@@ -60,10 +60,10 @@ def _row(data: str, slip: float, offset: float) -> dict[str, Any]:
         ),
         "rotations_positive": int((rot > 0).sum()),
         "rotations_deg": [round(float(r), 3) for r in rot],
-        "map_features": int(res.global_map.n_obs.size),
+        "map_features": int(res.map.n_obs.size),
         "cpu_time_s": round(cpu, 1),
-        "gps_median_m_for_the_record": round(gps.get("median", float("nan")), 3),
-        "gps_rmse_m_for_the_record": round(gps.get("rmse", float("nan")), 3),
+        "gps_median_m_for_the_record": round(gps.median if gps else float("nan"), 3),
+        "gps_rmse_m_for_the_record": round(gps.rmse if gps else float("nan"), 3),
     }
 
 
