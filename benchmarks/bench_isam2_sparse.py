@@ -30,7 +30,7 @@ import argparse
 import json
 import os
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -63,11 +63,11 @@ def _dist_ms(t: np.ndarray) -> dict[str, float]:
 
 
 def _best(
-    log: MeasurementLog, backend: str, repeat: int, common: dict[str, Any]
+    log: MeasurementLog, backend: Literal["batch", "isam2"], repeat: int, common: dict[str, Any]
 ) -> EstimatorResult:
     best: EstimatorResult | None = None
     for _ in range(repeat):
-        init = "odometry" if backend == "batch" else "auto"
+        init: Literal["odometry", "auto"] = "odometry" if backend == "batch" else "auto"
         r = run_graph(log, backend, init=init, **common)
         if best is None or r.details.total_cpu_s < best.details.total_cpu_s:
             best = r
