@@ -51,7 +51,6 @@ import numpy as np
 
 import mapfuse_core.matching.ccda as ccda_pkg
 from ekf_reference import EKFConfig, run_ekf
-from mapfuse.estimators.ekf import to_result
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
@@ -384,17 +383,19 @@ def _guarded(fn: Callable[[], EstimatorResult]) -> EstimatorResult | str:
 def _run_ekf(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     calls: list[Call] = []
     with recording(calls):
-        res = _guarded(lambda: to_result(run_ekf(log, EKFConfig(), fusion=True), log))
+        res = _guarded(lambda: run_ekf(log, EKFConfig(), fusion=True))
     return calls, res
 
 
 def _run_graph_own(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     import mapfuse_graph.own_association  # noqa: F401  (loads gtsam; patched below)
-    from mapfuse.runner import run
+    from mapfuse.runner import estimate
 
     calls: list[Call] = []
     with recording(calls):
-        res = _guarded(lambda: run(log, "isam2", fusion=True, association="own").result)
+        # No planning: the graph decides alone, no EKF runs first (its calls would be
+        # recorded as the graph's).
+        res = _guarded(lambda: estimate(log, "isam2", fusion=True, association="own"))
     return calls, res
 
 
