@@ -342,8 +342,8 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
         truth = truth_in_global(raw.true_poses)
         r_plan = run_ekf(log, EKFConfig(data_association=assoc))
         r_none = run_ekf(log, EKFConfig(data_association=assoc), fusion=False)
-        rmse_plan.append(pose_metrics(r_plan.poses, r_plan.covs, truth)["position_error_m"]["rmse"])
-        rmse_none.append(pose_metrics(r_none.poses, r_none.covs, truth)["position_error_m"]["rmse"])
+        rmse_plan.append(pose_metrics(r_plan.poses, r_plan.covs, truth)[0].rmse)
+        rmse_none.append(pose_metrics(r_none.poses, r_none.covs, truth)[0].rmse)
         if r_plan.anchor is None:
             continue
         accepted += 1
