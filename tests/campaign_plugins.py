@@ -27,6 +27,7 @@ class _ToyVariant(DeadReckoning):
         options: DeadReckoningOptions,
         *,
         fusion: bool,
+        upstream: EstimatorResult | None = None,
         progress: Any = None,
     ) -> EstimatorResult:
         self.before(log)
