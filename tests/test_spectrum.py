@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapfuse.campaign.spec import parse_seeds
 from mapfuse.spectrum import (
     SpectrumResult,
     SpectrumRow,
     parse_lags,
-    parse_seeds,
     plot_spectrum,
     spectrum,
     spectrum_markdown,
@@ -42,13 +42,22 @@ def test_parse_lags_rejects_bad_lags(text: str, msg: str) -> None:
 
 def test_parse_seeds_takes_ranges_and_lists() -> None:
     assert parse_seeds("0-3") == (0, 1, 2, 3)
-    assert parse_seeds("4,1,1,7") == (4, 1, 7)
+    assert parse_seeds("4,1,7") == (4, 1, 7)
     assert parse_seeds("2") == (2,)
 
 
-@pytest.mark.parametrize("text", ["3-1", "a", "-2", ""])
-def test_parse_seeds_rejects_bad_seeds(text: str) -> None:
-    with pytest.raises(ValueError, match="--seeds"):
+@pytest.mark.parametrize(
+    ("text", "msg"),
+    [
+        ("3-1", "runs backwards"),
+        ("a", "seeds must look like"),
+        ("-2", "seeds must look like"),
+        ("", "seeds must look like"),
+        ("4,1,1,7", "seeds repeat"),
+    ],
+)
+def test_parse_seeds_rejects_bad_seeds(text: str, msg: str) -> None:
+    with pytest.raises(ValueError, match=msg):
         parse_seeds(text)
 
 
@@ -70,6 +79,7 @@ def test_spectrum_runs_ekf_fixedlag_and_batch(log_path: str) -> None:
         ("fixedlag", math.inf),
         ("batch", math.inf),
     ]
+    assert [r.role for r in res.rows] == ["filter", "window", "window", "window", "smoother"]
     by = {(r.estimator, r.lag_s): r for r in res.rows}
     inf_row, batch = by[("fixedlag", math.inf)], by[("batch", math.inf)]
     assert inf_row.mean_rmse_m == pytest.approx(batch.mean_rmse_m, rel=0.02)
@@ -146,8 +156,10 @@ def test_spectrum_refuses_bad_execution_settings(
 def test_plot_spectrum_draws_on_the_given_axes() -> None:
     from matplotlib.figure import Figure
 
+    roles = {"ekf": "filter", "fixedlag": "window", "batch": "smoother"}
+
     def row(est: str, lag: float, rmse: float, nees: float) -> SpectrumRow:
-        return SpectrumRow(est, lag, (rmse,), (nees,), ((2.0, 4.0),), (1.0,))
+        return SpectrumRow(est, roles[est], lag, (rmse,), (nees,), ((2.0, 4.0),), (1.0,))  # type: ignore[arg-type]
 
     res = SpectrumResult(
         "toy",
@@ -198,3 +210,7 @@ def test_cli_spectrum_reports_bad_lags(
 
     assert main(["spectrum", log_path, "--lags", "0,soon", "--out", str(tmp_path)]) == 2
     assert "'soon' is not a number" in capsys.readouterr().err
+    # The one seed parser: a repeated seed is an error too.
+    argv = ["spectrum", "loop600", "--lags", "0", "--seeds", "1,1", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    assert "seeds repeat in '1,1'" in capsys.readouterr().err
