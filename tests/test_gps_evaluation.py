@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,7 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.stats import chi2 as scipy_chi2
 
-from mapfuse.metrics import build_metrics
+from mapfuse.metrics import run_metrics
+from mapfuse_core.estimate import Anchor, EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.evaluation import (
     gps_position_metrics,
     integrated_autocorrelation_time,
@@ -19,6 +21,7 @@ from mapfuse_core.evaluation import (
     rigid_alignment,
 )
 from mapfuse_core.geometry.se2 import compose, wrap_scalar
+from tests.synthetic import synthetic_log
 
 
 def _track(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
@@ -79,53 +82,60 @@ def test_anchor_and_best_fit_alignments() -> None:
     )[:, :2]
     exact = gps_position_metrics(t, poses, gps_t, truth, anchor)
     assert exact is not None
-    assert exact["alignment"] == "anchor"
-    assert exact["fixes"] == int(inside.sum())
-    assert exact["max"] < 1e-9
+    assert exact.alignment == "anchor"
+    assert exact.fixes == int(inside.sum())
+    assert exact.max < 1e-9
     # A wrong anchor shows as error; the best fit absorbs any rigid error by design.
     wrong = gps_position_metrics(t, poses, gps_t, truth, anchor + np.array([0.3, 0.0, 0.0]))
     assert wrong is not None
-    assert wrong["median"] == pytest.approx(0.3, abs=1e-9)
+    assert wrong.median == pytest.approx(0.3, abs=1e-9)
     fit = gps_position_metrics(t, poses, gps_t, truth, None)
     assert fit is not None
-    assert fit["alignment"] == "best_fit"
-    assert fit["max"] < 1e-9
-    np.testing.assert_allclose(fit["x_gps_Wglobal"], anchor, atol=1e-9)
+    assert fit.alignment == "best_fit"
+    assert fit.max < 1e-9
+    assert fit.x_gps_Wglobal is not None
+    np.testing.assert_allclose(fit.x_gps_Wglobal, anchor, atol=1e-9)
     # NaN fixes are skipped, not propagated.
     holed = truth.copy()
     holed[50] = np.nan
     m = gps_position_metrics(t, poses, gps_t, holed, anchor)
     assert m is not None
-    assert m["fixes"] == exact["fixes"] - 1
+    assert exact.fixes is not None
+    assert m.fixes == exact.fixes - 1
     assert gps_position_metrics(t, poses, gps_t[:1], truth[:1], anchor) is None
 
 
-def test_build_metrics_uses_gps_without_truth() -> None:
-    t, poses = _track()
+def test_run_metrics_use_gps_without_truth() -> None:
+    base = synthetic_log(200, 0)
+    t = np.asarray(base.timestamps, dtype=float)
+    _, poses = _track(base.n_steps)
     anchor = np.array([1.0, 2.0, 0.3])
     gps_xy = np.array([compose(anchor, p)[:2] for p in poses]) + 0.1
-    common = {
-        "scenario": "real",
-        "seed": -1,
-        "backend": "ekf",
-        "fusion": True,
-        "poses": poses,
-        "covs": np.tile(np.eye(3), (poses.shape[0], 1, 1)),
-        "true_poses": None,
-        "step_time_s": np.full(poses.shape[0], 1e-3),
-        "map_features": 0,
-        "matched_known": 0,
-    }
-    block = {"estimate": anchor.tolist()}
-    m = build_metrics(**common, anchor=block, timestamps=t, gps=(t, gps_xy))
-    assert m["position_error_m"]["alignment"] == "anchor"
-    assert m["position_error_m"]["median"] == pytest.approx(0.1 * math.sqrt(2.0), rel=1e-9)
-    assert m["heading_error_rad"] is None
-    assert m["nees"] is None
-    m = build_metrics(**common, anchor=None, timestamps=t, gps=(t, gps_xy))
-    assert m["position_error_m"]["alignment"] == "best_fit"
-    assert m["position_error_m"]["max"] < 1e-9
-    assert build_metrics(**common, anchor=None)["position_error_m"] is None
+    # A real-data-like log: no truth, a GPS fix at every step.
+    real = dataclasses.replace(base, true_poses=None, world=None, gps_times=t, gps_xy=gps_xy)
+    result = EstimatorResult(
+        estimator="ekf",
+        scenario="real",
+        seed=-1,
+        fusion=True,
+        timestamps=t,
+        step_time_s=np.full(poses.shape[0], 1e-3),
+        map=MapEstimate.empty(),
+        filtered=PoseTrack(poses, np.tile(np.eye(3), (poses.shape[0], 1, 1))),
+        anchor=Anchor(anchor, 1e-4 * np.eye(3), 0, ()),
+    )
+    m = run_metrics(result, real)
+    assert m.position_error is not None
+    assert m.position_error.alignment == "anchor"
+    assert m.position_error.median == pytest.approx(0.1 * math.sqrt(2.0), rel=1e-9)
+    assert m.heading_error is None
+    assert m.nees is None
+    m = run_metrics(dataclasses.replace(result, anchor=None), real)
+    assert m.position_error is not None
+    assert m.position_error.alignment == "best_fit"
+    assert m.position_error.max < 1e-9
+    no_gps = dataclasses.replace(real, gps_times=None, gps_xy=None)
+    assert run_metrics(dataclasses.replace(result, anchor=None), no_gps).position_error is None
 
 
 # --------------------------------------------------------------------------- NEES interval
@@ -161,7 +171,7 @@ def test_nees_interval_widens_with_correlation_and_covers_consistent_runs() -> N
         e = np.column_stack([_ar1(0.99, 2000, seed=1000 * seed + i) for i in range(3)])
         e *= math.sqrt(1.0 - 0.99**2)  # unit variance per component
         nees = np.sum(e * e, axis=1)
-        lo, hi = nees_mean_interval(nees)["interval_95"]
+        lo, hi = nees_mean_interval(nees).interval_95
         misses += not lo <= nees.mean() <= hi
         naive = (scipy_chi2.ppf(0.025, 3 * 2000) / 2000, scipy_chi2.ppf(0.975, 3 * 2000) / 2000)
         misses_naive += not naive[0] <= nees.mean() <= naive[1]
