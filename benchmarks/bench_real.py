@@ -35,7 +35,8 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
         result = run(log, backend, fusion=fusion, upstream=upstream)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     m = result.metrics
-    pos = m["position_error_m"] or {}
+    pos = m.position_error
+    nan = float("nan")
     row: dict[str, Any] = {
         "dataset": log.scenario,
         "steps": log.n_steps,
@@ -43,13 +44,13 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
         "fusion": fusion,
         "wall_time_s": round(wall, 2),
         "cpu_time_s": round(cpu, 2),
-        "backend_runtime_s": round(m["runtime_s"]["total"], 2),
-        "per_step_p50_ms": round(1e3 * m["runtime_s"]["per_step_p50"], 2),
-        "per_step_p99_ms": round(1e3 * m["runtime_s"]["per_step_p99"], 2),
-        "gps_median_m": round(pos.get("median", float("nan")), 3),
-        "gps_rmse_m": round(pos.get("rmse", float("nan")), 3),
-        "gps_alignment": pos.get("alignment"),
-        "map_features": m["map"]["features"],
+        "backend_runtime_s": round(m.runtime.total, 2),
+        "per_step_p50_ms": round(1e3 * m.runtime.per_step_p50, 2),
+        "per_step_p99_ms": round(1e3 * m.runtime.per_step_p99, 2),
+        "gps_median_m": round(nan if pos is None else pos.median, 3),
+        "gps_rmse_m": round(nan if pos is None else pos.rmse, 3),
+        "gps_alignment": None if pos is None else pos.alignment,
+        "map_features": m.map.features,
     }
     if backend != "ekf":
         # The graph consumed the EKF's decisions: wall/cpu include the EKF run, the
@@ -57,7 +58,7 @@ def _row(log: MeasurementLog, backend: str, fusion: bool) -> dict[str, Any]:
         row["includes_ekf_for_associations"] = True
         row["ekf_wall_s"] = round(t1 - t0, 2)
         row["ekf_cpu_s"] = round(c1 - c0, 2)
-        g = result.result.extras["graph"]
+        g = result.result.details
         row["graph_wall_s"] = round(g.total_time_s, 2)
         row["graph_cpu_s"] = round(g.total_cpu_s, 2)
         row["graph_marginals_s"] = round(g.marginals_time_s, 2)

@@ -43,28 +43,33 @@ def _row(path: Path, seed: int, known_map: str, gap: float | None) -> dict[str, 
     r = run(log, "ekf", **overrides)
     cpu = time.process_time() - c0
     m = r.metrics
+    assert m.position_error is not None  # a corrected log has its reference
+    assert m.nees is not None
     row: dict[str, Any] = {
         "log": path.name,
         "seed": seed,
         "known_map": known_map,
         "line_gap_m": gap if gap is not None else carmen_association().line_gap_m,
-        "rmse_m": m["position_error_m"]["rmse"],
-        "max_m": m["position_error_m"]["max"],
-        "nees_mean": m["nees"]["mean"],
+        "rmse_m": m.position_error.rmse,
+        "max_m": m.position_error.max,
+        "nees_mean": m.nees.mean,
         "cpu_s": cpu,
     }
     res = r.result
     if res.matching is not None:
         row["ccda"] = dict(res.matching.reasons)
     if res.anchor is not None:
+        assert m.anchor is not None
+        assert m.anchor.position_error_m is not None  # against the reference
+        assert m.anchor.heading_error_rad is not None
         plan = build_floor_plan(load_carmen(path, options=CarmenOptions(seed=seed)))
         judged = [same_wall(plan, a, b) for a, b in res.anchor.pairings if a >= 0]
         row.update(
             pairings=len(res.anchor.pairings),
             judged=len(judged),
             correct=int(sum(judged)),
-            anchor_error_m=m["anchor"]["position_error_m"],
-            anchor_error_deg=math.degrees(m["anchor"]["heading_error_rad"]),
+            anchor_error_m=m.anchor.position_error_m,
+            anchor_error_deg=math.degrees(m.anchor.heading_error_rad),
         )
     return row
 
