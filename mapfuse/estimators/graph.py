@@ -72,8 +72,10 @@ class _GraphEstimator:
         upstream: EstimatorResult | None = None,
         progress: Progress | None = None,
     ) -> EstimatorResult:
-        """Build and solve the graph of ``log``, on ``upstream``'s association decisions
-        (``association="ekf"``) and initial poses (batch)."""
+        """Build and solve the graph of ``log``: with ``association="ekf"`` on
+        ``upstream``'s decisions and anchor, with ``"truth"`` on the simulator's ids and
+        ``upstream``'s anchor; batch starts from ``upstream``'s poses with either.  With
+        ``"own"`` the graph decides everything itself and ignores ``upstream``."""
         if not isinstance(options, GraphRunOptions):
             raise TypeError(
                 f"the {self.name} estimator takes GraphRunOptions, got {type(options).__name__}"
@@ -91,9 +93,10 @@ class _GraphEstimator:
             and centre_radius_correlated(log) is None
         ):
             graph = dataclasses.replace(graph, split_circles=True)
-        decisions = None
-        if upstream is not None and options.association != "own":
-            decisions = upstream.decisions
+        # "own" decides everything itself: the upstream run is neither its decisions
+        # nor its starting point.
+        given = None if options.association == "own" else upstream
+        decisions = None if given is None else given.decisions
         result = run_graph(
             log,
             cast(Backend, self.name),
@@ -104,7 +107,7 @@ class _GraphEstimator:
             lm=options.lm,
             isam2=options.isam2,
             fixedlag=options.fixedlag,
-            init_poses=None if upstream is None else upstream.poses,
+            init_poses=None if given is None else given.poses,
             progress=progress,
             joint_stride=options.joint_stride,
         )

@@ -27,5 +27,6 @@ class Anchor:
     tie of a landmark to a known feature, labelled by all the landmark's observations."""
     source: str | None = None
     """Where the anchor's value came from when the estimator can take it from elsewhere
-    (a graph backend: ``"ekf"`` the decisions it consumed, ``"fit"`` a fit to truth
-    pairings, ``"ccda"`` its own match); ``None`` when it always makes its own."""
+    (a graph backend: ``"given"`` the anchor of the decisions it was given, ``"fit"`` a
+    fit to truth pairings, ``"ccda"`` its own match); ``None`` when it always makes its
+    own."""

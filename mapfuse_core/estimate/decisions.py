@@ -1,8 +1,9 @@
 """Association decisions of a run, as data another estimator can consume.
 
 An estimator that associates observations itself (the EKF reference) hands its final
-decisions to one that consumes them (the graph backends with ``association="ekf"``)
-through :class:`AssociationDecisions`, so neither imports the other.  They are also
+decisions to one that consumes them (the graph backends, which take them as their
+``"given"`` association) through :class:`AssociationDecisions`, so neither imports the
+other.  They are also
 saved beside a run's outputs (``associations.npz``) and loaded back by
 :func:`load_associations`.
 """
