@@ -389,7 +389,7 @@ def _run_ekf(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
 
 def _run_graph_own(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     import mapfuse_graph.own_association  # noqa: F401  (loads gtsam; patched below)
-    from mapfuse.runner import estimate
+    from mapfuse.execution import estimate
 
     calls: list[Call] = []
     with recording(calls):

@@ -313,8 +313,9 @@ def record_baseline(
             raise ValueError("record_baseline on a log needs an estimator ('ekf', 'batch', ...)")
         import dataclasses
 
-        from mapfuse.plan import resolve
-        from mapfuse.runner import fusion_for, labelled, run
+        from mapfuse.execution import fusion_for
+        from mapfuse.registry import resolve
+        from mapfuse.runner import labelled, run
 
         est = resolve(estimator)
         fusion = fusion_for(source, fusion)

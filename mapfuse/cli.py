@@ -120,7 +120,7 @@ def _has_option(estimator: str, path: tuple[str, ...]) -> bool:
     """Whether ``estimator``'s default options have the (nested) field ``path``."""
     import dataclasses
 
-    from mapfuse.plan import resolve
+    from mapfuse.registry import resolve
 
     obj: Any = resolve(estimator).options_type()
     for name in path:
@@ -253,7 +253,7 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from mapfuse.outputs import write_outputs
-    from mapfuse.plan import resolve
+    from mapfuse.registry import resolve
     from mapfuse.runner import run as run_estimator
 
     estimator = resolve(args.backend)
@@ -284,8 +284,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     from mapfuse.comparison import DEFAULT_ESTIMATORS, compare, write_comparison
-    from mapfuse.plan import resolve
     from mapfuse.progress import LabelledProgress
+    from mapfuse.registry import resolve
 
     backends = list(DEFAULT_ESTIMATORS)
     if args.backends is not None:
@@ -325,7 +325,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse.baseline import record_baselines, save_baseline
-    from mapfuse.plan import resolve
+    from mapfuse.registry import resolve
 
     resolve(args.backend)
     _check_source(args, args.scenario, args.seed)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mapfuse import registry
+from mapfuse.execution import fusion_for
 from mapfuse.figures import (
     PAPER_ANCHOR_ESTIMATE,
     PAPER_ANCHOR_TRUTH,
@@ -35,8 +36,9 @@ from mapfuse.figures import (
 )
 from mapfuse.metrics import run_metrics
 from mapfuse.outputs import write_outputs
-from mapfuse.plan import RunRequest, execute, plan_runs, resolve
-from mapfuse.runner import Run, fusion_for
+from mapfuse.plan import RunRequest, execute, plan_runs
+from mapfuse.registry import resolve
+from mapfuse.runner import Run
 from mapfuse_core.estimate import RunMetrics
 from mapfuse_core.evaluation import CHI2_3_95, path_length
 from mapfuse_core.geometry.se2 import wrap_scalar

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mapfuse.execution import fusion_for
 from mapfuse.plotting import (
     draw_circle,
     draw_line_feature,
@@ -26,7 +27,7 @@ from mapfuse.plotting import (
     plot_trajectory,
     plot_world,
 )
-from mapfuse.runner import Run, fusion_for
+from mapfuse.runner import Run
 from mapfuse_core.evaluation import (
     CHI2_3_95,
     gps_error_series,

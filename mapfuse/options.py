@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from mapfuse.estimator import Estimator
-from mapfuse.plan import resolve
 from mapfuse.profiles import default_options
+from mapfuse.registry import resolve
 from mapfuse_core.measlog import MeasurementLog
 
 __all__ = ["make_options", "override_options"]

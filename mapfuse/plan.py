@@ -17,8 +17,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from mapfuse import registry
-from mapfuse.estimator import Estimator
+from mapfuse.execution import estimate
+from mapfuse.registry import resolve
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.measlog import MeasurementLog
 
@@ -28,16 +28,10 @@ __all__ = [
     "RunResult",
     "execute",
     "plan_runs",
-    "resolve",
 ]
 
 #: ``progress(label, k, n)``: run ``label`` has done ``k`` of ``n`` steps.
 LabelledProgress = Callable[[str, int, int], None]
-
-
-def resolve(estimator: str | Estimator) -> Estimator:
-    """An estimator by registered name, or the estimator itself."""
-    return registry.get(estimator) if isinstance(estimator, str) else estimator
 
 
 @dataclass(frozen=True)
@@ -159,8 +153,6 @@ def execute(
     on (its consumers then fail too, naming it).  ``given``: results already made, by
     plan index (they are not run again).
     """
-    from mapfuse.runner import estimate
-
     out: list[RunResult] = []
     for i, p in enumerate(plan):
         if given is not None and i in given:

@@ -25,6 +25,7 @@ __all__ = [
     "load_plugin",
     "register",
     "register_plugin",
+    "resolve",
     "unregister",
 ]
 
@@ -114,6 +115,11 @@ def get(name: str) -> Estimator:
         raise ValueError(f"estimator registered as {name!r} calls itself {est.name!r}")
     _loaded[name] = est
     return est
+
+
+def resolve(estimator: str | Estimator) -> Estimator:
+    """An estimator by registered name (:func:`get`), or the estimator itself."""
+    return get(estimator) if isinstance(estimator, str) else estimator
 
 
 def register(estimator: Estimator | Callable[[], Estimator], *, replace: bool = False) -> Estimator:

@@ -252,9 +252,10 @@ def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = Non
     """The filter, the fixed-lag smoother at each lag and the full smoother on the log of
     one seed, planned together (:mod:`mapfuse.plan`: the smoothers consume the filter's
     run)."""
+    from mapfuse.execution import fusion_for
     from mapfuse.metrics import run_metrics
     from mapfuse.plan import RunRequest, execute, plan_runs
-    from mapfuse.runner import fusion_for, prepare_log
+    from mapfuse.runner import prepare_log
     from mapfuse_graph.fixedlag import FixedLagOptions
 
     log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir)

@@ -13,12 +13,13 @@ import pytest
 from ekf_reference import EKFConfig
 from ekf_reference.loops import LoopClosureParams
 from mapfuse.estimators.graph import GraphRunOptions
+from mapfuse.execution import fusion_for
 from mapfuse.metrics import run_metrics
 from mapfuse.options import make_options
 from mapfuse.outputs import write_outputs
 from mapfuse.profiles import PROFILES, default_options
 from mapfuse.registry import get
-from mapfuse.runner import fusion_for, run
+from mapfuse.runner import run
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
 from mapfuse_core.estimate import EstimatorResult, MapEstimate, PoseTrack
 from mapfuse_core.estimate.decisions import AnchorDecision, AssociationDecisions, load_associations

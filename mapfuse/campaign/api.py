@@ -85,4 +85,4 @@ def montecarlo(
         from mapfuse.campaign.report import write_report
 
         write_report(folder)
-    return MonteCarlo(out=summary.out, summary=summary, groups=tuple(summarise(folder)))
+    return MonteCarlo(out=summary.out, summary=summary, groups=tuple(summarise(str(folder))))

@@ -53,7 +53,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from mapfuse.campaign.report import write_report
     from mapfuse.campaign.spec import CampaignSpec, parse_fusion, parse_seeds
     from mapfuse.campaign.task import plugins_registered
-    from mapfuse.plan import resolve
+    from mapfuse.registry import resolve
     from mapfuse_core.sim.scenario import load_scenario
 
     if args.runs is not None:
