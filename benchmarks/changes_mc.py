@@ -34,12 +34,12 @@ import numpy as np
 from mapfuse.changes import detect_changes
 from mapfuse.figures import run_errors
 from mapfuse.runner import Run, run
+from mapfuse_core.changes import ChangeParams
 from mapfuse_core.estimate import EstimatorResult
-from mapfuse_core.evaluation.changes import ChangeParams
-from mapfuse_core.evaluation.changes.generate import with_changes
-from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
+from mapfuse_core.evaluation.change_truth import change_truth, score_changes
 from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.sim.map_changes import with_changes
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 

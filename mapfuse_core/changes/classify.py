@@ -2,9 +2,9 @@
 
 1. The logged observations are grouped by the estimator's landmark decisions and put
    in ``Wknown`` through the estimated trajectory and anchor
-   (:mod:`mapfuse_core.evaluation.changes.evidence`); a filter's poses from before
+   (:mod:`mapfuse_core.changes.evidence`); a filter's poses from before
    its map match are first re-placed on the known map
-   (:mod:`mapfuse_core.evaluation.changes.relocalize`).  A landmark the estimator
+   (:mod:`mapfuse_core.changes.relocalize`).  A landmark the estimator
    kept apart from the known map and saw only before the match is read through the
    estimator's final estimate of it when it gives one in ``Wknown`` (the anchor's
    uncertainty included jointly).
@@ -29,10 +29,10 @@
    the wall's ends is another stretch of the line.  A wall moved keeps its length: a
    landmark longer than the wall by more than six of those σ in all is not its move.
 4. Otherwise: missing when the known map predicts it in view for at least ``K``
-   scans (:mod:`mapfuse_core.evaluation.changes.visibility`), a circle at the smallest
+   scans (:mod:`mapfuse_core.changes.visibility`), a circle at the smallest
    radius its map σ allows (:attr:`ChangeParams.missing_radius_sigmas`), or when the
    log's raw scans saw its surveyed place empty for at least ``K`` scans
-   (:mod:`mapfuse_core.evaluation.changes.freespace`; seen empty also counts as seen
+   (:mod:`mapfuse_core.changes.freespace`; seen empty also counts as seen
    in step 3), else unobserved.
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
    except duplicates: those consistent with an observed known feature, or within the
@@ -47,23 +47,23 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mapfuse_core.evaluation.changes.evidence import (
+from mapfuse_core.changes.evidence import (
     ObservationSet,
     fuse_against,
     observation_sets_in_known,
     poses_in_known,
 )
-from mapfuse_core.evaluation.changes.freespace import read_surveyed_places
-from mapfuse_core.evaluation.changes.params import ChangeParams
-from mapfuse_core.evaluation.changes.relocalize import Relocalization, relocalize_before_match
-from mapfuse_core.evaluation.changes.report import (
+from mapfuse_core.changes.freespace import read_surveyed_places
+from mapfuse_core.changes.params import ChangeParams
+from mapfuse_core.changes.relocalize import Relocalization, relocalize_before_match
+from mapfuse_core.changes.report import (
     ChangeReport,
     ChangeStatus,
     FeatureChange,
     NewFeature,
 )
-from mapfuse_core.evaluation.changes.residual import feature_residual, residual_dof
-from mapfuse_core.evaluation.changes.visibility import scans_in_view
+from mapfuse_core.changes.residual import feature_residual, residual_dof
+from mapfuse_core.changes.visibility import scans_in_view
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
@@ -197,7 +197,7 @@ def classify_changes(
     ``x_Wknown_Wglobal``: its anchor.  ``anchor_cov``/``anchored_from_step``: a
     filtered track's anchor covariance and match step; the observations made before
     it carry the anchor's uncertainty too
-    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).
+    (:func:`~mapfuse_core.changes.evidence.poses_in_known`).
     ``landmark_estimates``: landmark id → the estimator's final estimate of a landmark
     it kept apart from the known map, in ``Wknown`` with its covariance; such a
     landmark seen only before ``anchored_from_step`` is tested through it instead of
