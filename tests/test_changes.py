@@ -725,7 +725,7 @@ def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_matc
         decisions=decisions,
         poses=np.zeros((5, 3)),
         covs=np.zeros((5, 3, 3)),
-        estimate=estimate,
+        smoothed=None if estimate == "filtered" else types.SimpleNamespace(),
         map=types.SimpleNamespace(
             tracks=np.array([5, 6, 7, -1]),
             known_ids=np.array([-1, 2, -1, 3]),
