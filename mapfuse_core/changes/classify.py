@@ -37,6 +37,9 @@
 5. The other unassociated landmarks with at least ``min_obs`` observations are new,
    except duplicates: those consistent with an observed known feature, or within the
    move limits of one classified moved (another piece of it).
+
+Each decision is a named rule of :mod:`mapfuse_core.changes.rules`; this module
+gathers the evidence the rules read and applies them in that order.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -55,14 +59,27 @@ from mapfuse_core.changes.evidence import (
 )
 from mapfuse_core.changes.freespace import read_surveyed_places
 from mapfuse_core.changes.params import ChangeParams
+from mapfuse_core.changes.relations import move_size, move_test, surveyed_extent
 from mapfuse_core.changes.relocalize import Relocalization, relocalize_before_match
 from mapfuse_core.changes.report import (
     ChangeReport,
-    ChangeStatus,
     FeatureChange,
     NewFeature,
 )
-from mapfuse_core.changes.residual import feature_residual, residual_dof
+from mapfuse_core.changes.residual import residual_dof
+from mapfuse_core.changes.rules import (
+    LinkCandidate,
+    PlaceSight,
+    is_duplicate,
+    link_vetoed,
+    looked_for_beyond_the_gate,
+    nearest_one_to_one,
+    needs_thinnest_view,
+    status_by_move_test,
+    status_without_landmark,
+    strongest_associated_landmarks,
+    unassociated_landmarks,
+)
 from mapfuse_core.changes.visibility import scans_in_view
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
@@ -71,111 +88,24 @@ from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 __all__ = ["classify_changes"]
 
 
-def _test(
-    obs: ObservationSet, known: FloatArray, known_cov: FloatArray, params: ChangeParams
-) -> tuple[FloatArray, FloatArray, float, FloatArray, float]:
-    """Residual, its covariance, the χ² statistic, the displacement (dx, dy, d3) and
-    the evidence's spread factor."""
-    ev = fuse_against(obs, known)
-    _, Jk, _ = feature_residual(obs.kind, known, known)
-    S = ev.cov + Jk @ known_cov @ Jk.T
-    r = ev.residual
-    stat = float(r @ np.linalg.solve(S, r))
-    if obs.kind == FeatureKind.LINE:
-        normal = np.array([-math.sin(known[2]), math.cos(known[2])])
-        disp = np.array([*(r[0] * normal), r[1]])
-    else:
-        disp = r.copy()
-    return r, S, stat, disp, ev.spread_factor
+@dataclass(frozen=True, eq=False)
+class _Evidence:
+    """What the run and the log say, in ``Wknown``, before any feature is classified."""
 
-
-def _near(
-    obs: ObservationSet,
-    known: FloatArray,
-    known_cov: FloatArray,
-    extent: FloatArray | None,
-    params: ChangeParams,
-) -> float:
-    """Size of the move that takes ``known`` onto ``obs`` (m), ``inf`` beyond the limits.
-
-    The limits are ``max_move_m`` and ``max_turn_rad`` widened by three of the known
-    feature's own σ (its position, or its angle for a line): the surveyed value itself
-    is that far from where the feature stood, so a feature turned by the largest turn
-    looked for, in a map whose angles have σθ = 0.05 rad, can appear turned by 0.15 rad
-    more.  A line must also overlap the known wall along its length (its surveyed
-    extent widened by ``max_move_m``; without one, within ``max_move_m`` of its
-    reference point).
-    """
-    sig_xy = math.sqrt(max(0.0, 0.5 * float(known_cov[0, 0] + known_cov[1, 1])))
-    max_move = params.max_move_m + 3.0 * sig_xy
-    mean = obs.features.mean(axis=0)
-    if obs.kind == FeatureKind.CIRCLE:
-        d = float(np.hypot(*(mean[:2] - known[:2])))
-        return d if d <= max_move else math.inf
-    max_turn = params.max_turn_rad + 3.0 * math.sqrt(max(0.0, float(known_cov[2, 2])))
-    r = np.array([feature_residual(obs.kind, known, f)[0] for f in obs.features]).mean(axis=0)
-    if abs(r[1]) > max_turn or abs(r[0]) > max_move:
-        return math.inf
-    if not _overlaps(obs, known, extent, params.max_move_m):
-        return math.inf
-    return float(abs(r[0]))
-
-
-def _along(obs: ObservationSet, known: FloatArray) -> list[float]:
-    """Where the ends of ``obs``'s observed segments fall along the known line."""
-    u_k = np.array([math.cos(known[2]), math.sin(known[2])])
-    along = []
-    for f, e in zip(obs.features, obs.extents, strict=True):
-        u = np.array([math.cos(f[2]), math.sin(f[2])])
-        ends = [0.0] if not np.all(np.isfinite(e)) else [float(e[0]), float(e[1])]
-        along += [float((f[:2] + t * u - known[:2]) @ u_k) for t in ends]
-    return along
-
-
-def _overlaps(
-    obs: ObservationSet, known: FloatArray, extent: FloatArray | None, margin: float
-) -> bool:
-    """Whether ``obs`` overlaps the known wall along its length, its surveyed extent
-    widened by ``margin`` on each side (without an extent: within ``margin`` of its
-    reference point)."""
-    along = _along(obs, known)
-    lo, hi = (0.0, 0.0) if extent is None or not np.all(np.isfinite(extent)) else extent
-    return not (max(along) < lo - margin or min(along) > hi + margin)
-
-
-def _same_piece(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
-    """Whether line landmark ``obs`` overlaps known wall ``r`` itself, not just its line:
-    the surveyed extent widened by three of the wall's position σ and of the landmark's
-    pose σ.  A wall consistent with another only as a line but beyond its ends is a
-    collinear piece of another wall (the next stretch of a corridor past a door)."""
-    return _overlaps(obs, known.params[r], _extent(known, r), 3.0 * _position_sigmas(obs, known, r))
-
-
-def _position_sigmas(obs: ObservationSet, known: KnownMapArrays, r: int) -> float:
-    """Known feature ``r``'s position σ plus the landmark's mean pose position σ (m)."""
-    kc = known.covs[r]
-    sig_k = math.sqrt(max(0.0, 0.5 * float(kc[0, 0] + kc[1, 1])))
-    pc = obs.pose_covs
-    sig_p = math.sqrt(max(0.0, 0.5 * float(np.mean(pc[:, 0, 0] + pc[:, 1, 1]))))
-    return sig_k + sig_p
-
-
-def _longer(obs: ObservationSet, known: KnownMapArrays, r: int) -> bool:
-    """Whether line landmark ``obs`` spans more of the known wall's line than wall
-    ``r`` is long, by more than six of the wall's and the landmark's position σ (the
-    margin of three at each end that :func:`_same_piece` allows): a wall moved is
-    still its own length, so a longer landmark is another wall (a plan wall that does
-    not stand, near one the plan lacks)."""
-    extent = _extent(known, r)
-    if extent is None or not np.all(np.isfinite(extent)):
-        return False
-    along = _along(obs, known.params[r])
-    excess = (max(along) - min(along)) - float(extent[1] - extent[0])
-    return excess > 6.0 * _position_sigmas(obs, known, r)
-
-
-def _extent(known: KnownMapArrays, r: int) -> FloatArray | None:
-    return None if known.extents is None else np.asarray(known.extents[r], dtype=float)
+    poses: FloatArray
+    """(N, 3) the run's poses in ``Wknown``, those before the match re-placed."""
+    pose_covs: FloatArray
+    """(N, 3, 3) their covariances."""
+    relocalization: Relocalization | None
+    """The re-placing of the poses before the match (``None`` when not done)."""
+    tested: dict[int, ObservationSet]
+    """Known id → the associated landmark its test reads (rule 1)."""
+    unassociated: list[ObservationSet]
+    """The landmarks no known feature holds that count (rule 2)."""
+    occluders: KnownMapArrays
+    """:attr:`unassociated` as map features, hiding what lies behind them in the view."""
+    scans_in_view: dict[int, int]
+    """Known id → scans the known map (and the occluders) predict it in view."""
 
 
 def classify_changes(
@@ -201,319 +131,398 @@ def classify_changes(
     ``landmark_estimates``: landmark id → the estimator's final estimate of a landmark
     it kept apart from the known map, in ``Wknown`` with its covariance; such a
     landmark seen only before ``anchored_from_step`` is tested through it instead of
-    through its observations.  See the
-    module docstring for the rules.
+    through its observations.  See the module docstring for the rules, and
+    :mod:`mapfuse_core.changes.rules` for each.
     """
     params = params or ChangeParams()
+    anchor = _finite_anchor(x_Wknown_Wglobal)
+    known = log.known_map
+    evidence = _gather_evidence(
+        log,
+        obs_landmark,
+        obs_known_id,
+        poses,
+        pose_covs,
+        anchor,
+        params,
+        anchor_cov=anchor_cov,
+        anchored_from_step=anchored_from_step,
+        landmark_estimates=landmark_estimates,
+    )
+    changes = _test_associated(known, evidence, params)
+    without_landmark = [row for row in range(len(known)) if row not in changes]
+    sights = _read_surveyed_places(log, without_landmark, evidence, params)
+    links = _link_moves(known, without_landmark, evidence, sights, changes, params)
+    for row, index in links:
+        sight = sights[int(known.ids[row])]
+        changes[row] = _tested_change(
+            known, row, evidence.unassociated[index], sight, params, associated=False
+        )
+    left_without_landmark = [row for row in without_landmark if row not in changes]
+    changes.update(_missing_or_unobserved(known, left_without_landmark, evidence, sights, params))
+    linked_landmarks = {index for _, index in links}
+    new, duplicates = _new_features(known, evidence.unassociated, linked_landmarks, changes, params)
+    relocalization = evidence.relocalization
+    return ChangeReport(
+        known=tuple(changes[row] for row in range(len(known))),
+        new=tuple(new),
+        duplicates=duplicates,
+        level=params.level,
+        x_Wknown_Wglobal=anchor,
+        relocalized_steps=0 if relocalization is None else relocalization.relocalized,
+        bridged_steps=0 if relocalization is None else relocalization.bridged,
+        relocalize_refused=0 if relocalization is None else relocalization.refused,
+    )
+
+
+def _finite_anchor(x_Wknown_Wglobal: FloatArray) -> FloatArray:
+    """The anchor as a finite (3,) pose; :class:`ValueError` otherwise."""
     anchor = np.asarray(x_Wknown_Wglobal, dtype=float)
     if anchor.shape != (3,) or not np.all(np.isfinite(anchor)):
         raise ValueError(f"the anchor must be a finite (3,) pose, got {anchor!r}")
-    known = log.known_map
-    poses_K, covs_K = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
-    reloc = None
-    filtered_K, filtered_covs_K = poses_K, covs_K
+    return anchor
+
+
+def _gather_evidence(
+    log: MeasurementLog,
+    obs_landmark: np.ndarray,
+    obs_known_id: np.ndarray,
+    poses: FloatArray,
+    pose_covs: FloatArray,
+    anchor: FloatArray,
+    params: ChangeParams,
+    *,
+    anchor_cov: FloatArray | None,
+    anchored_from_step: int,
+    landmark_estimates: Mapping[int, tuple[FloatArray, FloatArray]] | None,
+) -> _Evidence:
+    """Step 1: the poses in ``Wknown`` (re-placed before the match), the landmarks'
+    observation sets read through them, and the predicted view (arguments as
+    :func:`classify_changes`')."""
+    run_poses, run_covs = poses_in_known(anchor, poses, pose_covs, anchor_cov, anchored_from_step)
+    relocalization = None
+    placed, placed_covs = run_poses, run_covs
     if params.relocalize and anchored_from_step > 0:
-        reloc = relocalize_before_match(
-            log, obs_landmark, obs_known_id, poses_K, covs_K, anchored_from_step, params.level
+        relocalization = relocalize_before_match(
+            log,
+            obs_landmark,
+            obs_known_id,
+            run_poses,
+            run_covs,
+            anchored_from_step,
+            params.level,
         )
-        poses_K, covs_K = reloc.poses, reloc.covs
-    sets = observation_sets_in_known(log, obs_landmark, obs_known_id, poses_K, covs_K)
-    if reloc is not None and reloc.tied_known:
+        placed, placed_covs = relocalization.poses, relocalization.covs
+    sets = observation_sets_in_known(log, obs_landmark, obs_known_id, placed, placed_covs)
+    if relocalization is not None and relocalization.tied_known:
         sets = [
             _own_ties_left_out(
                 s,
                 log,
                 obs_landmark,
                 obs_known_id,
-                filtered_K,
-                filtered_covs_K,
+                run_poses,
+                run_covs,
                 anchored_from_step,
-                reloc,
+                relocalization,
                 params,
             )
-            if s.known_id in reloc.tied_known and np.any(s.steps < anchored_from_step)
+            if s.known_id in relocalization.tied_known and np.any(s.steps < anchored_from_step)
             else s
             for s in sets
         ]
-    by_known: dict[int, ObservationSet] = {}
-    free: list[ObservationSet] = []
-    for s in sets:
-        if s.known_id >= 0:
-            best = by_known.get(s.known_id)
-            if best is None or s.n_obs > best.n_obs:
-                by_known[s.known_id] = s
-        elif s.n_obs >= params.min_obs:
-            own = None
-            seen_before = int(s.steps.max()) < anchored_from_step
-            if params.filter_estimates and landmark_estimates is not None and seen_before:
-                # Seen only before the match: read through the estimator's final
-                # estimate, not through the poses the filter had then.
-                own = landmark_estimates.get(s.landmark)
-            free.append(s if own is None else dataclasses.replace(s, estimate=own))
-    occluders = _occluders(free, known)
-    in_view = scans_in_view(known, poses_K, params, occluders)
-
-    rows: dict[int, FeatureChange] = {}
-    unassociated: list[int] = []
-    for r in range(len(known)):
-        kid = int(known.ids[r])
-        if kid in by_known and by_known[kid].n_obs >= 1:
-            rows[r] = _row(known, r, by_known[kid], True, in_view[kid], params)
-        else:
-            unassociated.append(r)
-    empty = {int(known.ids[r]): 0 for r in unassociated}
-    occupied: dict[int, tuple[int, float]] = {}
-    if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
-        reading = read_surveyed_places(
-            known, unassociated, poses_K, covs_K, log.scan_bearings, log.scan_ranges, params
-        )
-        empty, occupied = reading.empty, reading.occupied
-    # Moves beyond the association gate: nearest unassociated landmark, one to one.  A
-    # landmark consistent with a known feature already observed is another track of
-    # that feature (a duplicate): it may confirm this one too (two plan walls a wall's
-    # thickness apart), but it is not this one's move.
-    explained = {i for i, s in enumerate(free) if _duplicate(s, known, rows, params)}
-    pairs = []
-    for r in unassociated:
-        kind = FeatureKind(int(known.kinds[r]))
-        kid = int(known.ids[r])
-        need = min(params.link_min_scans or params.min_scans, params.min_scans)
-        standing, reach = occupied.get(kid, (0, 0.0))
-        # Seen occupied is seen too: the trunk that the beams hit at the surveyed place
-        # (a tree moved by less than its reach, which hides its own surveyed place
-        # from the view model) is linked to the landmark within that reach below.
-        unviewed = in_view[kid] < need and empty[kid] < need and standing < need
-        is_line = kind == FeatureKind.LINE
-        linked = params.link_unviewed_lines if is_line else params.link_unviewed_circles
-        if unviewed and not linked:
-            # Not seen where the map has it, but never expected there either: nothing
-            # says it moved, and a landmark near a tree is as likely a tree the map
-            # lacks as this one moved (ChangeParams.link_unviewed_circles).
-            continue
-        for i, s in enumerate(free):
-            if s.kind != kind:
-                continue
-            d = _near(s, known.params[r], known.covs[r], _extent(known, r), params)
-            if not math.isfinite(d):
-                continue
-            if standing >= need and standing > empty[kid] and _beyond(s, known.params[r], reach):
-                # The raw scans found a trunk standing at the surveyed place, and this
-                # landmark is too far to be what they hit: another tree, not its move.
-                continue
-            consistent = _consistent(s, known, r, params)
-            if consistent and kind == FeatureKind.LINE and not _same_piece(s, known, r):
-                # The line fits but the landmark lies beyond the wall's ends: another
-                # stretch of the line, not this wall seen again nor moved along itself.
-                continue
-            if i in explained and not consistent:
-                continue
-            if kind == FeatureKind.LINE and not consistent and _longer(s, known, r):
-                continue
-            pairs.append((d, r, i))
-    used: set[int] = set()
-    for _, r, i in sorted(pairs):
-        if r in rows or i in used:
-            continue
-        used.add(i)
-        kid = int(known.ids[r])
-        row = _row(known, r, free[i], False, in_view[kid], params)
-        rows[r] = dataclasses.replace(
-            row, scans_seen_empty=empty[kid], scans_seen_occupied=occupied.get(kid, (0, 0.0))[0]
-        )
-    left = [r for r in unassociated if r not in rows]
-    sure = dict(in_view)
-    candidates = [
-        r
-        for r in left
-        if in_view[int(known.ids[r])] >= params.min_scans
-        and int(known.kinds[r]) == int(FeatureKind.CIRCLE)
-    ]
-    if candidates:
-        # One more view, with only the would-be missing circles thinned: the others keep
-        # hiding what they hide.
-        thin = _thinned(known, candidates, params.radius_margin_sigmas())
-        again = scans_in_view(thin, poses_K, params, occluders)
-        for r in candidates:
-            kid = int(known.ids[r])
-            sure[kid] = min(in_view[kid], again[kid])
-    for r in left:
-        kid = int(known.ids[r])
-        seen = sure[kid] >= params.min_scans or empty[kid] >= params.min_scans
-        standing = occupied.get(kid, (0, 0.0))[0]
-        if standing >= params.min_scans:
-            # The raw scans found it where the map has it: not seen absent, however
-            # many scans saw the place empty (from a pose further off than its σ).
-            seen = False
-        status = ChangeStatus.MISSING if seen else ChangeStatus.UNOBSERVED
-        kind = FeatureKind(int(known.kinds[r]))
-        rows[r] = FeatureChange(
-            known_id=kid,
-            kind=kind,
-            status=status,
-            displacement=np.full(3, np.nan),
-            residual=np.zeros(0),
-            residual_cov=np.zeros((0, 0)),
-            statistic=math.nan,
-            dof=residual_dof(kind),
-            threshold=params.threshold(residual_dof(kind)),
-            n_obs=0,
-            scans_in_view=sure[kid],
-            associated=False,
-            landmark=-1,
-            scans_seen_empty=empty[kid],
-            scans_seen_occupied=occupied.get(kid, (0, 0.0))[0],
-        )
-    # New features: unassociated landmarks no known feature accounts for.
-    new: list[NewFeature] = []
-    duplicates = 0
-    for i, s in enumerate(free):
-        if i in used:
-            continue
-        if _duplicate(s, known, rows, params):
-            duplicates += 1
-            continue
-        ref = s.features[0]
-        ev = fuse_against(s, ref)
-        est = _apply(s.kind, ref, ev.residual)
-        # Lines: lateral and angle only; the along-line position is undetermined.
-        cov3 = ev.cov if s.kind == FeatureKind.CIRCLE else _line_cov3(ref, ev.cov)
-        new.append(
-            NewFeature(
-                landmark=s.landmark,
-                kind=s.kind,
-                params=est,
-                cov=cov3,
-                n_obs=s.n_obs,
-                true_id=s.true_id,
-            )
-        )
-    return ChangeReport(
-        known=tuple(rows[r] for r in range(len(known))),
-        new=tuple(new),
-        duplicates=duplicates,
-        level=params.level,
-        x_Wknown_Wglobal=anchor,
-        relocalized_steps=0 if reloc is None else reloc.relocalized,
-        bridged_steps=0 if reloc is None else reloc.bridged,
-        relocalize_refused=0 if reloc is None else reloc.refused,
+    unassociated = unassociated_landmarks(sets, params, anchored_from_step, landmark_estimates)
+    occluders = _landmarks_as_map(unassociated, log.known_map)
+    return _Evidence(
+        poses=placed,
+        pose_covs=placed_covs,
+        relocalization=relocalization,
+        tested=strongest_associated_landmarks(sets),
+        unassociated=unassociated,
+        occluders=occluders,
+        scans_in_view=scans_in_view(log.known_map, placed, params, occluders),
     )
 
 
 def _own_ties_left_out(
-    s: ObservationSet,
+    landmark: ObservationSet,
     log: MeasurementLog,
     obs_landmark: np.ndarray,
     obs_known_id: np.ndarray,
-    poses_K: FloatArray,
-    covs_K: FloatArray,
+    run_poses: FloatArray,
+    run_covs: FloatArray,
     until: int,
-    reloc: Relocalization,
+    relocalization: Relocalization,
     params: ChangeParams,
 ) -> ObservationSet:
-    """``s`` read through poses re-placed without its own known feature's ties: the
-    feature under test does not place the poses its evidence is read through.
-    ``poses_K``/``covs_K``: the poses in ``Wknown`` before any re-placing, ``until``
-    the first step from the match on; ``reloc``: the re-placing with every tie, whose
-    placements are reused."""
-    alt = relocalize_before_match(
+    """``landmark`` read through poses re-placed without its own known feature's ties:
+    the feature under test does not place the poses its evidence is read through.
+    ``run_poses``/``run_covs``: the poses in ``Wknown`` before any re-placing,
+    ``until`` the first step from the match on; ``relocalization``: the re-placing with
+    every tie, whose placements are reused."""
+    without_own_ties = relocalize_before_match(
         log,
         obs_landmark,
         obs_known_id,
-        poses_K,
-        covs_K,
+        run_poses,
+        run_covs,
         until,
         params.level,
-        exclude_known=s.known_id,
-        base=reloc,
+        exclude_known=landmark.known_id,
+        base=relocalization,
     )
-    only = np.where(np.asarray(obs_landmark) == s.landmark, obs_landmark, -1)
-    again = observation_sets_in_known(log, only, obs_known_id, alt.poses, alt.covs)
-    return again[0] if again else s
+    this_landmark_only = np.where(np.asarray(obs_landmark) == landmark.landmark, obs_landmark, -1)
+    reread = observation_sets_in_known(
+        log, this_landmark_only, obs_known_id, without_own_ties.poses, without_own_ties.covs
+    )
+    return reread[0] if reread else landmark
 
 
-def _beyond(obs: ObservationSet, known: FloatArray, reach: float) -> bool:
-    """Whether circle landmark ``obs`` stands too far from the known circle's centre for
-    a beam it returns to have been read as a hit there: such a beam is aimed within the
-    mapped radius of the centre (across the beam) and returns within ``reach`` of the
-    centre's range (along it)."""
-    centre = np.mean(obs.features[:, :2], axis=0)
-    radius = max(float(np.median(obs.features[:, 2])), 0.0)
-    window = math.hypot(reach, float(known[2]))
-    return float(np.hypot(*(centre - known[:2]))) > window + radius
+def _test_associated(
+    known: KnownMapArrays, evidence: _Evidence, params: ChangeParams
+) -> dict[int, FeatureChange]:
+    """Step 2: row → the change of every known feature with an associated landmark
+    that has observations, by its move test."""
+    changes = {}
+    for row in range(len(known)):
+        kid = int(known.ids[row])
+        landmark = evidence.tested.get(kid)
+        if landmark is not None and landmark.n_obs >= 1:
+            sight = PlaceSight(scans_in_view=evidence.scans_in_view[kid])
+            changes[row] = _tested_change(known, row, landmark, sight, params, associated=True)
+    return changes
 
 
-def _row(
+def _tested_change(
     known: KnownMapArrays,
-    r: int,
-    obs: ObservationSet,
-    associated: bool,
-    in_view: int,
+    row: int,
+    landmark: ObservationSet,
+    sight: PlaceSight,
     params: ChangeParams,
+    *,
+    associated: bool,
 ) -> FeatureChange:
-    kp = known.params[r]
-    kc = known.covs[r]
-    res, S, stat, disp, spread = _test(obs, kp, kc, params)
-    dof = residual_dof(obs.kind)
-    thr = params.threshold(dof)
+    """Known feature ``row`` classified by the move test against ``landmark``
+    (:func:`~mapfuse_core.changes.rules.status_by_move_test`)."""
+    test = move_test(landmark, known.params[row], known.covs[row])
+    dof = residual_dof(landmark.kind)
+    threshold = params.threshold(dof)
     return FeatureChange(
-        known_id=int(known.ids[r]),
-        kind=obs.kind,
-        status=ChangeStatus.MOVED if stat > thr else ChangeStatus.CONFIRMED,
-        displacement=disp,
-        residual=res,
-        residual_cov=S,
-        statistic=stat,
+        known_id=int(known.ids[row]),
+        kind=landmark.kind,
+        status=status_by_move_test(test.statistic, threshold),
+        displacement=test.displacement,
+        residual=test.residual,
+        residual_cov=test.cov,
+        statistic=test.statistic,
         dof=dof,
-        threshold=thr,
-        n_obs=obs.n_obs,
-        scans_in_view=in_view,
+        threshold=threshold,
+        n_obs=landmark.n_obs,
+        scans_in_view=sight.scans_in_view,
         associated=associated,
-        landmark=obs.landmark,
-        spread_factor=spread,
+        landmark=landmark.landmark,
+        spread_factor=test.spread_factor,
+        scans_seen_empty=sight.scans_seen_empty,
+        scans_seen_occupied=sight.scans_seen_occupied,
     )
 
 
-def _consistent(s: ObservationSet, known: KnownMapArrays, r: int, params: ChangeParams) -> bool:
-    """Whether ``s`` passes the moved test of known feature ``r`` (is that feature)."""
-    stat = _test(s, known.params[r], known.covs[r], params)[2]
-    return stat <= params.threshold(residual_dof(s.kind))
+def _read_surveyed_places(
+    log: MeasurementLog, rows: list[int], evidence: _Evidence, params: ChangeParams
+) -> dict[int, PlaceSight]:
+    """Known id → what was seen of the surveyed place of each known feature at ``rows``:
+    the predicted view, and what the raw scans say when the log has them and
+    :attr:`ChangeParams.free_space` is on."""
+    known = log.known_map
+    empty = {int(known.ids[row]): 0 for row in rows}
+    occupied: dict[int, tuple[int, float]] = {}
+    if params.free_space and log.scan_bearings is not None and log.scan_ranges is not None:
+        reading = read_surveyed_places(
+            known,
+            rows,
+            evidence.poses,
+            evidence.pose_covs,
+            log.scan_bearings,
+            log.scan_ranges,
+            params,
+        )
+        empty, occupied = reading.empty, reading.occupied
+    sights = {}
+    for row in rows:
+        kid = int(known.ids[row])
+        scans_occupied, reach = occupied.get(kid, (0, 0.0))
+        sights[kid] = PlaceSight(
+            scans_in_view=evidence.scans_in_view[kid],
+            scans_seen_empty=empty[kid],
+            scans_seen_occupied=scans_occupied,
+            occupied_reach_m=reach,
+        )
+    return sights
 
 
-def _duplicate(
-    s: ObservationSet, known: KnownMapArrays, rows: dict[int, FeatureChange], params: ChangeParams
-) -> bool:
-    """Whether ``s`` is consistent with a known feature (of its kind) already observed."""
-    for r, row in rows.items():
-        if row.kind != s.kind or row.n_obs == 0:
+def _link_moves(
+    known: KnownMapArrays,
+    rows: list[int],
+    evidence: _Evidence,
+    sights: Mapping[int, PlaceSight],
+    tested: Mapping[int, FeatureChange],
+    params: ChangeParams,
+) -> list[tuple[int, int]]:
+    """Step 3: ``(row, landmark index)`` links of the known features at ``rows`` to the
+    unassociated landmarks taken for their moves beyond the association gate.
+    ``tested``: the changes of the features with an associated landmark, which explain
+    their duplicates."""
+    explains_observed = [is_duplicate(s, known, tested, params) for s in evidence.unassociated]
+    candidates = []
+    for row in rows:
+        kind = FeatureKind(int(known.kinds[row]))
+        sight = sights[int(known.ids[row])]
+        if not looked_for_beyond_the_gate(kind, sight, params):
             continue
-        kp = known.params[r]
-        if not math.isfinite(_near(s, kp, known.covs[r], _extent(known, r), params)):
-            continue
-        if row.status == ChangeStatus.MOVED:
-            # A second landmark of a moved feature (a wall seen in pieces).
-            return True
-        if s.kind == FeatureKind.LINE and not _same_piece(s, known, r):
-            continue
-        if _consistent(s, known, r, params):
-            return True
-    return False
+        for index, landmark in enumerate(evidence.unassociated):
+            if landmark.kind != kind:
+                continue
+            size = move_size(
+                landmark, known.params[row], known.covs[row], surveyed_extent(known, row), params
+            )
+            if not math.isfinite(size):
+                continue
+            candidate = LinkCandidate(
+                landmark=landmark,
+                known=known,
+                row=row,
+                sight=sight,
+                explains_an_observed_feature=explains_observed[index],
+                params=params,
+            )
+            if not link_vetoed(candidate):
+                candidates.append((size, row, index))
+    return nearest_one_to_one(candidates)
 
 
-def _apply(kind: FeatureKind, ref: FloatArray, r: FloatArray) -> FloatArray:
-    """The feature whose residual from ``ref`` is ``r`` (inverse of the residual map)."""
+def _missing_or_unobserved(
+    known: KnownMapArrays,
+    rows: list[int],
+    evidence: _Evidence,
+    sights: Mapping[int, PlaceSight],
+    params: ChangeParams,
+) -> dict[int, FeatureChange]:
+    """Step 4: row → the change of each known feature at ``rows`` (left without a
+    landmark): missing or unobserved, the trees predicted in view at their thinnest."""
+    scans_for_missing = _scans_in_view_at_thinnest(known, rows, evidence, params)
+    changes = {}
+    for row in rows:
+        kid = int(known.ids[row])
+        sight = dataclasses.replace(sights[kid], scans_in_view=scans_for_missing[kid])
+        kind = FeatureKind(int(known.kinds[row]))
+        dof = residual_dof(kind)
+        changes[row] = FeatureChange(
+            known_id=kid,
+            kind=kind,
+            status=status_without_landmark(sight, params),
+            displacement=np.full(3, np.nan),
+            residual=np.zeros(0),
+            residual_cov=np.zeros((0, 0)),
+            statistic=math.nan,
+            dof=dof,
+            threshold=params.threshold(dof),
+            n_obs=0,
+            scans_in_view=sight.scans_in_view,
+            associated=False,
+            landmark=-1,
+            scans_seen_empty=sight.scans_seen_empty,
+            scans_seen_occupied=sight.scans_seen_occupied,
+        )
+    return changes
+
+
+def _scans_in_view_at_thinnest(
+    known: KnownMapArrays, rows: list[int], evidence: _Evidence, params: ChangeParams
+) -> dict[int, int]:
+    """Known id → scans each feature at ``rows`` is predicted in view; for the trees
+    :func:`~mapfuse_core.changes.rules.needs_thinnest_view` names, the fewer of those
+    at the mapped radius and at the thinnest.  Only those trees are thinned: the others
+    keep hiding what they hide."""
+    in_view = evidence.scans_in_view
+    scans = {int(known.ids[row]): in_view[int(known.ids[row])] for row in rows}
+    thinnest = [
+        row
+        for row in rows
+        if needs_thinnest_view(
+            FeatureKind(int(known.kinds[row])), in_view[int(known.ids[row])], params
+        )
+    ]
+    if not thinnest:
+        return scans
+    thinned_map = _thinned(known, thinnest, params.radius_margin_sigmas())
+    thinned_view = scans_in_view(thinned_map, evidence.poses, params, evidence.occluders)
+    for row in thinnest:
+        kid = int(known.ids[row])
+        scans[kid] = min(in_view[kid], thinned_view[kid])
+    return scans
+
+
+def _new_features(
+    known: KnownMapArrays,
+    unassociated: list[ObservationSet],
+    linked: set[int],
+    changes: Mapping[int, FeatureChange],
+    params: ChangeParams,
+) -> tuple[list[NewFeature], int]:
+    """Step 5: the unassociated landmarks not ``linked`` to a known feature that no
+    classified feature accounts for, as new features, and the number that one does
+    (duplicates)."""
+    new = []
+    duplicates = 0
+    for index, landmark in enumerate(unassociated):
+        if index in linked:
+            continue
+        if is_duplicate(landmark, known, changes, params):
+            duplicates += 1
+            continue
+        new.append(_new_feature(landmark))
+    return new, duplicates
+
+
+def _new_feature(landmark: ObservationSet) -> NewFeature:
+    """``landmark`` as a new feature: its observation-only estimate in ``Wknown`` (a
+    line's lateral offset and angle only; where along the line it lies is
+    undetermined)."""
+    reference = landmark.features[0]
+    evidence = fuse_against(landmark, reference)
+    estimate = _feature_at_residual(landmark.kind, reference, evidence.residual)
+    cov = (
+        evidence.cov
+        if landmark.kind == FeatureKind.CIRCLE
+        else _line_cov_xytheta(reference, evidence.cov)
+    )
+    return NewFeature(
+        landmark=landmark.landmark,
+        kind=landmark.kind,
+        params=estimate,
+        cov=cov,
+        n_obs=landmark.n_obs,
+        true_id=landmark.true_id,
+    )
+
+
+def _feature_at_residual(kind: FeatureKind, reference: FloatArray, r: FloatArray) -> FloatArray:
+    """The feature whose residual from ``reference`` is ``r`` (inverse of the residual
+    map)."""
     if kind == FeatureKind.CIRCLE:
-        return np.asarray(ref + r, dtype=float)
-    n = np.array([-math.sin(ref[2]), math.cos(ref[2])])
-    return np.array([*(ref[:2] + r[0] * n), ref[2] + r[1]])
+        return np.asarray(reference + r, dtype=float)
+    normal = np.array([-math.sin(reference[2]), math.cos(reference[2])])
+    return np.array([*(reference[:2] + r[0] * normal), reference[2] + r[1]])
 
 
-def _line_cov3(ref: FloatArray, cov2: FloatArray) -> FloatArray:
-    """(x, y, θ) covariance of a line from its (lateral, angle) covariance at ``ref``."""
-    n = np.array([-math.sin(ref[2]), math.cos(ref[2])])
+def _line_cov_xytheta(reference: FloatArray, cov_lateral_angle: FloatArray) -> FloatArray:
+    """(x, y, θ) covariance of a line from its (lateral, angle) covariance at
+    ``reference``."""
+    normal = np.array([-math.sin(reference[2]), math.cos(reference[2])])
     J = np.zeros((3, 2))
-    J[:2, 0] = n
+    J[:2, 0] = normal
     J[2, 1] = 1.0
-    return J @ cov2 @ J.T
+    return J @ cov_lateral_angle @ J.T
 
 
 def _thinned(known: KnownMapArrays, rows: list[int], sigmas: float) -> KnownMapArrays:
@@ -522,33 +531,34 @@ def _thinned(known: KnownMapArrays, rows: list[int], sigmas: float) -> KnownMapA
     view that decides "missing"."""
     params = known.params.copy()
     idx = np.asarray(rows, dtype=int)
-    sig_r = np.sqrt(np.clip(known.covs[idx, 2, 2], 0.0, None))
-    params[idx, 2] = np.maximum(params[idx, 2] - sigmas * sig_r, 1e-3)
+    sigma_radius = np.sqrt(np.clip(known.covs[idx, 2, 2], 0.0, None))
+    params[idx, 2] = np.maximum(params[idx, 2] - sigmas * sigma_radius, 1e-3)
     return dataclasses.replace(known, params=params)
 
 
-def _occluders(free: list[ObservationSet], known: KnownMapArrays) -> KnownMapArrays:
-    """The unassociated landmarks as map features (ids above the known ones): a line
-    spans the union of its observed segments, a circle is its mean observation."""
+def _landmarks_as_map(landmarks: list[ObservationSet], known: KnownMapArrays) -> KnownMapArrays:
+    """The unassociated landmarks as map features (ids above the known ones), for the
+    view to be hidden by: a line spans the union of its observed segments, a circle is
+    its mean observation."""
     base = int(known.ids.max(initial=0)) + 1
     params, kinds, extents = [], [], []
-    for s in free:
-        ref = s.features[0].copy()
-        if s.kind == FeatureKind.CIRCLE:
-            params.append(s.features.mean(axis=0))
+    for landmark in landmarks:
+        reference = landmark.features[0].copy()
+        if landmark.kind == FeatureKind.CIRCLE:
+            params.append(landmark.features.mean(axis=0))
             extents.append([np.nan, np.nan])
         else:
-            u = np.array([math.cos(ref[2]), math.sin(ref[2])])
+            u = np.array([math.cos(reference[2]), math.sin(reference[2])])
             along = []
-            for f, e in zip(s.features, s.extents, strict=True):
+            for f, e in zip(landmark.features, landmark.extents, strict=True):
                 if np.all(np.isfinite(e)):
-                    uf = np.array([math.cos(f[2]), math.sin(f[2])])
-                    along += [float((f[:2] + t * uf - ref[:2]) @ u) for t in e]
+                    u_f = np.array([math.cos(f[2]), math.sin(f[2])])
+                    along += [float((f[:2] + t * u_f - reference[:2]) @ u) for t in e]
             if not along:
                 continue
-            params.append(ref)
+            params.append(reference)
             extents.append([min(along), max(along)])
-        kinds.append(int(s.kind))
+        kinds.append(int(landmark.kind))
     n = len(params)
     return KnownMapArrays(
         ids=np.arange(base, base + n, dtype=np.int64),
