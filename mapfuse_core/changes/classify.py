@@ -99,9 +99,11 @@ class _Evidence:
     relocalization: Relocalization | None
     """The re-placing of the poses before the match (``None`` when not done)."""
     tested: dict[int, ObservationSet]
-    """Known id → the associated landmark its test reads (rule 1)."""
+    """Known id → the associated landmark its test reads
+    (:func:`~mapfuse_core.changes.rules.strongest_associated_landmarks`)."""
     unassociated: list[ObservationSet]
-    """The landmarks no known feature holds that count (rule 2)."""
+    """The landmarks no known feature holds that count
+    (:func:`~mapfuse_core.changes.rules.unassociated_landmarks`)."""
     occluders: KnownMapArrays
     """:attr:`unassociated` as map features, hiding what lies behind them in the view."""
     scans_in_view: dict[int, int]
@@ -153,11 +155,7 @@ def classify_changes(
     without_landmark = [row for row in range(len(known)) if row not in changes]
     sights = _read_surveyed_places(log, without_landmark, evidence, params)
     links = _link_moves(known, without_landmark, evidence, sights, changes, params)
-    for row, index in links:
-        sight = sights[int(known.ids[row])]
-        changes[row] = _tested_change(
-            known, row, evidence.unassociated[index], sight, params, associated=False
-        )
+    changes.update(_linked_changes(known, links, evidence, sights, params))
     left_without_landmark = [row for row in without_landmark if row not in changes]
     changes.update(_missing_or_unobserved(known, left_without_landmark, evidence, sights, params))
     linked_landmarks = {index for _, index in links}
@@ -398,6 +396,23 @@ def _link_moves(
             if not link_vetoed(candidate):
                 candidates.append((size, row, index))
     return nearest_one_to_one(candidates)
+
+
+def _linked_changes(
+    known: KnownMapArrays,
+    links: list[tuple[int, int]],
+    evidence: _Evidence,
+    sights: Mapping[int, PlaceSight],
+    params: ChangeParams,
+) -> dict[int, FeatureChange]:
+    """Step 3, continued: row → the change of each linked known feature, by the move
+    test against the unassociated landmark it is linked to."""
+    changes = {}
+    for row, index in links:
+        sight = sights[int(known.ids[row])]
+        landmark = evidence.unassociated[index]
+        changes[row] = _tested_change(known, row, landmark, sight, params, associated=False)
+    return changes
 
 
 def _missing_or_unobserved(
