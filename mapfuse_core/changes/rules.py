@@ -286,7 +286,8 @@ def longer_than_this_wall(candidate: LinkCandidate) -> bool:
     )
 
 
-#: The vetoes of a link, in the order they are asked (the cheap ones first).
+#: The vetoes of a link, in the order they are asked; the move test they share is computed
+#: once, by the first veto that needs it.
 LINK_VETOES: tuple[Callable[[LinkCandidate], bool], ...] = (
     trunk_stands_where_surveyed,
     another_stretch_of_the_line,
