@@ -32,8 +32,8 @@ import numpy as np
 from mapfuse.carmen_input import carmen_change_params, load_carmen_input
 from mapfuse.changes import detect_changes
 from mapfuse.runner import run
+from mapfuse_core.changes import ChangeParams, ChangeReport
 from mapfuse_core.data.datasets.carmen import with_known_map
-from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 

@@ -27,6 +27,7 @@ import argparse
 import ast
 import dataclasses
 import json
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -34,12 +35,12 @@ import numpy as np
 from mapfuse.changes import detect_changes
 from mapfuse.figures import run_errors
 from mapfuse.runner import Run, run
+from mapfuse_core.changes import ChangeParams
 from mapfuse_core.estimate import EstimatorResult
-from mapfuse_core.evaluation.changes import ChangeParams
-from mapfuse_core.evaluation.changes.generate import with_changes
-from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
+from mapfuse_core.evaluation.change_truth import change_truth, score_changes
 from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.sim.map_changes import with_changes
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 
@@ -74,20 +75,19 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
         log = simulate(sc, seed=seed, workers=1).log
         assoc = args.assoc
         r = run(log, "ekf", fusion=True, known_map_gating=True, data_association=assoc)
-        m = r.metrics
-        row[f"{name}_rmse_m"] = m["position_error_m"]["rmse"]
-        row[f"{name}_nees_mean"] = m["nees"]["mean"]
+        row[f"{name}_rmse_m"] = _rmse(r)
+        row[f"{name}_nees_mean"] = _nees_mean(r)
         row[f"{name}_nees"] = _nees(r)
         row[f"{name}_pos_err_mm"] = _pos_err_mm(r)
-        kg = m.get("known_map_rejections")
+        kg = r.metrics.known_map_rejections
         changed_ids = _changed_ids(sc)
         if kg is not None:
             row[f"{name}_gate"] = _gate_summary(kg, changed_ids, r.result, log)
         ungated = r
         if kg is not None and kg["known_unfused"]:
             ungated = run(log, "ekf", fusion=True, known_map_gating=False, data_association=assoc)
-        row[f"{name}_off_rmse_m"] = ungated.metrics["position_error_m"]["rmse"]
-        row[f"{name}_off_nees_mean"] = ungated.metrics["nees"]["mean"]
+        row[f"{name}_off_rmse_m"] = _rmse(ungated)
+        row[f"{name}_off_nees_mean"] = _nees_mean(ungated)
         row[f"{name}_off_nees"] = _nees(ungated)
         if r.result.anchor is None:
             row[f"{name}_anchor"] = False
@@ -118,8 +118,8 @@ def _one(seed: int, args: argparse.Namespace) -> dict[str, object]:
             _oracle(row, log, sc, args)
         if args.graph:
             g = run(log, args.graph, fusion=True, upstream=r.result)
-            row[f"{name}_graph_rmse_m"] = g.metrics["position_error_m"]["rmse"]
-            row[f"{name}_graph_nees_mean"] = g.metrics["nees"]["mean"]
+            row[f"{name}_graph_rmse_m"] = _rmse(g)
+            row[f"{name}_graph_nees_mean"] = _nees_mean(g)
             row[f"{name}_graph_nees"] = _nees(g)
             if g.result.anchor is not None:
                 rep_g = detect_changes(g.result, log, params)
@@ -205,6 +205,18 @@ def _range(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def _rmse(r: Run) -> float | None:
+    """The run's position RMSE (m), ``None`` without a reference."""
+    err = r.metrics.position_error
+    return None if err is None else err.rmse
+
+
+def _nees_mean(r: Run) -> float | None:
+    """The run's mean vehicle NEES, ``None`` without truth and covariances."""
+    nees = r.metrics.nees
+    return None if nees is None else nees.mean
+
+
 def _nees(r: Run) -> list[float | None]:
     """The run's vehicle NEES per step (None where undefined), for the ANEES over seeds."""
     return [None if not np.isfinite(v) else round(float(v), 4) for v in run_errors(r)[1]]
@@ -226,8 +238,8 @@ def _oracle(row: dict[str, object], log: MeasurementLog, sc: Scenario, args: Any
     olog = dataclasses.replace(log, known_map=struck)
     o = run(olog, "ekf", fusion=True, known_map_gating=True, data_association=args.assoc)
     row["oracle_struck"] = int(np.count_nonzero(~keep))
-    row["oracle_rmse_m"] = o.metrics["position_error_m"]["rmse"]
-    row["oracle_nees_mean"] = o.metrics["nees"]["mean"]
+    row["oracle_rmse_m"] = _rmse(o)
+    row["oracle_nees_mean"] = _nees_mean(o)
     row["oracle_nees"] = _nees(o)
     row["oracle_pos_err_mm"] = _pos_err_mm(o)
     row["oracle_anchor"] = o.result.anchor is not None
@@ -235,8 +247,8 @@ def _oracle(row: dict[str, object], log: MeasurementLog, sc: Scenario, args: Any
         row["oracle_anchor_step"] = o.result.anchor.accepted_at_step
     if args.graph:
         g = run(olog, args.graph, fusion=True, upstream=o.result)
-        row["oracle_graph_rmse_m"] = g.metrics["position_error_m"]["rmse"]
-        row["oracle_graph_nees_mean"] = g.metrics["nees"]["mean"]
+        row["oracle_graph_rmse_m"] = _rmse(g)
+        row["oracle_graph_nees_mean"] = _nees_mean(g)
 
 
 def _pos_err_mm(r: Run) -> list[int]:
@@ -251,7 +263,7 @@ def _changed_ids(sc: Scenario) -> set[int]:
 
 
 def _gate_summary(
-    kg: dict[str, Any], changed: set[int], result: EstimatorResult, log: MeasurementLog
+    kg: Mapping[str, Any], changed: set[int], result: EstimatorResult, log: MeasurementLog
 ) -> dict[str, object]:
     """The gate's counts, split by whether the feature was truly changed, and the
     observations fused into an un-fused feature after its un-fuse step (0 by design)."""

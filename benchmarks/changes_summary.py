@@ -21,8 +21,8 @@ import numpy as np
 
 from benchmarks.changes_mc import change_rng
 from mapfuse.campaign.stats import AneesSeries, anees_series
-from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.sim.map_changes import with_changes
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 from mapfuse_core.measlog import MeasurementLog
 
 if TYPE_CHECKING:
-    from mapfuse_core.evaluation.changes import ChangeParams
+    from mapfuse_core.changes import ChangeParams
 
 __all__ = [
     "CARMEN_PREFIX",

@@ -1,6 +1,6 @@
 """Known-map change detection on an :class:`~mapfuse_core.estimate.EstimatorResult`.
 
-The same classification (:func:`mapfuse_core.evaluation.changes.classify_changes`) for every
+The same classification (:func:`mapfuse_core.changes.classify_changes`) for every
 estimator: it reads the run's association decisions, its main trajectory (the
 smoothed one for a batch or iSAM2 graph, the filtered one for the EKF) and its
 anchor.  With the smoothed trajectory every observation is put in ``Wknown`` with
@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from mapfuse import registry
+from mapfuse_core.changes import ChangeParams, ChangeReport, classify_changes
 from mapfuse_core.estimate import EstimatorResult
-from mapfuse_core.evaluation.changes import ChangeParams, ChangeReport, classify_changes
-from mapfuse_core.evaluation.changes.truth import ChangeTruth, change_truth, score_changes
+from mapfuse_core.evaluation.change_truth import ChangeTruth, change_truth, score_changes
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario

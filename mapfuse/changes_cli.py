@@ -4,7 +4,7 @@ Writes ``OUT/changes.json`` (every known feature's class and evidence, the new
 features, the run's rejection counters, and in simulation the truth and the
 precision/recall) and ``OUT/changes.png`` (:func:`mapfuse.changes_figure.changes_figure`).
 ``--moved/--removed/--added/--shift`` perturb a simulated scenario's known map first
-(:func:`mapfuse_core.evaluation.changes.generate.with_changes`).
+(:func:`mapfuse_core.sim.map_changes.with_changes`).
 """
 
 from __future__ import annotations
@@ -56,9 +56,9 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     from mapfuse.changes_figure import changes_figure
     from mapfuse.runner import DATASETS, prepare_log
     from mapfuse.runner import run as run_estimator
-    from mapfuse_core.evaluation.changes import ChangeParams
-    from mapfuse_core.evaluation.changes.generate import with_changes
-    from mapfuse_core.evaluation.changes.truth import change_truth
+    from mapfuse_core.changes import ChangeParams
+    from mapfuse_core.evaluation.change_truth import change_truth
+    from mapfuse_core.sim.map_changes import with_changes
     from mapfuse_core.sim.scenario import load_scenario
     from mapfuse_core.sim.simulate import simulate
 

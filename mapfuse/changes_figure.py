@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mapfuse.plotting import draw_circle, draw_line_feature
-from mapfuse_core.evaluation.changes import ChangeReport, ChangeStatus
-from mapfuse_core.evaluation.changes.truth import ChangeTruth
+from mapfuse_core.changes import ChangeReport, ChangeStatus
+from mapfuse_core.evaluation.change_truth import ChangeTruth
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import FloatArray, compose
 from mapfuse_core.measlog import MeasurementLog

@@ -22,15 +22,17 @@ PACKAGES = ("mapfuse_core", "ekf_reference", "mapfuse_graph", "mapfuse")
 #: The core's subpackages, lowest layer first.  A subpackage imports only from
 #: subpackages of lower layers: bottom-layer types (features, the laser and its
 #: scans, the measurement log and known map, the estimate every estimator returns)
-#: sit below everything that reads them.
+#: sit below everything that reads them.  Change detection predicts the view with the
+#: simulator's ray caster and needs nothing of the evaluation, which scores its
+#: reports against the true changes: it sits between the two.
 CORE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("geometry",),
     ("models", "sensor", "measlog", "estimate"),
     ("perception", "matching"),
     ("sim",),
+    ("changes",),
     ("evaluation",),
     ("data",),
-    ("changes",),
 )
 
 

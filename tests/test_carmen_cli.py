@@ -265,7 +265,7 @@ def test_changes_of_a_carmen_log_use_its_own_scanner_and_raw_scans(
     from mapfuse.carmen_input import carmen_change_params, load_carmen_input
     from mapfuse.changes import detect_changes
     from mapfuse.runner import run
-    from mapfuse_core.evaluation.changes import ChangeParams
+    from mapfuse_core.changes import ChangeParams
 
     log = load_carmen_input(f"carmen:{room_log}")
     assert log.scan_ranges is not None

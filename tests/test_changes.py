@@ -11,16 +11,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapfuse_core.evaluation.changes import (
+from mapfuse_core.changes import (
     ChangeParams,
     ChangeStatus,
     classify_changes,
     feature_residual,
 )
-from mapfuse_core.evaluation.changes.generate import with_changes
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, inverse, relative
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.sim.map_changes import with_changes
 from mapfuse_core.sim.scenario import load_scenario
 from tests.synthetic import synthetic_log
 
@@ -613,7 +613,7 @@ def test_changes_command_refuses_to_perturb_a_log(tmp_path):
 
 
 def test_a_line_moved_along_itself_is_not_a_significant_move():
-    from mapfuse_core.evaluation.changes.truth import ChangeTruth
+    from mapfuse_core.evaluation.change_truth import ChangeTruth
 
     truth = ChangeTruth(
         moved={1: (2.0, 0.0, 0.0, 0.0), 2: (0.0, 0.6, 0.0, 0.0), 3: (0.0, 0.0, 0.12, 0.0)},
@@ -630,7 +630,7 @@ def test_a_line_moved_along_itself_is_not_a_significant_move():
 
 
 def _change(kid: int, status: ChangeStatus) -> object:
-    from mapfuse_core.evaluation.changes.report import FeatureChange
+    from mapfuse_core.changes.report import FeatureChange
 
     z = np.zeros(3)
     return FeatureChange(
@@ -654,9 +654,9 @@ def test_truth_names_the_moves_whose_surveyed_place_came_into_view():
     """Two walls in view of the drive: one surveyed 1 m across itself, one 500 m off.
     Only the first one's surveyed place comes into view; the score counts the moves of
     each kind apart."""
-    from mapfuse_core.evaluation.changes.report import ChangeReport
-    from mapfuse_core.evaluation.changes.truth import change_truth, score_changes
-    from mapfuse_core.evaluation.changes.visibility import scans_in_view, world_as_map
+    from mapfuse_core.changes.report import ChangeReport
+    from mapfuse_core.changes.visibility import scans_in_view, world_as_map
+    from mapfuse_core.evaluation.change_truth import change_truth, score_changes
     from mapfuse_core.sim.scenario import FeatureMove
     from mapfuse_core.sim.simulate import simulate
 
@@ -725,7 +725,7 @@ def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_matc
         decisions=decisions,
         poses=np.zeros((5, 3)),
         covs=np.zeros((5, 3, 3)),
-        estimate=estimate,
+        smoothed=None if estimate == "filtered" else types.SimpleNamespace(),
         map=types.SimpleNamespace(
             tracks=np.array([5, 6, 7, -1]),
             known_ids=np.array([-1, 2, -1, 3]),

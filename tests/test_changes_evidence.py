@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.evaluation.changes.evidence import (
+from mapfuse_core.changes.evidence import (
     ObservationSet,
     fuse_against,
     observation_sets,

@@ -1,5 +1,5 @@
 """Where the raw scans saw through a mapped circle or wall: the free-space evidence of
-``mapfuse_core/evaluation/changes/freespace.py`` and how the classification uses it."""
+``mapfuse_core/changes/freespace.py`` and how the classification uses it."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.evaluation.changes import ChangeParams, ChangeStatus
-from mapfuse_core.evaluation.changes.freespace import circles_seen_occupied, scans_seen_empty
-from mapfuse_core.evaluation.changes.visibility import map_world
+from mapfuse_core.changes import ChangeParams, ChangeStatus
+from mapfuse_core.changes.freespace import circles_seen_occupied, scans_seen_empty
+from mapfuse_core.changes.visibility import map_world
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from mapfuse_core.sensor import LaserParams
@@ -253,8 +253,8 @@ def test_a_moved_tree_never_seen_where_it_went_counts_neither_way_when_missing()
     """Tree 1 moved and was never observed again, tree 2 moved and was observed, tree 3
     is where the map has it, tree 4 was removed: called missing, 1 counts neither way,
     2 and 3 are false removals, 4 is found."""
-    from mapfuse_core.evaluation.changes.report import ChangeReport
-    from mapfuse_core.evaluation.changes.truth import ChangeTruth, score_changes
+    from mapfuse_core.changes.report import ChangeReport
+    from mapfuse_core.evaluation.change_truth import ChangeTruth, score_changes
     from tests.test_changes import _change
 
     truth = ChangeTruth(
@@ -282,8 +282,8 @@ def test_a_removed_tree_out_of_view_found_missing_counts_for_precision_not_recal
     """Trees 4 and 5 were removed, only 4 came into view; 6 stands.  Called missing,
     5 is right but outside the recall's population: recall 1 of 1 in view, precision
     2 of 3 calls."""
-    from mapfuse_core.evaluation.changes.report import ChangeReport
-    from mapfuse_core.evaluation.changes.truth import ChangeTruth, score_changes
+    from mapfuse_core.changes.report import ChangeReport
+    from mapfuse_core.evaluation.change_truth import ChangeTruth, score_changes
     from tests.test_changes import _change
 
     truth = ChangeTruth(

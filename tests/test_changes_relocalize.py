@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.evaluation.changes import ChangeStatus
-from mapfuse_core.evaluation.changes.relocalize import (
+from mapfuse_core.changes import ChangeStatus
+from mapfuse_core.changes.relocalize import (
     _linearize,
     _Tie,
     relocalize_before_match,
@@ -228,7 +228,7 @@ def test_bad_inputs_are_named():
 def _classify_drifted(log: MeasurementLog, relocalize: bool):
     """Classify with the true decisions and poses off by :data:`OFFSET` with the loose
     covariance, every step marked as estimated before the match."""
-    from mapfuse_core.evaluation.changes import ChangeParams, classify_changes
+    from mapfuse_core.changes import ChangeParams, classify_changes
     from mapfuse_core.geometry.se2 import relative
 
     assert log.true_poses is not None

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mapfuse_core.evaluation.changes.relocalize import _place, _solve, _Tie, relocalize_before_match
+from mapfuse_core.changes.relocalize import _place, _solve, _Tie, relocalize_before_match
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import compose
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
@@ -229,7 +229,7 @@ def test_a_backward_step_carries_the_increments_covariance_through_its_inverse()
     with σθ = 0.05 rad: the covariance of ``x1 ⊕ ⊖u`` (the heading's noise swings the
     position by the increment's length) matches that of 20,000 draws to 5 % of its
     norm (sampling error about 1 %, the linearisation's well below)."""
-    from mapfuse_core.evaluation.changes.relocalize import _sweep
+    from mapfuse_core.changes.relocalize import _sweep
     from mapfuse_core.geometry.se2 import inverse
 
     q = np.diag([0.05**2, 0.03**2, 0.05**2])

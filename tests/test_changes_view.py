@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.evaluation.changes import ChangeParams
-from mapfuse_core.evaluation.changes.visibility import scans_in_view
+from mapfuse_core.changes import ChangeParams
+from mapfuse_core.changes.visibility import scans_in_view
 from mapfuse_core.measlog import KnownMapArrays
 from mapfuse_core.perception.extraction import ExtractionParams
 from mapfuse_core.sensor import LaserParams

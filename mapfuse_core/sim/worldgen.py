@@ -24,7 +24,7 @@ the layout does not depend on it): half of them moved by 0.3–5 m in a random
 direction (walls also turned by 0.05–0.3 rad about their midpoint), a quarter
 removed from the world (the map keeps them, ``[known_map.removed]``), the rest added
 since the map was made (in the world, ``[known_map] added``), as
-:func:`mapfuse_core.evaluation.changes.generate.with_changes` draws them.  They are
+:func:`mapfuse_core.sim.map_changes.with_changes` draws them.  They are
 drawn from the whole known map, the features near the start included.
 """
 

@@ -4,7 +4,7 @@
 A filter estimates each pose once, with what it has seen so far.  Before its map
 match that is its own map: the pose is known in ``Wglobal``, and through the anchor
 found later it lands in ``Wknown`` with the anchor's covariance on top
-(:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`), a metre or more
+(:func:`~mapfuse_core.changes.evidence.poses_in_known`), a metre or more
 after a long unanchored stretch.  A feature seen only in that stretch is then tested
 through a pose too loose to tell a move of a couple of metres from noise, and a
 known feature's surveyed place is predicted in view from the wrong place.
@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from mapfuse_core.evaluation.changes.residual import feature_residual
+from mapfuse_core.changes.residual import feature_residual
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import (
     FloatArray,
@@ -244,7 +244,7 @@ def relocalize_before_match(
 
     ``poses_known``/``pose_covs_known``: the run's poses in ``Wknown`` with their
     covariances, the anchor's included for the steps before the match
-    (:func:`~mapfuse_core.evaluation.changes.evidence.poses_in_known`).
+    (:func:`~mapfuse_core.changes.evidence.poses_in_known`).
     ``obs_landmark``/``obs_known_id``: the run's decisions; an observation ties its
     step to a known feature when its landmark was merged with one.  ``level``: the
     probability of the placement's χ² tests.  ``exclude_known``: a known id whose ties

@@ -47,7 +47,7 @@ class ChangeParams:
     min_beams_present: int = 3
     """Raw-scan beams aimed at a known circle's mapped disc that must return from within
     reach of it for a scan to see the circle still standing there
-    (:func:`~mapfuse_core.evaluation.changes.freespace.circles_seen_occupied`).  A
+    (:func:`~mapfuse_core.changes.freespace.circles_seen_occupied`).  A
     circle seen so in more scans than seen empty, and in as many as a link needs
     (:attr:`link_min_scans`, at most :attr:`min_scans`), counts as seen for a link
     and is not linked to a landmark out of that reach: the trunk the beams hit is the
@@ -112,7 +112,7 @@ class ChangeParams:
     free_space: bool = True
     """Read the log's raw scans, when it has them, for where the laser saw through a
     known circle's or wall's surveyed place
-    (:mod:`mapfuse_core.evaluation.changes.freespace`).  A feature seen empty counts
+    (:mod:`mapfuse_core.changes.freespace`).  A feature seen empty counts
     as seen where the map has it, whatever the extractor's rule predicts: for
     :attr:`link_min_scans` scans it is linked to a landmark that moved, for
     :attr:`min_scans` it is otherwise called missing.  ``False``: the extractor's (or
@@ -121,7 +121,7 @@ class ChangeParams:
     relocalize: bool = True
     """Re-place a filter's poses from before its map match on the known map, from their
     steps' observations of landmarks the run merged with known features
-    (:mod:`mapfuse_core.evaluation.changes.relocalize`), before testing and predicting
+    (:mod:`mapfuse_core.changes.relocalize`), before testing and predicting
     the view through them.  Only the steps a caller marks as estimated before the match
     are touched (a smoothed track has none).  ``False``: those poses enter with the
     anchor's covariance added, as filtered."""

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse_core.evaluation.changes.params import ChangeParams
-from mapfuse_core.evaluation.changes.report import ChangeReport, ChangeStatus
-from mapfuse_core.evaluation.changes.visibility import scans_in_view, world_as_map
+from mapfuse_core.changes.params import ChangeParams
+from mapfuse_core.changes.report import ChangeReport, ChangeStatus
+from mapfuse_core.changes.visibility import scans_in_view, world_as_map
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import FeatureMove, Scenario
@@ -67,7 +67,7 @@ def change_truth(
 ) -> ChangeTruth:
     """True changes of ``scenario``'s known map, and which of them ``log`` could show:
     a removed feature counts as in view when the true drive, in the true world with
-    it put back, sees it as :func:`~mapfuse_core.evaluation.changes.visibility.scans_in_view`
+    it put back, sees it as :func:`~mapfuse_core.changes.visibility.scans_in_view`
     would; a feature counts as observed with ``params.min_obs`` observations."""
     params = params or ChangeParams()
     min_obs, min_scans = params.min_obs, params.min_scans

@@ -63,7 +63,7 @@ class FeatureChange:
     """Landmark (track) id of the observations tested, −1 if none."""
     scans_seen_empty: int = 0
     """Scans whose raw beams went through the feature's surveyed place (circles of a
-    log with raw scans; :mod:`mapfuse_core.evaluation.changes.freespace`), 0 otherwise."""
+    log with raw scans; :mod:`mapfuse_core.changes.freespace`), 0 otherwise."""
     spread_factor: float = 1.0
     """Factor the evidence's measurement covariance was scaled by because its
     observations disagree beyond their noise (1: they agree; 1 when not observed)."""
@@ -138,7 +138,7 @@ class ChangeReport:
     """(3,) the anchor the evidence was put in ``Wknown`` with."""
     relocalized_steps: int = 0
     """Steps before the run's map match whose pose was re-placed on the known map
-    (:mod:`mapfuse_core.evaluation.changes.relocalize`)."""
+    (:mod:`mapfuse_core.changes.relocalize`)."""
     bridged_steps: int = 0
     """Steps before the match placed from the nearest re-placed step through the
     logged odometry."""

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from mapfuse_core.evaluation.changes.params import ChangeParams
+from mapfuse_core.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import KnownMapArrays

@@ -6,7 +6,7 @@ The evidence is therefore re-estimated from the landmark's observations alone,
 given the estimated trajectory: every observation ``z_j`` (sensor frame, step
 ``s_j``) is put in ``Wknown`` through the estimated pose and the anchor,
 ``f_j = x^Wknown_Wglobal ⊕ x^Wglobal_R(s_j) ⊕ z_j``, and the ``f_j`` are fused in the
-residual coordinates of a reference feature (:mod:`mapfuse_core.evaluation.changes.residual`).
+residual coordinates of a reference feature (:mod:`mapfuse_core.changes.residual`).
 
 Covariance: the measurement part is fused as independent (information sum); the
 pose part is averaged, not divided by the count, because the pose errors of nearby
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapfuse_core.evaluation.changes.residual import feature_residual
+from mapfuse_core.changes.residual import feature_residual
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians
 from mapfuse_core.measlog import MeasurementLog

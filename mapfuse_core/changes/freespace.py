@@ -1,7 +1,7 @@
 """Where the laser saw through a mapped circle or wall, or found a mapped circle
 standing: :func:`read_surveyed_places`.
 
-:func:`~mapfuse_core.evaluation.changes.visibility.scans_in_view` asks whether the
+:func:`~mapfuse_core.changes.visibility.scans_in_view` asks whether the
 extractor *would* have returned a feature; that is indirect evidence of absence, and
 near the extractor's limits (a thin trunk, a far one) the answer turns on a few
 centimetres of the map's radius.  The raw scan gives direct evidence: a trunk that
@@ -71,7 +71,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import norm
 
-from mapfuse_core.evaluation.changes.params import ChangeParams
+from mapfuse_core.changes.params import ChangeParams
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import KnownMapArrays
