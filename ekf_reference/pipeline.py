@@ -44,6 +44,7 @@ from ekf_reference.maps import (
 from ekf_reference.result import AnchorResult, EKFResult, LoopClosure
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
+from ekf_reference.threads import single_threaded_blas
 from ekf_reference.tracks import Tracks
 from mapfuse_core.data.measlog import MeasurementLog
 from mapfuse_core.evaluation.labels import landmark_labels
@@ -484,12 +485,15 @@ class _Run:
             self.gate.anchor_known = [kid for _, kid in pairings]
 
 
+@single_threaded_blas
 def run_ekf(
     log: MeasurementLog,
     config: EKFConfig | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> EKFResult:
-    """Run the EKF reference over ``log`` and return its frozen result."""
+    """Run the EKF reference over ``log`` and return its frozen result.
+
+    BLAS runs on one thread during the run (:mod:`ekf_reference.threads`)."""
     config = config or EKFConfig()
     run = _Run(log, config)
     n = log.n_steps

@@ -55,6 +55,7 @@ from mapfuse_graph.results import (
     JointPoseCovariance,
     LMReport,
 )
+from mapfuse_graph.threads import single_threaded_blas
 
 __all__ = [
     "BACKENDS",
@@ -76,6 +77,7 @@ BACKENDS: tuple[str, ...] = ("batch", "isam2", "fixedlag")
 Backend = Literal["batch", "isam2", "fixedlag"]
 
 
+@single_threaded_blas
 def run_graph(
     log: MeasurementLog,
     backend: str = "isam2",
@@ -111,6 +113,7 @@ def run_graph(
     ``joint_stride`` (batch, with marginals) also computes the joint covariance of every
     ``joint_stride``-th pose (:attr:`GraphResult.joint_pose_cov`); its cost grows with
     the cube of the number of poses it keeps.
+    BLAS runs on one thread during the run (:mod:`mapfuse_graph.threads`).
     """
     t_start = time.perf_counter()
     cpu_start = time.process_time()
