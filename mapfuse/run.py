@@ -90,11 +90,13 @@ def prepare_log(
     progress: Progress | None = None,
     data_dir: str | None = None,
     known_map: str | None = None,
+    workers: int | None = None,
 ) -> MeasurementLog:
     """A log from a ``.npz`` file, a real dataset (``carpark``, ``victoria-park``, needs
     ``data_dir``), a CARMEN log (``carmen:PATH``; ``seed`` of its simulated odometry,
     ``known_map`` ``"floorplan"`` or ``"none"``, :mod:`mapfuse.carmen_input`), or by
-    simulating a scenario (built-in name or TOML).
+    simulating a scenario (built-in name or TOML) with ``workers`` extraction processes
+    (:func:`~mapfuse_core.sim.simulate.extraction_workers`: by default none in a script).
 
     ``seed`` applies to a simulation and to a CARMEN log's simulated odometry only:
     given with a saved log or a dataset it is an error (it would change nothing), as
@@ -118,7 +120,7 @@ def prepare_log(
 
         loader = load_carpark if source == "carpark" else load_victoria_park
         return loader(data_dir)
-    return simulate(load_scenario(source), seed=seed, progress=progress).log
+    return simulate(load_scenario(source), seed=seed, progress=progress, workers=workers).log
 
 
 def resolve(estimator: str | Estimator) -> Estimator:
