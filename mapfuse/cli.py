@@ -2,13 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
-# Before numpy loads: the estimators work on small dense matrices, where threaded BLAS
-# on this project's 2-core machines only adds contention (docs/performance.md).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
 import argparse
 import json
 import sys
