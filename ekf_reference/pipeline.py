@@ -44,6 +44,7 @@ from ekf_reference.maps import (
 from ekf_reference.result import EKFDetails, LoopClosure
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
+from ekf_reference.threads import single_threaded_blas
 from ekf_reference.tracks import Tracks
 from mapfuse_core.estimate import (
     Anchor,
@@ -492,6 +493,7 @@ class _Run:
             self.gate.anchor_known = [kid for _, kid in pairings]
 
 
+@single_threaded_blas
 def run_ekf(
     log: MeasurementLog,
     config: EKFConfig | None = None,
@@ -505,7 +507,8 @@ def run_ekf(
     Returns the :class:`~mapfuse_core.estimate.EstimatorResult` every estimator returns
     (estimator ``"ekf"``: filtered poses, the final map, the anchor, the association
     decisions and the map matchings), with :class:`~ekf_reference.result.EKFDetails` as
-    its ``details``.
+    its ``details``.  BLAS runs on one thread during the run
+    (:mod:`ekf_reference.threads`).
     """
     config = config or EKFConfig()
     run = _Run(log, config, fusion)

@@ -60,7 +60,7 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     from mapfuse_core.evaluation.change_truth import change_truth
     from mapfuse_core.sim.map_changes import with_changes
     from mapfuse_core.sim.scenario import load_scenario
-    from mapfuse_core.sim.simulate import simulate
+    from mapfuse_core.sim.simulate import default_workers, simulate
 
     carmen = is_carmen(args.scenario)
     simulated = not (args.scenario.endswith(".npz") or args.scenario in DATASETS or carmen)
@@ -90,7 +90,7 @@ def _cmd_changes(args: argparse.Namespace) -> int:
                 added=args.added,
                 shift=shift,
             )
-        log = simulate(scenario, seed=args.seed).log
+        log = simulate(scenario, seed=args.seed, workers=default_workers()).log
         params = params.with_sensor(scenario.laser)
         truth = change_truth(scenario, log, params)
     else:

@@ -2,13 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
-# Before numpy loads: the estimators work on small dense matrices, where threaded BLAS
-# on this project's 2-core machines only adds contention (docs/performance.md).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
 import argparse
 import json
 import sys
@@ -21,7 +14,7 @@ from mapfuse.interrupt import catching_sigint
 from mapfuse_core.measlog import MeasurementLog, save_log
 from mapfuse_core.sim.limits import check_seed
 from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
-from mapfuse_core.sim.simulate import simulate
+from mapfuse_core.sim.simulate import default_workers, simulate
 
 __all__ = ["main"]
 
@@ -208,7 +201,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise UsageError(f"--plot-step must be >= 0, got {args.plot_step}")
     out = _check_out(args)
     t0 = time.perf_counter()
-    result = simulate(scenario, seed=args.seed, progress=_progress("simulate", args))
+    result = simulate(
+        scenario, seed=args.seed, progress=_progress("simulate", args), workers=default_workers()
+    )
     elapsed = time.perf_counter() - t0
     log = result.log
     if args.plot_step is not None and args.plot_step >= log.n_steps:
@@ -239,7 +234,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> MeasurementLog:
-    """The measurement log a command works on: a .npz, a dataset or a simulation."""
+    """The measurement log a command works on: a .npz, a dataset or a simulation.
+
+    A simulation extracts with the default pool: the command's main module is guarded.
+    """
     from mapfuse.runner import prepare_log
 
     return prepare_log(
@@ -248,6 +246,7 @@ def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> M
         progress=_progress("simulate", args),
         data_dir=getattr(args, "data", None),
         known_map=getattr(args, "known_map", None),
+        workers=default_workers(),
     )
 
 

@@ -67,8 +67,10 @@ def simulate(
     ``steps`` keeps the first ``steps`` steps: a drive through waypoints is simulated
     for those steps only (its draws come step by step, so the log is the head of the
     full one, bit for bit); a drive by a table of controls is simulated whole and cut.
-    ``workers``: processes extracting the features (default: none, this process; the
-    log is the same bit for bit whatever their number).
+    ``workers``: processes extracting the features (default
+    :func:`~mapfuse_core.sim.simulate.extraction_workers`: none in a script, whose
+    workers would run the script again); the log is the same bit for bit whatever
+    their number.
     """
     from mapfuse_core.sim.simulate import simulate as simulate_scenario
 
@@ -94,6 +96,7 @@ def load(
     data: str | Path | None = None,
     known_map: str | None = None,
     progress: Progress | None = None,
+    workers: int | None = None,
 ) -> MeasurementLog:
     """A measurement log from ``source``: a saved ``.npz`` log, a real dataset
     (``"carpark"``, ``"victoria-park"``; needs ``data``, the data directory), a CARMEN
@@ -103,7 +106,8 @@ def load(
 
     ``seed`` applies to a simulation and to a CARMEN log's simulated odometry only, and
     ``data`` to a dataset only: given elsewhere they are errors (they would change
-    nothing).  ``steps`` keeps the first ``steps`` steps of any log.
+    nothing).  ``steps`` keeps the first ``steps`` steps of any log.  ``workers``:
+    extraction processes of a simulation (:func:`simulate`).
     """
     src = str(source)
     if data is not None and src not in DATASETS:
@@ -126,7 +130,7 @@ def load(
         loader = load_carpark if src == "carpark" else load_victoria_park
         log = loader(str(data))
         return log if steps is None else _head(log, steps)
-    return simulate(src, seed, steps=steps, progress=progress)
+    return simulate(src, seed, steps=steps, progress=progress, workers=workers)
 
 
 def _head(log: MeasurementLog, steps: int) -> MeasurementLog:
@@ -143,9 +147,12 @@ def prepare_log(
     progress: Progress | None = None,
     data_dir: str | None = None,
     known_map: str | None = None,
+    workers: int | None = None,
 ) -> MeasurementLog:
     """:func:`load` under the command line's argument names."""
-    return load(source, seed=seed, data=data_dir, known_map=known_map, progress=progress)
+    return load(
+        source, seed=seed, data=data_dir, known_map=known_map, progress=progress, workers=workers
+    )
 
 
 @dataclass(frozen=True, eq=False)

@@ -55,6 +55,7 @@ from mapfuse_graph.isam2 import _newest_pose_marginal as _newest_pose_marginal
 from mapfuse_graph.marginals import body_to_abs_cov, tree_marginals
 from mapfuse_graph.options import ASSOCIATIONS, AssociationName, GraphOptions
 from mapfuse_graph.results import GraphDetails, JointPoseCovariance, LMReport
+from mapfuse_graph.threads import single_threaded_blas
 
 __all__ = [
     "BACKENDS",
@@ -74,6 +75,7 @@ BACKENDS: tuple[str, ...] = ("batch", "isam2", "fixedlag")
 Backend = Literal["batch", "isam2", "fixedlag"]
 
 
+@single_threaded_blas
 def run_graph(
     log: MeasurementLog,
     backend: Backend = "isam2",
@@ -113,7 +115,8 @@ def run_graph(
 
     Returns the :class:`~mapfuse_core.estimate.EstimatorResult` every estimator returns
     (estimator ``backend``; the smoothed track, and the filtered one for iSAM2 and
-    fixed-lag), with :class:`GraphDetails` as its ``details``.
+    fixed-lag), with :class:`GraphDetails` as its ``details``.  BLAS runs on one thread
+    during the run (:mod:`mapfuse_graph.threads`).
     """
     t_start = time.perf_counter()
     cpu_start = time.process_time()

@@ -121,10 +121,17 @@ def test_the_readme_front_door_script_reproduces_metrics_json(tmp_path: Path) ->
 
 @pytest.mark.slow
 def test_the_readme_plug_in_script_runs_as_a_plain_script(tmp_path: Path) -> None:
-    proc = run_script(readme_script("plug-in"), tmp_path)
+    from mapfuse_core.sim.simulate import extraction_workers
+
+    code = readme_script("plug-in")
+    # Its log is long enough that an extraction pool would start if asked for: the
+    # script has no main guard, and a pool's workers would run it again.
+    steps = int(re.search(r"steps=(\d+)", code).group(1))  # type: ignore[union-attr]
+    assert extraction_workers(2, steps) == 2
+    proc = run_script(code, tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert "RuntimeError" not in proc.stderr
+    for bad in ("Traceback", "RuntimeError", "pool broke"):
+        assert bad not in proc.stderr, proc.stderr
     rows = re.findall(r"^(\w+)\s+fusion=(True|False)\s+RMSE (\S+) m$", proc.stdout, re.MULTILINE)
     assert [(e, f) for e, f, _ in rows] == [
         ("ekf", "True"),

@@ -7,6 +7,7 @@ import importlib
 import json
 import math
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,12 @@ from mapfuse_core.measlog import load_log, save_log
 from mapfuse_core.sensor import LaserParams
 from mapfuse_core.sim.laser import simulate_scan
 from mapfuse_core.sim.scenario import Scenario, load_scenario
-from mapfuse_core.sim.simulate import _MIN_PARALLEL_STEPS, extraction_workers, simulate
+from mapfuse_core.sim.simulate import (
+    _MIN_PARALLEL_STEPS,
+    default_workers,
+    extraction_workers,
+    simulate,
+)
 from mapfuse_core.sim.world import World
 from tests.loop600 import loop600_log
 
@@ -107,8 +113,16 @@ def test_a_broken_pool_falls_back_to_the_same_log(
     assert save_log(result.log, tmp_path / "log.npz").read_bytes() == in_process_bytes
 
 
-def test_extraction_workers_default_and_small_runs() -> None:
-    assert extraction_workers(None, 10_000) == min(2, os.cpu_count() or 1)
+def test_extraction_workers_default_and_small_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    main_module = sys.modules["__main__"]
+    # A notebook's or a session's main module has no file: the default pool.
+    monkeypatch.delattr(main_module, "__file__", raising=False)
+    assert default_workers() == min(2, os.cpu_count() or 1)
+    assert extraction_workers(None, 10_000) == default_workers()
+    # A script's would be run again by every worker: in-process unless asked.
+    monkeypatch.setattr(main_module, "__file__", "script.py", raising=False)
+    assert extraction_workers(None, 10_000) == 1
+    assert extraction_workers(2, 10_000) == 2
     assert extraction_workers(3, 10_000) == 3
     assert extraction_workers(1, 10_000) == 1
     # A short run is not worth starting processes for.

@@ -15,16 +15,20 @@ faster, but forking a process that runs threads (a Jupyter kernel, a pytest-xdis
 worker driven by execnet, a threaded BLAS) can deadlock the child on a lock copied
 while held.  A spawned worker imports numpy and scipy afresh (about a second, paid
 while this process simulates the drive and casts the first rays) and shares no state
-with its parent.  As with any ``spawn`` pool, a *script* calling :func:`simulate` with
-workers must guard its top level with ``if __name__ == "__main__":`` (without it the
-pool breaks and the extraction falls back to this process, with a warning); notebooks
-and the command line need nothing.
+with its parent.  It also runs the parent's main module again when that is a script,
+to find what the script defines: without an ``if __name__ == "__main__":`` guard, every
+worker would run the whole script and fail with a traceback when it comes to start a
+pool of its own.  So by default the pool is used only where the main module is not a
+file (a notebook, an interactive session, ``python -c``) and a script extracts in its
+own process; a guarded script, like the ``mapfuse`` command, asks for workers by number
+(:func:`default_workers`).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 import threading
 import time
 import warnings
@@ -54,7 +58,7 @@ from mapfuse_core.sim.scenario import (
 from mapfuse_core.sim.vehicle import MotionResult
 from mapfuse_core.sim.world import WallSegment, World
 
-__all__ = ["SimulationResult", "extraction_workers", "simulate", "world_arrays"]
+__all__ = ["SimulationResult", "default_workers", "extraction_workers", "simulate", "world_arrays"]
 
 # Below this many steps a pool costs more than it saves: a spawned worker is ready only
 # after its imports (the package, numpy, scipy: seconds), while a scan is extracted in
@@ -114,15 +118,28 @@ def _known_extents(scenario: Scenario, ids: np.ndarray, kinds: np.ndarray) -> Fl
     return out
 
 
+def default_workers() -> int:
+    """Size of the extraction pool: two processes (the project's machines have two
+    cores), one on a single core."""
+    return min(2, os.cpu_count() or 1)
+
+
+def _main_is_a_file() -> bool:
+    """Whether this process's main module is a file (a script, ``python -m``), which a
+    spawned process may run again, rather than a notebook, a session or ``python -c``."""
+    return getattr(sys.modules.get("__main__"), "__file__", None) is not None
+
+
 def extraction_workers(workers: int | None, steps: int) -> int:
     """Number of processes :func:`simulate` extracts features with; 1 means in-process.
 
-    ``workers=None`` asks for the default, ``min(2, os.cpu_count())``.  Runs of fewer
-    than 600 steps (where starting the workers costs more than they save) and daemonic
-    processes (which may not start children) use 1 whatever is asked.
+    ``workers=None`` asks for the default: :func:`default_workers` where the main module
+    is not a file, 1 in a script (see the module's docstring).  Runs of fewer than 600
+    steps (where starting the workers costs more than they save) and daemonic processes
+    (which may not start children) use 1 whatever is asked.
     """
     if workers is None:
-        workers = min(2, os.cpu_count() or 1)
+        workers = 1 if _main_is_a_file() else default_workers()
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1 or None, got {workers!r}")
     if steps < _MIN_PARALLEL_STEPS or multiprocessing.current_process().daemon:
@@ -184,8 +201,8 @@ def _parallel_extraction(
 ) -> tuple[list[Scan], list[ExtractionResult]] | None:
     """Scans made here in step order, extracted by the processes of ``pool``.
 
-    ``None`` when the pool broke (a worker could not start, e.g. a script without a
-    ``__main__`` guard): the caller then starts again in-process.
+    ``None`` when the pool broke (a worker could not start, e.g. one asked for by a
+    script without a ``__main__`` guard): the caller then starts again in-process.
     """
     n = poses.shape[0]
     scans: list[Scan] = []
@@ -221,8 +238,9 @@ def simulate(
 
     ``progress(k, n)`` is called after each step when given (with workers, in step
     order as the extracted scans come back).  ``workers`` processes extract the
-    features (see :func:`extraction_workers`; ``workers=1`` keeps everything in this
-    process); the result is the same bit for bit whatever their number.  ``clutter``
+    features (see :func:`extraction_workers`: by default none in a script, so that it
+    needs no ``__main__`` guard; ``workers=1`` keeps everything in this process); the
+    result is the same bit for bit whatever their number.  ``clutter``
     adds spurious features and gross outliers to the extracted features
     (:mod:`mapfuse_core.sim.clutter`, from a stream of their own: the rest of the log
     is that of the same seed without them).
@@ -255,8 +273,8 @@ def simulate(
             )
             if done is None:
                 warnings.warn(
-                    "the extraction worker pool broke (a script calling simulate() needs an "
-                    '`if __name__ == "__main__":` guard); extracting in this process',
+                    "the extraction worker pool broke (a script asking simulate() for workers "
+                    'needs an `if __name__ == "__main__":` guard); extracting in this process',
                     RuntimeWarning,
                     stacklevel=2,
                 )
