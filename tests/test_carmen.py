@@ -123,7 +123,8 @@ _RL1_OK = (
 @pytest.mark.parametrize(
     ("line", "problem"),
     [
-        ("FLASER 2 1.0 2.0 0 0 0 0 0 0 1.0 host", "has 12 fields, expected 13"),
+        ("FLASER 2 1.0 2.0 0 0 0 0 0 0", "has 10 fields, expected 11 to 13"),
+        ("FLASER 2 1.0 2.0 0 0 0 0 0 0 1.0 2.0 3.0", "n beams mismatch"),
         ("FLASER 3 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "n beams mismatch"),
         ("FLASER x 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "beam count (field 1) is not an integer"),
         ("FLASER 2 1.0 abc 0 0 0 0 0 0 1.0 host 1.0", "range (field 3) is not a number"),
@@ -135,7 +136,7 @@ _RL1_OK = (
         (_RL1_OK.replace("3.1415927", "1.0"), "not the field of view"),
         (_RL1_OK.replace(" 1.5707963 30.0", " 0 30.0"), "angular resolution 0.0 is not > 0"),
         (_RL1_OK.replace(" 0 0 0 0 0 0 0 0 0 0 0 2.5", " 2 0 0 0 0 0 0 0 0 0 0 0 2.5"), "expected"),
-        ("ODOM 0 0 0 0 0 0 1.0 host", "has 9 fields, expected 10"),
+        ("ODOM 0 0 0 0 0 0", "has 7 fields, expected 8 to 10"),
         ("ODOM 0 0 q 0 0 0 1.0 host 1.0", "pose (field 3) is not a number"),
         ("PARAM lonely", "expected a name and a value"),
     ],
