@@ -106,10 +106,16 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
 
 
 def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
-    """The log of run ``seed``, simulated in this process, of its first ``spec.steps``
-    steps.  A drive through waypoints is simulated for those steps only (its draws come
-    step by step, so the log is the head of the full one); a drive by a table of
+    """The log of run ``seed``, made in this process, of its first ``spec.steps``
+    steps.  A CARMEN log (``carmen:PATH``) is loaded with ``seed`` drawing its simulated
+    odometry.  A drive through waypoints is simulated for those steps only (its draws
+    come step by step, so the log is the head of the full one); a drive by a table of
     controls is simulated whole and cut."""
+    from mapfuse.carmen_input import is_carmen, load_carmen_input
+
+    if is_carmen(spec.scenario):
+        log = load_carmen_input(spec.scenario, seed=seed)
+        return log if spec.steps is None else log.head(spec.steps)
     scenario = run_scenario(spec, seed)
     if spec.steps is not None and not scenario.controls and spec.steps < scenario.steps:
         scenario = dataclasses.replace(scenario, steps=spec.steps)
