@@ -523,9 +523,11 @@ def test_real_logs_are_detected_corrected_and_load_raw_when_stated(
     verdict = judge_odometry(rec)
     assert verdict.kind == "corrected", verdict.summary()
     says = {e.name: e.says for e in verdict.evidence}
-    # Their ODOM lines move without velocities; the two with a -0.04 m offset PARAM
-    # do not apply it; no evidence says raw.
+    # Their ODOM lines move without velocities; their scans coincide where they
+    # revisit a place; the two with a -0.04 m offset PARAM do not apply it; no
+    # evidence says raw.
     assert says["velocities"] == "corrected"
+    assert says["revisits"] == "corrected"
     assert says["laser offset"] == ("corrected" if name in ("belgioioso", "freiburg-101") else None)
     assert "raw" not in says.values()
     assert carmen_log_kind(f"carmen,odometry=raw:{_real(data_dir, name)}") == "raw"
