@@ -134,6 +134,29 @@ def test_corrected_rear_laser_log_is_read_from_its_rlaser_messages(tmp_path: Pat
     np.testing.assert_allclose(log.true_poses, _path(), atol=1e-6)
 
 
+def test_raw_rear_laser_looking_backwards_applies_its_stated_offset(tmp_path: Path) -> None:
+    # A rear laser 0.2 m behind the robot centre, turned by a half turn: its relation
+    # to the odometry has a heading of ±π, which the rigid-relation test must not
+    # take for drift.
+    lines = ["PARAM robot_rearlaser_offset 0.2 nohost 0"]
+    for k, robot in enumerate(_path()):
+        # A heading just either side of the half turn, as rounding leaves it.
+        mount = np.array([-0.2, 0.0, math.pi - 5e-7 if k % 2 else -math.pi + 5e-7])
+        lines.append(_odom(robot, k, tv=0.3))
+        lines.append(_flaser(compose(robot, mount), robot, k + 0.5, kind="RLASER"))
+    path = _write(tmp_path, "rear.log", lines)
+    assert _evidence(path) == {
+        "pose fields": None,
+        "laser offset": None,
+        "velocities": "raw",
+        "revisits": None,
+    }
+    # The same poses in both fields: the stated rear offset is not applied.
+    lines = ["PARAM robot_rearlaser_offset 0.2 nohost 0"]
+    lines += [_flaser(p, p, k, kind="RLASER") for k, p in enumerate(_path())]
+    assert _evidence(_write(tmp_path, "rear-fixed.log", lines))["laser offset"] == "corrected"
+
+
 def test_rlaser_beside_a_front_laser_is_skipped_and_counted(tmp_path: Path) -> None:
     pose = np.zeros(3)
     lines = [_flaser(pose, pose, 1.0), _flaser(pose, pose, 1.1, kind="RLASER")]

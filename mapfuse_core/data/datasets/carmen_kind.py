@@ -13,16 +13,15 @@ without time fields, laser-offset ``PARAM`` lines, ``ODOM`` lines or velocities)
   another trajectory than the laser poses: raw odometry.
 * **laser offset**: CARMEN's robot module writes the laser pose as the odometry pose
   composed with the ``PARAM`` laser offset.  A log that states a non-zero offset while
-  its laser and odometry poses are related by neither it nor its inverse had its poses
-  written by something else: corrected.
+  its laser and odometry poses are not that offset apart (whichever way it is applied)
+  had its poses written by something else: corrected.
 * **velocities**: a robot base reports the velocities it drives at (``ODOM`` ``tv rv``,
   ``ROBOTLASER1`` ``tv rv``).  Poses that move while every velocity is exactly 0 were
   written without them: corrected.  A non-zero velocity says raw.
 * **revisits**: a corrected trajectory closes its loops: two scans taken at the same
   place (within 2 m and 45°) after 10 m or more of travel coincide to a few
-  centimetres.  Raw
-  odometry drifts by decimetres over that distance, so its scans of one place do not
-  coincide.
+  centimetres.  Raw odometry drifts by decimetres over that distance, so its scans of
+  one place do not coincide.
 
 The log's kind is the one every piece of evidence that speaks names.  When none speaks,
 or two disagree, the kind is undecided and the caller must state it
@@ -49,6 +48,7 @@ __all__ = [
     "UndecidedOdometryError",
     "judge_odometry",
     "laser_offset",
+    "laser_poses_on_odometry",
 ]
 
 LogKind = Literal["raw", "corrected"]
@@ -112,20 +112,18 @@ class OdometryVerdict:
 
 
 class UndecidedOdometryError(DatasetError):
-    """The log's evidence does not decide between corrected and raw."""
+    """The log's evidence does not decide between corrected and raw.  Attributes:
+    ``path`` (the log), ``verdict`` (its evidence), ``reason`` (why, in words)."""
 
     def __init__(self, path: object, verdict: OdometryVerdict) -> None:
         self.path = path
-        """The log."""
         self.verdict = verdict
-        """Its evidence."""
         speaking = [e for e in verdict.evidence if e.says is not None]
         self.reason = (
             "its evidence disagrees"
             if speaking
             else "no evidence in it tells a corrected log from raw odometry"
         )
-        """Why it is undecided, in words."""
         super().__init__(f"{self.question()}; state it: odometry raw or corrected")
 
     def question(self) -> str:
@@ -183,7 +181,10 @@ def _off(rel: FloatArray, mounting: FloatArray, msg: LaserMessage) -> bool:
 def _pose_fields(rec: CarmenRecords) -> tuple[Evidence, FloatArray | None]:
     rels = np.array([_relation(m) for m in rec.lasers])
     mounting = np.median(rels, axis=0)
-    mounting[2] = wrap_scalar(float(mounting[2]))
+    # The median heading about the first one's, so that headings near ±π (a rear
+    # laser looking backwards) do not average to 0.
+    turn = np.array([wrap_scalar(float(a)) for a in rels[:, 2] - rels[0, 2]])
+    mounting[2] = wrap_scalar(float(rels[0, 2] + np.median(turn)))
     off = sum(_off(r, mounting, m) for r, m in zip(rels, rec.lasers, strict=True))
     n = len(rec.lasers)
     where = f"({mounting[0]:+.3f} m, {mounting[1]:+.3f} m, {math.degrees(mounting[2]):+.2f}°)"
