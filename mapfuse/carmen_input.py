@@ -2,32 +2,44 @@
 
 The same steps for every CARMEN log, with no per-file setting: the log is read with
 :func:`~mapfuse_core.data.datasets.load_carmen`'s defaults (the ``indoor_sick``
-extraction profile, odometry kind detected from the file).  A log with a reference
-trajectory (a corrected log) gets its floor plan built from its own scans at the
-reference poses (:func:`~mapfuse_core.data.datasets.build_floor_plan`): the
-reference's own plan, the stand-in for a building plan, which CCDA must place without
-being given the start pose.  Its observations are labelled with the plan's walls in
-either case, so that pairings and ``--association truth`` are judged against it.
+extraction profile, odometry kind decided from the log's evidence unless the source
+states it).  A log with a reference trajectory (a corrected log) gets its floor plan
+built from its own scans at the reference poses
+(:func:`~mapfuse_core.data.datasets.build_floor_plan`): the reference's own plan, the
+stand-in for a building plan, which CCDA must place without being given the start
+pose.  Its observations are labelled with the plan's walls in either case, so that
+pairings and ``--association truth`` are judged against it.
+
+Source syntax: ``carmen:PATH`` or, with options, ``carmen,KEY=VALUE[,KEY=VALUE]:PATH``.
+Options sit between ``carmen`` and the first ``:``, so that any path (with commas,
+colons, question marks) is read as it is written.  The one option is ``odometry=raw`` or
+``odometry=corrected`` (the command line's ``--odometry``).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 from mapfuse_core.measlog import MeasurementLog
 
 if TYPE_CHECKING:
     from mapfuse_core.changes import ChangeParams
+    from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
 
 __all__ = [
     "CARMEN_PREFIX",
     "KNOWN_MAPS",
+    "ODOMETRY_KINDS",
+    "CarmenSource",
     "carmen_change_params",
+    "carmen_log_kind",
     "carmen_path",
     "is_carmen",
     "load_carmen_input",
+    "parse_carmen_source",
+    "with_odometry",
 ]
 
 #: Prefix of a CARMEN log input: ``carmen:PATH``.
@@ -36,15 +48,60 @@ CARMEN_PREFIX = "carmen:"
 #: ``--known-map`` choices: the floor plan built from the reference, or none.
 KNOWN_MAPS = ("floorplan", "none")
 
+#: ``--odometry`` choices (and of the source's ``odometry=`` option).
+ODOMETRY_KINDS = ("raw", "corrected")
+
+_SYNTAX = "carmen:PATH or carmen,odometry=raw|corrected:PATH"
+
+
+@dataclass(frozen=True)
+class CarmenSource:
+    """A parsed ``carmen:`` input."""
+
+    path: Path
+    """The log file (it exists)."""
+    odometry: Literal["auto", "raw", "corrected"] = "auto"
+    """The log's kind as stated in the source, or ``"auto"``: decided from its evidence."""
+
+    def text(self) -> str:
+        """The source string that gives this input."""
+        opts = "" if self.odometry == "auto" else f",odometry={self.odometry}"
+        return f"carmen{opts}:{self.path}"
+
 
 def is_carmen(source: str) -> bool:
-    """Whether ``source`` names a CARMEN log (``carmen:PATH``)."""
-    return source.startswith(CARMEN_PREFIX)
+    """Whether ``source`` names a CARMEN log (``carmen:PATH`` or ``carmen,…:PATH``)."""
+    return source.startswith((CARMEN_PREFIX, "carmen,"))
 
 
-def carmen_path(source: str) -> Path:
-    """The file of a ``carmen:PATH`` input; an error when none is named or it is absent."""
-    raw = source[len(CARMEN_PREFIX) :]
+def _options(source: str, head: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in head.split(",")[1:]:
+        key, eq, value = (t.strip() for t in item.partition("="))
+        if not (key and eq and value):
+            raise ValueError(
+                f"{source!r}: expected key=value options between 'carmen' and ':', "
+                f"got {item!r} ({_SYNTAX})"
+            )
+        if key != "odometry":
+            raise ValueError(f"{source!r}: unknown option {key!r} (known: odometry)")
+        if key in out:
+            raise ValueError(f"{source!r}: option {key!r} given twice")
+        if value not in ODOMETRY_KINDS:
+            raise ValueError(
+                f"{source!r}: odometry must be {' or '.join(ODOMETRY_KINDS)}, got {value!r}"
+            )
+        out[key] = value
+    return out
+
+
+def parse_carmen_source(source: str) -> CarmenSource:
+    """The file and options of a ``carmen:`` input; an error naming the problem when the
+    syntax is wrong, an option is unknown or bad, or the file is missing."""
+    head, colon, raw = source.partition(":")
+    if not is_carmen(source) or not colon:
+        raise ValueError(f"{source!r} is not a CARMEN input ({_SYNTAX})")
+    opts = _options(source, head)
     if not raw:
         raise ValueError(f"{source!r}: give the log file after 'carmen:' (carmen:PATH.log[.gz])")
     path = Path(raw)
@@ -52,18 +109,66 @@ def carmen_path(source: str) -> Path:
         raise ValueError(f"CARMEN log {path} does not exist")
     if not path.is_file():
         raise ValueError(f"CARMEN log {path} is not a file")
-    return path
+    stated = opts.get("odometry")
+    return CarmenSource(
+        path, "auto" if stated is None else "raw" if stated == "raw" else "corrected"
+    )
+
+
+def carmen_path(source: str) -> Path:
+    """The file of a ``carmen:`` input (:func:`parse_carmen_source`'s checks)."""
+    return parse_carmen_source(source).path
+
+
+def with_odometry(source: str, odometry: str | None) -> str:
+    """``source`` with the ``--odometry`` choice in it (``None``: unchanged); an error
+    when ``source`` is not a CARMEN log or states the other kind."""
+    if odometry is None:
+        return source
+    if not is_carmen(source):
+        raise ValueError(f"--odometry applies to CARMEN logs (carmen:PATH) only, not {source!r}")
+    if odometry not in ODOMETRY_KINDS:
+        raise ValueError(f"--odometry must be {' or '.join(ODOMETRY_KINDS)}, got {odometry!r}")
+    src = parse_carmen_source(source)
+    if src.odometry not in ("auto", odometry):
+        raise ValueError(f"--odometry {odometry} contradicts odometry={src.odometry} in {source!r}")
+    return replace(src, odometry="raw" if odometry == "raw" else "corrected").text()
+
+
+def _undecided(exc: UndecidedOdometryError) -> ValueError:
+    return ValueError(
+        f"CARMEN log {exc.question()}; state it with --odometry raw|corrected "
+        "(in a campaign: carmen,odometry=raw|corrected:PATH)"
+    )
+
+
+def carmen_log_kind(source: str) -> str:
+    """``"raw"`` or ``"corrected"``: the kind ``source`` is loaded as (stated, or
+    decided from the log's evidence); an error naming ``--odometry`` when undecided."""
+    from mapfuse_core.data.datasets import read_carmen
+    from mapfuse_core.data.datasets.carmen import detect_odometry_kind
+    from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
+
+    src = parse_carmen_source(source)
+    if src.odometry != "auto":
+        return src.odometry
+    try:
+        return detect_odometry_kind(read_carmen(src.path))
+    except UndecidedOdometryError as exc:
+        raise _undecided(exc) from None
 
 
 def load_carmen_input(
     source: str, *, seed: int | None = None, known_map: str | None = None
 ) -> MeasurementLog:
-    """The measurement log of ``carmen:PATH``.
+    """The measurement log of a ``carmen:`` input (:func:`parse_carmen_source`).
 
     ``seed``: seed of the odometry simulated from the reference (corrected logs;
     default 0).  ``known_map``: ``"floorplan"`` (the plan built from the log's
     reference trajectory; an error for a log without one), ``"none"``, or ``None``
-    (the floor plan when the log has a reference trajectory, else none).
+    (the floor plan when the log has a reference trajectory, else none).  A log whose
+    kind its evidence does not decide, and the source does not state, is an error
+    naming ``--odometry``.
     """
     from mapfuse_core.data.datasets import (
         CarmenOptions,
@@ -71,16 +176,23 @@ def load_carmen_input(
         label_with_plan,
         load_carmen,
     )
+    from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
 
     if known_map is not None and known_map not in KNOWN_MAPS:
         raise ValueError(f"--known-map must be one of {', '.join(KNOWN_MAPS)}, got {known_map!r}")
-    path = carmen_path(source)
-    log = load_carmen(path, options=CarmenOptions(seed=0 if seed is None else seed))
+    src = parse_carmen_source(source)
+    path = src.path
+    options = CarmenOptions(seed=0 if seed is None else seed, odometry=src.odometry)
+    try:
+        log = load_carmen(path, options=options)
+    except UndecidedOdometryError as exc:
+        raise _undecided(exc) from None
     if log.true_poses is None:
         if known_map == "floorplan":
             raise ValueError(
-                f"CARMEN log {path} has no reference trajectory (raw odometry): no floor "
-                "plan can be built from it; use --known-map none"
+                f"CARMEN log {path} has no reference trajectory (raw odometry, "
+                f"{log.metadata['log_kind']}): no floor plan can be built from it; use "
+                "--known-map none, or --odometry corrected if its poses are corrected ones"
             )
         return replace(log, metadata={**log.metadata, "known_map": "none"})
     plan = build_floor_plan(log)

@@ -74,6 +74,18 @@ def _simulated(source: str) -> bool:
     return not (source.endswith(".npz") or _is_dataset(source) or _is_carmen(source))
 
 
+def _source(args: argparse.Namespace) -> str:
+    """The command's input, with ``--odometry`` folded into a CARMEN source."""
+    from mapfuse.carmen_input import with_odometry
+
+    odometry = getattr(args, "odometry", None)
+    if odometry is not None and not _is_carmen(args.scenario):
+        raise UsageError(
+            f"--odometry applies to CARMEN logs (carmen:PATH) only, not {args.scenario!r}"
+        )
+    return with_odometry(args.scenario, odometry)
+
+
 def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> None:
     """The input and the options that depend on it, checked before any work."""
     data = getattr(args, "data", None)
@@ -81,9 +93,9 @@ def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> No
     if known_map is not None and not _is_carmen(source):
         raise UsageError(f"--known-map applies to CARMEN logs (carmen:PATH) only, not {source!r}")
     if _is_carmen(source):
-        from mapfuse.carmen_input import carmen_path
+        from mapfuse.carmen_input import parse_carmen_source
 
-        carmen_path(source)  # names a missing file
+        parse_carmen_source(source)  # names a bad option or a missing file
     elif source.endswith(".npz"):
         if not Path(source).is_file():
             raise UsageError(f"log file {source} does not exist")
@@ -256,14 +268,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from mapfuse.runner import run as run_estimator
 
     estimator = resolve(args.backend)
-    _check_source(args, args.scenario, args.seed)
+    source = _source(args)
+    _check_source(args, source, args.seed)
     flags = _check_graph_flags(args, [args.backend]).get(estimator.name, {})
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     if args.export_graph and not estimator.capabilities.exports_graph:
         raise UsageError(f"--export-graph: the {args.backend} estimator holds no factor graph")
     out = _check_out(args)
-    log = _log_from_args(args, args.scenario, args.seed)
+    log = _log_from_args(args, source, args.seed)
     if args.steps is not None:
         log = log.head(args.steps)
     run = run_estimator(
@@ -293,7 +306,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise UsageError(f"--backends needs distinct names, got {args.backends!r}")
     for b in backends:
         resolve(b)  # an unknown name fails before any work
-    _check_source(args, args.scenario, args.seed)
+    source = _source(args)
+    _check_source(args, source, args.seed)
     overrides = _check_graph_flags(args, backends)
     fusions = (True, False) if args.fusion is None else (args.fusion,)
     beside = list(args.beside or ())
@@ -302,7 +316,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise UsageError(f"--beside {b}: only simulated scenarios, not a log or dataset")
         load_scenario(b)  # ScenarioError names what is wrong
     out = _check_out(args)
-    log = _log_from_args(args, args.scenario, args.seed)
+    log = _log_from_args(args, source, args.seed)
     progress = LabelledProgress(not args.quiet)
     comparison = compare(
         log, progress=progress, estimators=backends, fusions=fusions, overrides=overrides
@@ -374,7 +388,8 @@ def _sources() -> str:
     return (
         f"built-in scenario ({', '.join(list_builtin_scenarios())}), a scenario .toml path, "
         f"a saved log .npz, a real dataset ({', '.join(DATASETS)}; needs --data), or a "
-        "CARMEN laser log carmen:PATH.log[.gz]"
+        "CARMEN laser log carmen:PATH.log[.gz] (carmen,odometry=raw|corrected:PATH states "
+        "its kind)"
     )
 
 
@@ -433,6 +448,19 @@ def _add_known_map(p: argparse.ArgumentParser) -> None:
         help="CARMEN logs only: the floor plan built from the log's reference trajectory "
         "as known map, or none (default: the floor plan when the log has a reference "
         "trajectory, else none)",
+    )
+
+
+def _add_odometry(p: argparse.ArgumentParser) -> None:
+    from mapfuse.carmen_input import ODOMETRY_KINDS
+
+    p.add_argument(
+        "--odometry",
+        default=None,
+        choices=list(ODOMETRY_KINDS),
+        help="CARMEN logs only: the log's poses are raw odometry, or corrected ones (a "
+        "reference trajectory; the odometry is then simulated from it) (default: decided "
+        "from the log's evidence, an error when it does not decide)",
     )
 
 
@@ -498,6 +526,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_graph_flags(run)
     _add_known_map(run)
+    _add_odometry(run)
     _add_fusion(run, True, "run")
     run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
     run.add_argument(
@@ -526,6 +555,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_fusion(cmp_, None, "compare")
     _add_graph_flags(cmp_)
     _add_known_map(cmp_)
+    _add_odometry(cmp_)
     cmp_.add_argument(
         "--beside",
         action="append",

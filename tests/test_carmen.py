@@ -18,6 +18,7 @@ from mapfuse_core.data.datasets.carmen import (
     load_carmen,
 )
 from mapfuse_core.data.datasets.carmen_format import guess_beam_geometry, read_carmen
+from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
 from mapfuse_core.data.datasets.common import DatasetError
 from mapfuse_core.data.datasets.floorplan import (
     build_floor_plan,
@@ -94,7 +95,7 @@ def test_raw_scans_are_kept_only_when_every_message_has_the_same_beams(tmp_path:
     )
     path = tmp_path / "two.log"
     path.write_text(flaser + "\n")
-    log = load_carmen(path)
+    log = load_carmen(path, options=CarmenOptions(odometry="raw"))
     assert log.metadata["raw_scans"] == "2 x 4 beams"
     assert log.scan_bearings is not None
     assert log.scan_ranges is not None
@@ -105,7 +106,8 @@ def test_raw_scans_are_kept_only_when_every_message_has_the_same_beams(tmp_path:
     # 25 m is beyond the 20 m used for features but a return; 50 (the max) and 0 are none.
     np.testing.assert_array_equal(log.scan_ranges[0], [1.0, 25.0, np.inf, np.inf])
     np.testing.assert_array_equal(log.scan_ranges[1], [3.0, 2.0, 1.0, 4.0])
-    assert load_carmen(path, options=CarmenOptions(keep_scans=False)).scan_ranges is None
+    kept = CarmenOptions(odometry="raw", keep_scans=False)
+    assert load_carmen(path, options=kept).scan_ranges is None
 
 
 def test_beam_geometry_follows_carmen_convention() -> None:
@@ -124,7 +126,8 @@ _RL1_OK = (
 @pytest.mark.parametrize(
     ("line", "problem"),
     [
-        ("FLASER 2 1.0 2.0 0 0 0 0 0 0 1.0 host", "has 12 fields, expected 13"),
+        ("FLASER 2 1.0 2.0 0 0 0 0 0 0", "has 10 fields, expected 11 to 13"),
+        ("FLASER 2 1.0 2.0 0 0 0 0 0 0 1.0 2.0 3.0", "n beams mismatch"),
         ("FLASER 3 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "n beams mismatch"),
         ("FLASER x 1.0 2.0 0 0 0 0 0 0 1.0 host 1.0", "beam count (field 1) is not an integer"),
         ("FLASER 2 1.0 abc 0 0 0 0 0 0 1.0 host 1.0", "range (field 3) is not a number"),
@@ -136,7 +139,7 @@ _RL1_OK = (
         (_RL1_OK.replace("3.1415927", "1.0"), "not the field of view"),
         (_RL1_OK.replace(" 1.5707963 30.0", " 0 30.0"), "angular resolution 0.0 is not > 0"),
         (_RL1_OK.replace(" 0 0 0 0 0 0 0 0 0 0 0 2.5", " 2 0 0 0 0 0 0 0 0 0 0 0 2.5"), "expected"),
-        ("ODOM 0 0 0 0 0 0 1.0 host", "has 9 fields, expected 10"),
+        ("ODOM 0 0 0 0 0 0", "has 7 fields, expected 8 to 10"),
         ("ODOM 0 0 q 0 0 0 1.0 host 1.0", "pose (field 3) is not a number"),
         ("PARAM lonely", "expected a name and a value"),
     ],
@@ -189,12 +192,15 @@ def _corrected_log(tmp_path: Path, n: int = 30) -> Path:
 
 
 def test_detection_tells_corrected_from_raw(tmp_path: Path) -> None:
-    assert detect_odometry_kind(read_carmen(_corrected_log(tmp_path))) == "simulated"
+    # Moving poses, every ODOM velocity 0: corrected.
+    assert detect_odometry_kind(read_carmen(_corrected_log(tmp_path))) == "corrected"
     # The snippet's ODOM reports a velocity: raw odometry.
     assert detect_odometry_kind(read_carmen(SNIPPET)) == "raw"
-    raw = tmp_path / "raw.log"
-    raw.write_text("FLASER 2 1 1 0.5 0 0 0 0 0 1.0 host 1.0\n")  # laser pose ≠ odometry
-    assert detect_odometry_kind(read_carmen(raw)) == "raw"
+    # One laser message and nothing else: no evidence either way.
+    bare = tmp_path / "bare.log"
+    bare.write_text("FLASER 2 1 1 0.5 0 0 0 0 0 1.0 host 1.0\n")
+    with pytest.raises(UndecidedOdometryError, match="no evidence in it"):
+        detect_odometry_kind(read_carmen(bare))
 
 
 def test_simulated_odometry_is_seeded_and_its_noise_matches_its_covariance(

@@ -42,7 +42,9 @@ def _room() -> World:
 
 def _write_corrected_log(path: Path, n: int = 40) -> Path:
     """A corrected-style CARMEN log of the room: the robot drives an arc, every pose field
-    holds the reference pose, ranges simulated with 1 cm noise (seeded)."""
+    holds the reference pose, ranges simulated with 1 cm noise (seeded); an ``ODOM``
+    line before every scan repeats its pose without velocities, as the benchmark's
+    corrected logs do."""
     laser = LaserParams(
         fov_rad=math.pi,
         max_range_m=80.0,
@@ -60,6 +62,7 @@ def _write_corrected_log(path: Path, n: int = 40) -> Path:
         r = np.where(np.isfinite(scan.ranges), scan.ranges, _NO_RETURN)
         p = f"{pose[0]:.6f} {pose[1]:.6f} {pose[2]:.6f}"
         ranges = " ".join(f"{v:.2f}" for v in r)
+        lines.append(f"ODOM {p} 0 0 0 {k}.5 host {k}.5")
         lines.append(f"FLASER 181 {ranges} {p} {p} {k}.5 host {k}.5")
     path.write_text("\n".join(lines) + "\n")
     return path

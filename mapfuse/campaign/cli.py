@@ -48,11 +48,27 @@ def parse_world_args(text: str) -> dict[str, Any]:
     return out
 
 
+def _check_carmen_campaign(source: str, world: dict[str, Any] | None) -> None:
+    """A CARMEN log as a campaign's input: a corrected one (its reference is the truth,
+    each seed draws its simulated odometry), without generated worlds."""
+    from mapfuse.carmen_input import carmen_log_kind
+
+    if world is not None:
+        raise ValueError("--world-per-run generates simulated worlds; not with a CARMEN log")
+    if carmen_log_kind(source) != "corrected":
+        raise ValueError(
+            f"{source}: a campaign needs a reference trajectory, and this CARMEN log's "
+            "poses are raw odometry (state carmen,odometry=corrected:PATH if they are "
+            "corrected ones)"
+        )
+
+
 def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from mapfuse.campaign.engine import run_campaign
     from mapfuse.campaign.report import write_report
     from mapfuse.campaign.spec import CampaignSpec, parse_fusion, parse_seeds
     from mapfuse.campaign.task import plugins_registered
+    from mapfuse.carmen_input import is_carmen
     from mapfuse.registry import resolve
     from mapfuse_core.sim.scenario import load_scenario
 
@@ -68,7 +84,10 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         for e in estimators:
             resolve(e)  # an unknown name fails before any cluster starts
     world = None if args.world_per_run is None else parse_world_args(args.world_per_run)
-    load_scenario(args.scenario)  # a bad scenario fails here, not on every worker
+    if is_carmen(args.scenario):
+        _check_carmen_campaign(args.scenario, world)
+    else:
+        load_scenario(args.scenario)  # a bad scenario fails here, not on every worker
     spec = CampaignSpec(
         scenario=args.scenario,
         seeds=seeds,
@@ -110,7 +129,8 @@ def add_montecarlo(sub: Any) -> None:
     mc = sub.add_parser(
         "montecarlo",
         help="Monte Carlo campaign: many seeds through every estimator, on dask",
-        description="Simulate SCENARIO once per seed and run every estimator, with and "
+        description="Simulate SCENARIO once per seed (for a corrected CARMEN log: draw its "
+        "odometry from the reference once per seed) and run every estimator, with and "
         "without fusion, on each log; results go to OUT (runs.jsonl, arrays/, "
         "report.md and figures) as runs complete. A stopped campaign resumes: finished "
         "seeds are skipped.",
@@ -118,7 +138,8 @@ def add_montecarlo(sub: Any) -> None:
     )
     mc.add_argument(
         "scenario",
-        help=f"built-in scenario ({', '.join(list_builtin_scenarios())}) or a .toml path",
+        help=f"built-in scenario ({', '.join(list_builtin_scenarios())}), a .toml path, or "
+        "a corrected CARMEN log carmen:PATH (carmen,odometry=corrected:PATH states its kind)",
     )
     which = mc.add_mutually_exclusive_group(required=True)
     which.add_argument("--runs", type=int, help="seeds 0..N-1")

@@ -95,8 +95,14 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
 
 
 def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
-    """The log of run ``seed``, simulated in this process, of its first ``spec.steps``
-    steps (:func:`mapfuse.runner.simulate`)."""
+    """The log of run ``seed``, made in this process, of its first ``spec.steps``
+    steps: a CARMEN log (``carmen:PATH``) loaded with ``seed`` drawing its simulated
+    odometry, else a simulation (:func:`mapfuse.runner.simulate`)."""
+    from mapfuse.carmen_input import is_carmen, load_carmen_input
+
+    if is_carmen(spec.scenario):
+        log = load_carmen_input(spec.scenario, seed=seed)
+        return log if spec.steps is None else log.head(spec.steps)
     scenario = run_scenario(spec, seed)
     steps = None if spec.steps is None else min(spec.steps, scenario.steps)
     return simulate(scenario, seed, steps=steps, workers=1)

@@ -1,25 +1,29 @@
 """A CARMEN laser log as a measurement log of wall lines (``docs/carmen.md``).
 
-One step per laser scan (``FLASER`` or ``ROBOTLASER1``).  The log's frame ``R`` of a
+One step per laser scan (``FLASER``, ``ROBOTLASER1``, or the rear laser's ``RLASER``,
+``ROBOTLASER2`` in a log without front laser messages).  The log's frame ``R`` of a
 step is the **laser** frame (as for the other datasets): odometry increments are those
-of the laser pose, features are extracted in it.  Two kinds of log:
+of the laser pose, features are extracted in it.  Two kinds of log, stated in
+:attr:`CarmenOptions.odometry` or decided from the log's evidence
+(:mod:`~mapfuse_core.data.datasets.carmen_kind`):
 
 * **raw**: the odometry fields are the robot's own odometry; increments come from
   them, with the covariance of :class:`IncrementNoise`; no reference trajectory.
-* **corrected** (the SLAM benchmark's logs): every pose is the corrected pose.  Those
-  poses become the log's ``true_poses`` (the reference trajectory) and the odometry is
+* **corrected** (the SLAM benchmark's logs): the laser poses are corrected ones.  They
+  become the log's ``true_poses`` (the reference trajectory) and the odometry is
   simulated from the reference increments with :class:`IncrementNoise` and a seed;
   ``metadata["odometry"]`` says ``simulated from reference``.
 
 The laser's beam geometry and maximum range come from the log (``ROBOTLASER1``
 fields, ``PARAM robot_front_laser_max``, CARMEN's beam-count convention for
-``FLASER``); its noise (σρ, σβ) from :class:`CarmenOptions`, stated defaults for a
+``FLASER`` and ``RLASER``); its noise (σρ, σβ) from :class:`CarmenOptions`, stated defaults for a
 SICK LMS, never from the file name.
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -27,9 +31,16 @@ from typing import Literal
 import numpy as np
 
 from mapfuse_core.data.datasets.carmen_format import CarmenRecords, LaserMessage, read_carmen
+from mapfuse_core.data.datasets.carmen_kind import (
+    LogKind,
+    OdometryVerdict,
+    UndecidedOdometryError,
+    judge_odometry,
+    laser_poses_on_odometry,
+)
 from mapfuse_core.data.datasets.common import DatasetError, check_finite, empty_map
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.geometry.se2 import FloatArray, compose, relative, wrap_scalar
+from mapfuse_core.geometry.se2 import FloatArray, relative, wrap_scalar
 from mapfuse_core.matching import AssociationConfig
 from mapfuse_core.matching.ccda import CCDAParams
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
@@ -46,7 +57,7 @@ __all__ = [
     "load_carmen",
 ]
 
-OdometryKind = Literal["raw", "simulated", "auto"]
+OdometryKind = Literal["auto", "raw", "corrected"]
 
 _DEFAULT_MAX_RANGE_M = 80.0
 """Maximum range when the log states none (m): the SICK LMS 2xx's 80 m.  Its
@@ -93,9 +104,11 @@ class CarmenOptions:
     """How :func:`load_carmen` turns a CARMEN log into a measurement log."""
 
     odometry: OdometryKind = "auto"
-    """``"raw"``: increments from the log's odometry fields.  ``"simulated"``: the log's
-    poses are the reference trajectory, odometry is simulated from it.  ``"auto"``:
-    :func:`detect_odometry_kind`."""
+    """``"raw"``: increments from the log's odometry fields.  ``"corrected"``: the log's
+    laser poses are the reference trajectory, odometry is simulated from it.
+    ``"auto"``: decided from the log's evidence (:func:`detect_odometry_kind`), an
+    :class:`~mapfuse_core.data.datasets.carmen_kind.UndecidedOdometryError` error when it
+    does not decide."""
     seed: int = 0
     """Seed of the simulated odometry noise (unused for raw odometry)."""
     odometry_noise: IncrementNoise = field(default_factory=IncrementNoise)
@@ -107,8 +120,9 @@ class CarmenOptions:
     sigma_bearing_rad: float = math.radians(0.05)
     """σβ of a beam's pointing (rad); small against the 0.5°–1° beam spacing."""
     max_range_m: float | None = None
-    """Maximum range (m); ``None``: ``PARAM robot_front_laser_max``, else the message's
-    own (``ROBOTLASER1``), else 80 m.  Readings at or above it, or ≤ 0, are no return."""
+    """Maximum range (m); ``None``: the message's own (``ROBOTLASER1``/``2``), else
+    ``PARAM robot_front_laser_max`` (``robot_rear_laser_max`` for the rear laser), else
+    80 m.  Readings at or above it, or ≤ 0, are no return."""
     extraction: ExtractionParams = field(default_factory=ExtractionParams.indoor_sick)
     """Extraction thresholds (:meth:`ExtractionParams.indoor_sick`)."""
     extraction_max_range_m: float = 20.0
@@ -121,9 +135,9 @@ class CarmenOptions:
     not otherwise."""
 
     def __post_init__(self) -> None:
-        if self.odometry not in ("raw", "simulated", "auto"):
+        if self.odometry not in ("auto", "raw", "corrected"):
             raise ValueError(
-                f"CarmenOptions.odometry must be 'raw', 'simulated' or 'auto', "
+                f"CarmenOptions.odometry must be 'auto', 'raw' or 'corrected', "
                 f"got {self.odometry!r}"
             )
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -140,68 +154,40 @@ class CarmenOptions:
             raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
 
 
-def _laser_offset(rec: CarmenRecords) -> FloatArray:
-    """Front-laser pose on the robot from the ``PARAM`` messages (zeros when absent)."""
-    out = np.zeros(3)
-    for i, name in enumerate(
-        (
-            "robot_frontlaser_offset",
-            "robot_frontlaser_side_offset",
-            "robot_frontlaser_angular_offset",
-        )
-    ):
-        if name in rec.params:
-            try:
-                out[i] = float(rec.params[name])
-            except ValueError:
-                raise DatasetError(
-                    f"{rec.path}: PARAM {name} is not a number: {rec.params[name]!r}"
-                ) from None
-            if not math.isfinite(out[i]):
-                raise DatasetError(f"{rec.path}: PARAM {name} is not finite")
-    return out
+def detect_odometry_kind(rec: CarmenRecords) -> LogKind:
+    """``"corrected"`` or ``"raw"`` as the log's evidence decides
+    (:func:`~mapfuse_core.data.datasets.carmen_kind.judge_odometry`); an
+    :class:`~mapfuse_core.data.datasets.carmen_kind.UndecidedOdometryError` error naming the
+    evidence when it does not decide."""
+    verdict = judge_odometry(rec)
+    if verdict.kind is None:
+        raise UndecidedOdometryError(rec.path, verdict)
+    return verdict.kind
 
 
-def _odometry_laser_pose(msg: LaserMessage, offset: FloatArray) -> FloatArray:
-    """Laser pose from the message's robot odometry: ``robot ⊕ offset`` (FLASER) or the
-    message's own laser-on-robot pose (ROBOTLASER1 gives both poses)."""
-    if msg.kind == "ROBOTLASER1":
-        return msg.laser_pose
-    return compose(msg.robot_pose, offset)
-
-
-def detect_odometry_kind(rec: CarmenRecords) -> Literal["raw", "simulated"]:
-    """``"simulated"`` when the log's poses are all corrected ones, else ``"raw"``.
-
-    A corrected log repeats one pose in every field: in every laser message the
-    odometry pose (with the laser offset) equals the laser pose to the printed
-    precision (1 mm, 0.01°), and no ``ODOM`` message reports a velocity (rewritten
-    odometry keeps none).  A raw log whose laser sits on the odometry point and whose
-    ``ODOM`` velocities were not logged looks the same: pass ``odometry="raw"`` then.
-    """
-    offset = _laser_offset(rec)
-    for msg in rec.lasers:
-        d = msg.laser_pose - _odometry_laser_pose(msg, offset)
-        if math.hypot(d[0], d[1]) > 1e-3 or abs(wrap_scalar(float(d[2]))) > math.radians(0.01):
-            return "raw"
-    if any(o.tv != 0.0 or o.rv != 0.0 for o in rec.odometry):
-        return "raw"
-    return "simulated"
+def _kind(rec: CarmenRecords, stated: OdometryKind) -> tuple[LogKind, OdometryVerdict, str]:
+    """The kind to load ``rec`` as, the verdict of its evidence, and how the kind was
+    chosen (for the metadata)."""
+    verdict = judge_odometry(rec)
+    if stated != "auto":
+        found = verdict.kind or "undecided"
+        return stated, verdict, f"{stated}: stated (the evidence says {found})"
+    if verdict.kind is None:
+        raise UndecidedOdometryError(rec.path, verdict)
+    return verdict.kind, verdict, f"{verdict.kind}: detected"
 
 
 def _max_range(rec: CarmenRecords, msg: LaserMessage, opts: CarmenOptions) -> float:
     if opts.max_range_m is not None:
         return opts.max_range_m
-    if "robot_front_laser_max" in rec.params and msg.kind == "FLASER":
+    name = "robot_rear_laser_max" if msg.rear else "robot_front_laser_max"
+    if name in rec.params and not math.isfinite(msg.max_range):
         try:
-            v = float(rec.params["robot_front_laser_max"])
+            v = float(rec.params[name])
         except ValueError:
             v = math.nan
         if not (math.isfinite(v) and v > 0.0):
-            raise DatasetError(
-                f"{rec.path}: PARAM robot_front_laser_max is not a range > 0: "
-                f"{rec.params['robot_front_laser_max']!r}"
-            )
+            raise DatasetError(f"{rec.path}: PARAM {name} is not a range > 0: {rec.params[name]!r}")
         return v
     if math.isfinite(msg.max_range):
         return msg.max_range
@@ -302,8 +288,7 @@ def load_carmen(
     """
     opts = CarmenOptions() if options is None else options
     rec = read_carmen(path)
-    kind = detect_odometry_kind(rec) if opts.odometry == "auto" else opts.odometry
-    offset = _laser_offset(rec)
+    kind, verdict, chosen = _kind(rec, opts.odometry)
     n = len(rec.lasers)
 
     raw_t = np.array([m.timestamp for m in rec.lasers])
@@ -312,13 +297,15 @@ def load_carmen(
         "source": str(Path(path).name),
         "format": "CARMEN",
         "laser_messages": ", ".join(
-            f"{k}: {sum(m.kind == k for m in rec.lasers)}" for k in ("FLASER", "ROBOTLASER1")
+            f"{k}: {c}" for k, c in sorted(Counter(m.kind for m in rec.lasers).items())
         ),
         "skipped_messages": ", ".join(f"{k}: {v}" for k, v in rec.skipped.items()) or "none",
         "timestamps_held": str(int(np.count_nonzero(np.diff(raw_t) < 0))),
+        "log_kind": chosen,
+        "log_kind_evidence": verdict.summary(),
     }
     true_poses: FloatArray | None
-    if kind == "simulated":
+    if kind == "corrected":
         true_poses = np.array([m.laser_pose for m in rec.lasers])
         ref_inc = _increments(true_poses)
         rng = np.random.default_rng(opts.seed)
@@ -333,7 +320,7 @@ def load_carmen(
         metadata["odometry_seed"] = str(opts.seed)
     else:
         true_poses = None
-        odometry = _increments(np.array([_odometry_laser_pose(m, offset) for m in rec.lasers]))
+        odometry = _increments(laser_poses_on_odometry(rec, verdict))
         odometry_cov = np.zeros((n, 3, 3))
         for k in range(1, n):
             odometry_cov[k] = opts.odometry_noise.cov(odometry[k])
@@ -366,7 +353,7 @@ def load_carmen(
         scan_bearings, scan_ranges = scans
     return MeasurementLog(
         scenario=f"carmen:{Path(path).name}",
-        seed=opts.seed if kind == "simulated" else -1,
+        seed=opts.seed if kind == "corrected" else -1,
         timestamps=t,
         odometry=odometry,
         odometry_cov=odometry_cov,

@@ -3,18 +3,26 @@
 One message a line, fields separated by white space; blank lines and lines starting
 with ``#`` are skipped.  Read messages:
 
-* ``FLASER n r_1 … r_n x y θ odom_x odom_y odom_θ ipc_timestamp hostname logger_timestamp``
-  (front laser: ``x y θ`` the laser pose, ``odom_*`` the robot pose, both in the log's
-  odometry frame; beams after CARMEN's convention for the old laser messages, see
-  :func:`guess_beam_geometry`);
+* ``FLASER n r_1 … r_n x y θ odom_x odom_y odom_θ`` + time fields (front laser, the
+  old message: ``x y θ`` the laser pose, ``odom_*`` the robot pose; beams after
+  CARMEN's convention for the old laser messages, see :func:`guess_beam_geometry`);
+  ``RLASER``, the rear laser, has the same fields;
 * ``ROBOTLASER1 laser_type start_angle fov angular_resolution max_range accuracy
   remission_mode n r_1 … r_n m e_1 … e_m laser_x laser_y laser_θ robot_x robot_y
-  robot_θ tv rv forward_safety side_safety turn_axis ipc_timestamp hostname
-  logger_timestamp`` (its own beam geometry and laser pose);
-* ``ODOM x y θ tv rv accel ipc_timestamp hostname logger_timestamp``;
+  robot_θ tv rv forward_safety side_safety turn_axis`` + time fields (front laser, the
+  new message, with its own beam geometry); ``ROBOTLASER2``, the rear laser, has the
+  same fields;
+* ``ODOM x y θ tv rv accel`` + time fields;
 * ``PARAM name value [hostname timestamp]``.
 
-Every other message type is skipped and counted.  A malformed line raises
+The time fields are ``ipc_timestamp ipc_hostname logger_timestamp``; the logger
+timestamp, or the host name and the logger timestamp, may be missing (older loggers and
+converters).  A host name is never a number, which keeps a line with a beam too many or
+too few from being read with shifted fields.
+
+The front laser's messages are the scans when the log has any; a log with only rear
+laser messages is read from those.  The laser messages not used, and every other
+message type, are skipped and counted.  A malformed line raises
 :class:`~mapfuse_core.data.datasets.common.DatasetError` naming the file, the line number
 and the problem.
 """
@@ -32,12 +40,21 @@ import numpy as np
 from mapfuse_core.data.datasets.common import DatasetError
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["CarmenRecords", "LaserMessage", "OdomMessage", "guess_beam_geometry", "read_carmen"]
+__all__ = [
+    "FRONT_LASERS",
+    "REAR_LASERS",
+    "CarmenRecords",
+    "LaserMessage",
+    "OdomMessage",
+    "guess_beam_geometry",
+    "printed_resolution",
+    "read_carmen",
+]
 
 
 @dataclass(frozen=True)
 class LaserMessage:
-    """One laser scan (``FLASER`` or ``ROBOTLASER1``) as read."""
+    """One laser scan (``FLASER``, ``RLASER``, ``ROBOTLASER1`` or ``ROBOTLASER2``) as read."""
 
     kind: str
     """Message type."""
@@ -57,6 +74,19 @@ class LaserMessage:
     """(3,) robot (odometry) pose written in the message."""
     timestamp: float
     """``ipc_timestamp`` (s)."""
+    pose_resolution: float
+    """Place value of the last printed digit of the coarsest of the six pose numbers
+    (``0.0410729`` → 1e-7, ``12.5`` → 0.1; an exact ``0`` counts as exact): how far the
+    printed poses may be from the values they stand for."""
+    tv: float = math.nan
+    """Translational velocity written in the message (m/s), NaN when it has none."""
+    rv: float = math.nan
+    """Rotational velocity written in the message (rad/s), NaN when it has none."""
+
+    @property
+    def rear(self) -> bool:
+        """Whether the message is of the rear laser."""
+        return self.kind in REAR_LASERS
 
 
 @dataclass(frozen=True)
@@ -82,13 +112,21 @@ class CarmenRecords:
     path: Path
     """The file read."""
     lasers: tuple[LaserMessage, ...]
-    """Laser scans in file order."""
+    """Laser scans in file order: the front laser's, or the rear laser's in a log
+    without front laser messages."""
     odometry: tuple[OdomMessage, ...]
     """``ODOM`` messages in file order."""
     params: dict[str, str] = field(default_factory=dict)
     """``PARAM`` name → value (the last one written wins)."""
     skipped: dict[str, int] = field(default_factory=dict)
-    """Message type → count of the lines skipped as of an unread type."""
+    """Message type → count of the lines skipped: of a type not read, or of the laser
+    not used."""
+
+
+#: Laser messages of the front laser, old and new format.
+FRONT_LASERS = ("FLASER", "ROBOTLASER1")
+#: Laser messages of the rear laser, old and new format.
+REAR_LASERS = ("RLASER", "ROBOTLASER2")
 
 
 def guess_beam_geometry(n: int) -> tuple[float, float]:
@@ -110,6 +148,28 @@ def guess_beam_geometry(n: int) -> tuple[float, float]:
     return -90.0 * deg, math.pi / (n - 1)
 
 
+def printed_resolution(token: str) -> float:
+    """Place value of the last digit of a printed number (``"0.0410729"`` → 1e-7,
+    ``"1.01893e+09"`` → 1e4, ``"12"`` → 1); 0 for a plain ``0``, which is exact."""
+    mantissa, _, exponent = token.lower().partition("e")
+    digits = mantissa.partition(".")[2]
+    if not digits and mantissa.lstrip("+-").strip("0") == "":
+        return 0.0
+    try:
+        exp = int(exponent) if exponent else 0
+    except ValueError:
+        return 0.0
+    return 10.0 ** (exp - len(digits))
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 class _Line:
     """The tokens of one line and what is needed to report a problem in it."""
 
@@ -119,9 +179,17 @@ class _Line:
     def error(self, problem: str) -> DatasetError:
         return DatasetError(f"{self.path}:{self.lineno}: {self.tokens[0]}: {problem}")
 
-    def count(self, want: int) -> None:
-        if len(self.tokens) != want:
-            raise self.error(f"has {len(self.tokens)} fields, expected {want}")
+    def time_fields(self, start: int, what: str) -> None:
+        """Check that ``start`` begins the time fields, ``ipc_timestamp [hostname
+        [logger_timestamp]]``, and that they end the line."""
+        n = len(self.tokens)
+        extra = n - start
+        if not 1 <= extra <= 3 or (extra >= 2 and _is_number(self.tokens[start + 1])):
+            raise self.error(
+                f"has {n} fields, expected {start + 1} to {start + 3} for {what} "
+                "followed by ipc_timestamp [hostname [logger_timestamp]] "
+                "(n beams mismatch or missing fields)"
+            )
 
     def num(self, i: int, what: str) -> float:
         try:
@@ -149,6 +217,9 @@ class _Line:
     def pose(self, start: int, what: str) -> FloatArray:
         return self.nums(start, 3, what)
 
+    def resolution(self, start: int, n: int) -> float:
+        return max(printed_resolution(t) for t in self.tokens[start : start + n])
+
 
 def _n_beams(ln: _Line, i: int) -> int:
     if len(ln.tokens) <= i:
@@ -160,15 +231,12 @@ def _n_beams(ln: _Line, i: int) -> int:
 
 
 def _flaser(ln: _Line) -> LaserMessage:
+    """``FLASER`` or ``RLASER``."""
     n = _n_beams(ln, 1)
-    if len(ln.tokens) != n + 11:
-        raise ln.error(
-            f"has {len(ln.tokens)} fields, expected {n + 11} for n = {n} beams "
-            "(n beams mismatch or missing fields)"
-        )
+    ln.time_fields(8 + n, f"n = {n} beams and two poses")
     start, res = guess_beam_geometry(n)
     return LaserMessage(
-        kind="FLASER",
+        kind=ln.tokens[0],
         line=ln.lineno,
         ranges=ln.nums(2, n, "range"),
         start_angle=start,
@@ -177,10 +245,12 @@ def _flaser(ln: _Line) -> LaserMessage:
         laser_pose=ln.pose(2 + n, "laser pose"),
         robot_pose=ln.pose(5 + n, "odometry pose"),
         timestamp=ln.num(8 + n, "ipc_timestamp"),
+        pose_resolution=ln.resolution(2 + n, 6),
     )
 
 
-def _robotlaser1(ln: _Line) -> LaserMessage:
+def _robotlaser(ln: _Line) -> LaserMessage:
+    """``ROBOTLASER1`` or ``ROBOTLASER2``."""
     n = _n_beams(ln, 8)
     i_rem = 9 + n
     if len(ln.tokens) <= i_rem:
@@ -188,12 +258,8 @@ def _robotlaser1(ln: _Line) -> LaserMessage:
             f"has {len(ln.tokens)} fields, too few for n = {n} beams and the remission count"
         )
     m = ln.integer(i_rem, "remission count")
-    want = i_rem + 1 + m + 14
-    if len(ln.tokens) != want:
-        raise ln.error(
-            f"has {len(ln.tokens)} fields, expected {want} for n = {n} beams and "
-            f"{m} remissions (n beams mismatch or missing fields)"
-        )
+    p = i_rem + 1 + m
+    ln.time_fields(p + 11, f"n = {n} beams, {m} remissions, two poses and five robot fields")
     fov = ln.num(3, "field of view")
     res = ln.num(4, "angular resolution")
     max_range = ln.num(5, "maximum range")
@@ -208,9 +274,8 @@ def _robotlaser1(ln: _Line) -> LaserMessage:
             f"{n} beams at {math.degrees(res):.4g}° span {math.degrees((n - 1) * res):.4g}°, "
             f"not the field of view {math.degrees(fov):.4g}°"
         )
-    p = i_rem + 1 + m
     return LaserMessage(
-        kind="ROBOTLASER1",
+        kind=ln.tokens[0],
         line=ln.lineno,
         ranges=ln.nums(9, n, "range"),
         start_angle=ln.num(2, "start angle"),
@@ -219,11 +284,14 @@ def _robotlaser1(ln: _Line) -> LaserMessage:
         laser_pose=ln.pose(p, "laser pose"),
         robot_pose=ln.pose(p + 3, "robot pose"),
         timestamp=ln.num(p + 11, "ipc_timestamp"),
+        pose_resolution=ln.resolution(p, 6),
+        tv=ln.num(p + 6, "tv"),
+        rv=ln.num(p + 7, "rv"),
     )
 
 
 def _odom(ln: _Line) -> OdomMessage:
-    ln.count(10)
+    ln.time_fields(7, "a pose and three velocity fields")
     return OdomMessage(
         line=ln.lineno,
         pose=ln.pose(1, "pose"),
@@ -248,10 +316,19 @@ def _open_text(path: Path) -> list[str]:
         raise DatasetError(f"{path}: not a CARMEN text log ({exc})") from None
 
 
+_LASER_READERS = {
+    "FLASER": _flaser,
+    "RLASER": _flaser,
+    "ROBOTLASER1": _robotlaser,
+    "ROBOTLASER2": _robotlaser,
+}
+
+
 def read_carmen(path: str | Path) -> CarmenRecords:
     """The laser, odometry and parameter messages of a CARMEN log (plain or gzipped)."""
     path = Path(path)
-    lasers: list[LaserMessage] = []
+    front: list[LaserMessage] = []
+    rear: list[LaserMessage] = []
     odom: list[OdomMessage] = []
     params: dict[str, str] = {}
     skipped: Counter[str] = Counter()
@@ -261,10 +338,9 @@ def read_carmen(path: str | Path) -> CarmenRecords:
             continue
         ln = _Line(path, lineno, tokens)
         kind = tokens[0]
-        if kind == "FLASER":
-            lasers.append(_flaser(ln))
-        elif kind == "ROBOTLASER1":
-            lasers.append(_robotlaser1(ln))
+        if kind in _LASER_READERS:
+            msg = _LASER_READERS[kind](ln)
+            (rear if msg.rear else front).append(msg)
         elif kind == "ODOM":
             odom.append(_odom(ln))
         elif kind == "PARAM":
@@ -273,6 +349,9 @@ def read_carmen(path: str | Path) -> CarmenRecords:
             params[tokens[1]] = tokens[2]
         else:
             skipped[kind] += 1
+    lasers = front or rear
     if not lasers:
-        raise DatasetError(f"{path}: no laser message (FLASER or ROBOTLASER1)")
+        raise DatasetError(f"{path}: no laser message ({', '.join(FRONT_LASERS + REAR_LASERS)})")
+    if front:
+        skipped.update(m.kind for m in rear)
     return CarmenRecords(path, tuple(lasers), tuple(odom), params, dict(sorted(skipped.items())))
