@@ -222,7 +222,11 @@ def test_a_grid_of_identical_trees_reports_the_ambiguous_matchings() -> None:
 
 def test_batch_with_its_own_association_reports_its_matchings(log: MeasurementLog) -> None:
     # Batch decides its own associations in an iSAM2 pass first: its CCDA calls count.
-    m = run(log, "batch", association="own").metrics
+    r = run(log, "batch", association="own")
+    m = r.metrics
+    # It consumed no other run: the EKF's known-map gate is not reported as its own.
+    assert r.result.upstream is None
+    assert m.known_map_rejections is None
     assert m.matching.ccda_by == "batch"
     assert m.matching.ccda_attempts >= 1
     assert m.matching.achieved is (m.anchor is not None)

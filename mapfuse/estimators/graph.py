@@ -112,9 +112,7 @@ class _GraphEstimator:
             joint_stride=options.joint_stride,
         )
         label = upstream.estimator if options.association == "ekf" and upstream else None
-        return dataclasses.replace(
-            result, association=label or options.association, upstream=upstream
-        )
+        return dataclasses.replace(result, association=label or options.association, upstream=given)
 
 
 _SMOOTHER = Capabilities(
