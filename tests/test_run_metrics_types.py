@@ -75,3 +75,8 @@ def test_from_json_names_what_is_missing_or_mistyped(isam2_run: mf.Run) -> None:
     bad_choice = {**obj, "estimate": "final"}
     with pytest.raises(ValueError, match=r"metrics\.estimate must be one of"):
         RunMetrics.from_json(bad_choice)
+
+
+def test_a_field_with_a_default_may_be_absent(isam2_run: mf.Run) -> None:
+    obj = {k: v for k, v in isam2_run.metrics.to_json().items() if k != "warnings"}
+    assert RunMetrics.from_json(obj).warnings == ()

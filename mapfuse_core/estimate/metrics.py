@@ -14,7 +14,7 @@ import math
 import types
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any, Literal
 
 __all__ = [
@@ -71,7 +71,7 @@ def _from_json(tp: Any, value: Any, where: str) -> Any:
             key = f.metadata.get("json") or f.name
             if key in value:
                 kwargs[f.name] = _from_json(hints[f.name], value[key], f"{where}.{key}")
-            elif not f.metadata.get("omit_none") and f.default is not None:
+            elif f.default is MISSING and f.default_factory is MISSING:
                 raise ValueError(f"metrics: {where} has no {key!r}")
         return tp(**kwargs)
     if origin is tuple:
