@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Literal
 
 from ekf_reference.known_gating import KnownGatingParams
 from ekf_reference.loops import LoopClosureParams
 from mapfuse_core.matching import AssociationConfig
 
-__all__ = ["EKFConfig"]
+__all__ = ["PAPER_FIELDS", "EKFConfig", "PaperField"]
 
 
 @dataclass(frozen=True)
@@ -109,3 +113,202 @@ class EKFConfig:
             )
         if not (math.isfinite(self.join_circle_sigma_m) and self.join_circle_sigma_m >= 0.0):
             raise ValueError(f"join_circle_sigma_m must be >= 0, got {self.join_circle_sigma_m}")
+
+    @classmethod
+    def paper(cls) -> EKFConfig:
+        """The paper's method: every extension beyond it off, the paper's values where
+        it gives them.  :data:`PAPER_FIELDS` classifies every setting;
+        :meth:`extensions` lists where the default differs, and why.
+
+        From the paper (Chanier et al., sections as in ``docs/method.md``):
+
+        * ``fusion``: on (§3, Algorithm 1).
+        * ``data_association.ccda.min_pairings``: 4, "more than three" pairings (§3.2).
+        * ``data_association.ccda.redundant_pairings``: off, and
+          ``data_association.ccda.ambiguity_margin``: 0: the match is accepted on the
+          size of the maximum clique (§3.2), with no check of each pairing by the others
+          and no refusal for a smaller incompatible rival.  *(choice)* A rival of the
+          same size still refuses it: a count cannot choose between the two.
+        * ``data_association.min_obs_for_matching``: 1, the whole global map is matched
+          (§3.2, Algorithm 1).
+        * ``data_association.match_joint_test``, ``match_pairing_test``: off and
+          ``match_exclusions``: 0: CCDA's accepted match is fused as it is (§3.2–3.3).
+        * ``known_map_gating``: off: every pairing the association accepts is fused at
+          every step (§3.3.2).
+        * ``tentative_min_sightings``: 1, every new feature enters the map (§2.1.1);
+          ``min_obs_to_join``: 1, every local feature is joined (§2.1.2);
+          ``carry_seen_steps``: 0, a local map starts with its base and the anchor only
+          (§3.3.1, eq. 17); ``loop_closure``: ``None`` and ``join_circle_sigma_m``: 0,
+          a join pairs local and global features by association alone (§2.1.2).
+
+        Where the paper is silent the preset keeps the default, each a *(choice)*:
+
+        * ``local_map_steps`` *(choice)*: 40; the paper bounds a local map by "a maximal
+          number of filter iterations" without giving it (§1).
+        * ``data_association.gate_prob``, ``prefilter_m``, ``prefilter_rad``, ``method``,
+          ``jcbb_max_nodes``, ``one_observation_per_circle``,
+          ``one_observation_per_line`` *(choice)*: the association within the filter is
+          not described (the paper defers to its reference [5]): individual χ² at 0.999,
+          nearest neighbour, one observation per trunk and scan.
+        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``
+          *(choice)*: the paper uses a line's along-line coordinate to disambiguate
+          association (§2.2.1) and gives no threshold.
+        * ``data_association.known_gap_m`` *(choice)*: read by the factor graph only.
+        * ``data_association.ccda.gate_prob``, ``parallel_tol_rad``,
+          ``parallel_along_std_m``, ``var_floor_m``, ``var_floor_rad``,
+          ``unique_partners`` *(choice)*: the gates, invariants and re-association of
+          CCDA, whose tests the paper names but does not specify (§3.2).
+        * ``data_association.ccda.max_transform_std_xy_m``,
+          ``max_transform_std_theta_rad`` *(choice)*: pairings that leave the transform
+          unfixed give no estimate of it to insert (§3.2 estimates it).
+        * ``data_association.ccda.max_hypotheses``, ``max_clique_work``, ``max_edges``
+          *(choice)*: bounds on the search's work; the paper gives none.
+        * ``data_association.ccda.rival_fraction`` *(choice)*: unused with
+          ``ambiguity_margin`` set.
+        * ``data_association.anchor_prior_sigma`` *(choice)*: flat.  The paper inserts
+          CCDA's covariance as the anchor's (eq. 15); the EKF fuses the match's pairings
+          instead (below), and CCDA's covariance on top would count them twice.
+        * ``tentative_window_steps`` *(choice)*: unused with ``tentative_min_sightings``
+          1; ``known_gating`` *(choice)*: unused with ``known_map_gating`` off.
+
+        Not configurable, so the same in every preset (``docs/method.md`` §5.2–5.3 gives
+        the reasons): the accepted match's pairings fix the anchor by an iterated update
+        under the flat prior; the anchor and the known features are shared between the
+        global map and the local map started from it (conditionally independent local
+        maps) rather than copied into every local map; a known wall's lateral residual is
+        measured at the observed segment.  The paper's own forms count the same
+        information more than once.
+        """
+        d = cls()
+        assoc = d.data_association
+        ccda = dataclasses.replace(
+            assoc.ccda, min_pairings=4, redundant_pairings=False, ambiguity_margin=0
+        )
+        return dataclasses.replace(
+            d,
+            fusion=True,
+            known_map_gating=False,
+            tentative_min_sightings=1,
+            min_obs_to_join=1,
+            carry_seen_steps=0,
+            loop_closure=None,
+            join_circle_sigma_m=0.0,
+            data_association=dataclasses.replace(
+                assoc,
+                ccda=ccda,
+                min_obs_for_matching=1,
+                match_joint_test=False,
+                match_pairing_test=False,
+                match_exclusions=0,
+            ),
+        )
+
+    @staticmethod
+    def extensions() -> dict[str, str]:
+        """The settings whose default goes beyond the paper (``EKFConfig()`` differs
+        from :meth:`paper` there and nowhere else): dotted name → one line saying what
+        the default does and why."""
+        return {name: f.why for name, f in PAPER_FIELDS.items() if f.role == "extension"}
+
+
+@dataclass(frozen=True)
+class PaperField:
+    """How one setting of :class:`EKFConfig` relates to the paper."""
+
+    role: Literal["paper", "choice", "extension"]
+    """``"paper"``: the paper fixes the value and the default is it; ``"choice"``: the
+    paper is silent and :meth:`EKFConfig.paper` keeps the default; ``"extension"``: the
+    default goes beyond the paper and :meth:`EKFConfig.paper` sets the paper's value."""
+    why: str
+    """One line: the paper's section (``"paper"``), what the preset keeps and why
+    (``"choice"``), or what the default adds and why (``"extension"``)."""
+
+
+def _p(why: str) -> PaperField:
+    return PaperField("paper", why)
+
+
+def _c(why: str) -> PaperField:
+    return PaperField("choice", why)
+
+
+def _x(why: str) -> PaperField:
+    return PaperField("extension", why)
+
+
+_DA = "data_association."
+_CCDA = "data_association.ccda."
+
+PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
+    {
+        "fusion": _p("§3, Algorithm 1: the known map is fused once a match is accepted."),
+        "local_map_steps": _c("40: the paper bounds a local map by iterations, not how many."),
+        _DA + "gate_prob": _c("0.999: the association's gate is not given (ref. [5])."),
+        _DA + "prefilter_m": _c("3 m: a cheap pre-gate far wider than the χ² gate."),
+        _DA + "prefilter_rad": _c("0.3 rad: a cheap pre-gate far wider than the χ² gate."),
+        _DA + "line_gap_m": _c("4 m: §2.2.1 uses the along-line coordinate, no threshold."),
+        _DA + "known_gap_m": _c("30 m: read by the factor graph's own association only."),
+        _DA + "method": _c("nearest neighbour: the search is not described (ref. [5])."),
+        _DA + "jcbb_max_nodes": _c("unused with nearest neighbour."),
+        _DA + "one_observation_per_circle": _c("a scan sees a trunk once; not described."),
+        _DA + "one_observation_per_line": _c("an occluded wall gives several segments."),
+        _DA + "min_obs_for_matching": _x(
+            "2: features seen once (mostly spurious) stay out of CCDA's match; §3.2 "
+            "matches the whole global map (1)."
+        ),
+        _DA + "anchor_prior_sigma": _c(
+            "flat: the pairings fix the anchor; CCDA's covariance (eq. 15) would count them twice."
+        ),
+        _DA + "match_joint_test": _x(
+            "on: an accepted match's pairings must pass a joint χ² test with the EKF's "
+            "correlations before they are fused (CCDA ignores them); §3.2 fuses the match."
+        ),
+        _DA + "match_pairing_test": _x(
+            "on: each pairing of the match must pass its own χ² test given the others "
+            "(one moved feature among many right ones); §3.2 fuses the match."
+        ),
+        _DA + "match_exclusions": _x(
+            "4: a refused match is searched again without its failing pairing's feature; "
+            "the paper has no refusal (0)."
+        ),
+        _CCDA + "gate_prob": _c("0.999: CCDA's gates are not given."),
+        _CCDA + "min_pairings": _x(
+            "8: fewer lets wrong matches of a few collinear walls through; §3.2 asks for "
+            "more than three (4)."
+        ),
+        _CCDA + "max_transform_std_xy_m": _c("1 m: pairings must fix the transform."),
+        _CCDA + "max_transform_std_theta_rad": _c("0.05 rad: pairings must fix the transform."),
+        _CCDA + "redundant_pairings": _x(
+            "on: a match whose transform one pairing alone fixes is refused; §3.2 "
+            "accepts on the clique's size (off)."
+        ),
+        _CCDA + "parallel_tol_rad": _c("0.1 rad: parallel-line invariant; not described."),
+        _CCDA + "parallel_along_std_m": _c("10 m: nearly parallel lines' gate; not described."),
+        _CCDA + "ambiguity_margin": _x(
+            "None (rival_fraction 0.5): an incompatible rival with half the support refuses "
+            "the match; §3.2 takes the maximum clique (0: only a tie refuses)."
+        ),
+        _CCDA + "rival_fraction": _c("unused with ambiguity_margin set."),
+        _CCDA + "max_hypotheses": _c("30: a bound on the search; the paper gives none."),
+        _CCDA + "max_clique_work": _c("2·10⁶: a bound on the search; the paper gives none."),
+        _CCDA + "max_edges": _c("5·10⁶: a bound on the search; the paper gives none."),
+        _CCDA + "extent_margin_m": _c("0.5 m: §2.2.1 uses the along-line coordinate."),
+        _CCDA + "unique_partners": _c("re-association under the fit; not described."),
+        _CCDA + "var_floor_m": _c("1e-4 m: keeps zero-covariance maps' gates invertible."),
+        _CCDA + "var_floor_rad": _c("1e-5 rad: keeps zero-covariance maps' gates invertible."),
+        "min_obs_to_join": _p("§2.1.2: every local feature joins the global map (1)."),
+        "tentative_min_sightings": _p("§2.1.1: every new feature enters the map (1)."),
+        "tentative_window_steps": _c("unused with tentative_min_sightings 1."),
+        "carry_seen_steps": _p("§3.3.1, eq. 17: a local map starts with base and anchor (0)."),
+        "loop_closure": _p("§2.1.2: a join pairs features by association alone (None)."),
+        "join_circle_sigma_m": _p("§2.1.2: local maps are joined as estimated (0)."),
+        "known_map_gating": _x(
+            "on: a known feature whose pairings keep failing their χ² tests stops being "
+            "fused (a map out of date); §3.3.2 fuses every accepted pairing (off)."
+        ),
+        "known_gating": _c("unused with known_map_gating off."),
+    }
+)
+"""Every setting of :class:`EKFConfig` (a dotted name; a nested settings object named
+whole covers all of its fields) classified against the paper: what
+:meth:`EKFConfig.paper` sets and why."""
