@@ -1,0 +1,319 @@
+"""The EKF with the paper's method (``EKFConfig.paper()``) against its default.
+
+The default goes beyond the paper in the settings ``EKFConfig.extensions()`` lists,
+all of them about the fusion with the known map; without fusion the two are the same
+filter (``tests/test_ekf_paper_preset.py``), so each log is run three times: fused
+with ``paper``, fused with ``default``, and once without fusion (``plain``).
+
+Groups of logs (``--groups``):
+
+* ``loop600``: the paper's simulation, one log per seed of ``--loop600-seeds``;
+* ``worlds``: one generated world per seed of ``--world-seeds`` (``--world``, the
+  generator's keywords), simulated with that seed;
+* ``changed``: the same worlds with ``--changes`` of their known map out of date
+  (moved, removed, added), where the match's tests and the known-map gate are meant
+  to act;
+* ``survey``: the generator's default worlds (a 600 m loop, 12 walls, 45 trees, an
+  80 m laser) with ``--changes`` of the known map out of date, one per seed of
+  ``--survey-seeds``: the conditions of ``docs/changes-worlds.md`` (its world seeds,
+  simulated here with the world's seed).
+
+Per run: position RMSE and maximum, the NEES of every step, the anchor's error, NEES
+and pairings (a pairing is wrong when the landmark's observations are mostly of
+another feature), and the observations fused into a known feature: of another
+feature (``wrong_fused_obs``), or of a feature the world moved or removed
+(``changed_fused_obs``).  One JSON line per log is appended to ``--out`` (logs
+already there are skipped, so a campaign resumes); then the summary per group and
+configuration is printed as JSON: means with Student-t 95 % intervals, the paired
+difference paper − default, the ANEES over the runs with its two-sided 95 % bounds and
+the fraction of steps inside them, and counts with Clopper–Pearson intervals.
+
+    OPENBLAS_NUM_THREADS=1 nice -n 10 python benchmarks/ekf_paper_vs_default.py \\
+        --out /tmp/paper_vs_default.jsonl
+    python benchmarks/ekf_paper_vs_default.py --summarise /tmp/paper_vs_default.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ekf_reference import EKFConfig, run_ekf
+from mapfuse.campaign.stats import (
+    anees_bounds,
+    anees_series,
+    mean_interval,
+    proportion_interval,
+    stack_runs,
+)
+from mapfuse_core.evaluation import (
+    CHI2_3_95,
+    anchor_truth,
+    nees_series,
+    pose_errors,
+    truth_in_global,
+)
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.sim.scenario import Scenario, load_scenario
+from mapfuse_core.sim.simulate import simulate
+from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
+
+GROUPS = ("loop600", "worlds", "changed", "survey")
+CONFIGS = ("paper", "default", "plain")
+DEFAULT_WORLD = "shape=figure8,laser_range_m=40,walls=22,trees=50,loop_length_m=400"
+
+
+def _seeds(text: str) -> list[int]:
+    """``"0-19"`` or ``"0,3,7"`` (or both, comma-separated) as a list."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, dash, hi = (s.strip() for s in part.partition("-"))
+        if not lo.isdigit() or (dash and not hi.isdigit()):
+            raise argparse.ArgumentTypeError(f"seeds look like 0-19 or 0,3,7; got {text!r}")
+        out += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
+    return out
+
+
+def _world(text: str) -> dict[str, Any]:
+    """Generator keywords ``key=value,...`` (numbers converted by the field's type)."""
+    out: dict[str, Any] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = (s.strip() for s in part.partition("="))
+        if not eq or key not in WorldParams.__dataclass_fields__ or key in ("seed", "changes"):
+            raise argparse.ArgumentTypeError(f"--world: bad item {part!r}")
+        out[key] = type(getattr(WorldParams(seed=0), key))(value)
+    return out
+
+
+def _changed_ids(sc: Scenario) -> set[int]:
+    """Known-map ids the world moved or removed."""
+    return {m.id for m in sc.known_map.moved} | {f.id for f in sc.known_map.removed}
+
+
+def _run(log: MeasurementLog, config: EKFConfig, changed: set[int]) -> dict[str, Any]:
+    """One EKF run's figures (see the module docstring)."""
+    assert log.true_poses is not None
+    t0 = time.perf_counter()
+    res = run_ekf(log, config)
+    wall = time.perf_counter() - t0
+    e = pose_errors(res.poses, truth_in_global(log.true_poses))
+    err = e.position
+    nees = nees_series(e.dx, res.covs)
+    nees[0] = np.nan  # step 0 is the frame's origin, exactly known
+    kid, tid = res.obs_known_id, log.feat_true_id
+    fused = kid >= 0
+    row: dict[str, Any] = {
+        "rmse_m": float(np.sqrt(np.mean(err**2))),
+        "max_m": float(err.max()),
+        "nees": [round(float(v), 4) if math.isfinite(v) else None for v in nees],
+        "nees_within_chi2_95": float(np.mean(nees[1:] <= CHI2_3_95)),
+        "fused_obs": int(fused.sum()),
+        "wrong_fused_obs": int(np.sum(fused & (tid >= 0) & (kid != tid))),
+        "changed_fused_obs": int(np.sum(fused & np.isin(kid, sorted(changed)))),
+        "ccda_attempts": res.ccda_attempts,
+        "ccda_reasons": dict(res.ccda_reasons),
+        "wall_s": round(wall, 2),
+        "anchor": None,
+    }
+    a = res.anchor
+    if a is not None:
+        e = pose_errors(a.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None])
+        row["anchor"] = {
+            "step": a.accepted_at_step,
+            "pairings": len(a.pairings),
+            "wrong_pairings": sum(1 for t, k in a.pairings if t != k),
+            "changed_pairings": sum(1 for _, k in a.pairings if k in changed),
+            "error_m": float(e.position[0]),
+            "error_rad": float(e.heading[0]),
+            "nees": float(nees_series(e.dx, a.cov[None])[0]),
+        }
+    return row
+
+
+def run_log(group: str, seed: int, world: dict[str, Any], changes: float) -> dict[str, Any]:
+    """Simulate one log of ``group`` and run the three configurations on it."""
+    base = load_scenario("loop600")
+    if group == "loop600":
+        sc = base
+    elif group == "survey":
+        sc = generate_scenario(WorldParams(seed=seed, changes=changes), base=base)
+    else:
+        frac = changes if group == "changed" else 0.0
+        sc = generate_scenario(WorldParams(seed=seed, changes=frac, **world), base=base)
+    log = simulate(sc, seed=seed, workers=1).log
+    changed = _changed_ids(sc)
+    row: dict[str, Any] = {"group": group, "seed": seed, "steps": log.n_steps}
+    row["paper"] = _run(log, EKFConfig.paper(), changed)
+    row["default"] = _run(log, EKFConfig(), changed)
+    row["plain"] = _run(log, EKFConfig(fusion=False), changed)
+    return row
+
+
+def _interval(values: list[float], digits: int = 4) -> list[float] | None:
+    iv = mean_interval(values)
+    if iv.n == 0:
+        return None
+    return [round(v, digits) for v in (iv.value, iv.low, iv.high)]
+
+
+def _count(successes: int, n: int) -> dict[str, Any]:
+    iv = proportion_interval(successes, n)
+    return {"runs": successes, "of": n, "ci95": [round(iv.low, 3), round(iv.high, 3)]}
+
+
+def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration's figures over the runs of a group."""
+    a = anees_series(_nees_matrix(runs))
+    anchors = [r["anchor"] for r in runs if r["anchor"] is not None]
+    out: dict[str, Any] = {
+        "runs": len(runs),
+        "rmse_m": _interval([r["rmse_m"] for r in runs]),
+        "max_m": _interval([r["max_m"] for r in runs]),
+        "anees": round(a.overall, 3),
+        # Every run has every step (one log length per group): one pair of bounds.
+        "anees_bounds": [round(float(a.lower[-1]), 3), round(float(a.upper[-1]), 3)],
+        "steps_inside": round(a.fraction_inside, 3),
+        "steps_above": round(a.fraction_above, 3),
+        "run_nees_within_chi2_95": _interval([r["nees_within_chi2_95"] for r in runs], 3),
+        "anchored": _count(len(anchors), len(runs)),
+        "fused_obs": sum(r["fused_obs"] for r in runs),
+        "wrong_fused_obs": sum(r["wrong_fused_obs"] for r in runs),
+        "runs_with_wrong_fused_obs": _count(sum(r["wrong_fused_obs"] > 0 for r in runs), len(runs)),
+        "changed_fused_obs": sum(r["changed_fused_obs"] for r in runs),
+        "wall_s": _interval([r["wall_s"] for r in runs], 2),
+    }
+    if anchors:
+        nees = [x["nees"] for x in anchors]
+        # Two-sided 95 % bounds of the mean of len(nees) consistent 3-dof NEES.
+        bounds = [round(float(np.ravel(b)[0]), 3) for b in anees_bounds(len(nees), 3, 0.95)]
+        out |= {
+            "anchor_step_median": float(np.median([x["step"] for x in anchors])),
+            "anchor_error_m": _interval([x["error_m"] for x in anchors]),
+            "anchor_error_rad": _interval([x["error_rad"] for x in anchors], 5),
+            "anchor_anees": round(float(np.mean(nees)), 3),
+            "anchor_anees_bounds": bounds,
+            "wrong_pairings": sum(x["wrong_pairings"] for x in anchors),
+            "runs_with_wrong_pairing": _count(
+                sum(x["wrong_pairings"] > 0 for x in anchors), len(runs)
+            ),
+            "changed_pairings": sum(x["changed_pairings"] for x in anchors),
+        }
+    return out
+
+
+def _nees_matrix(runs: list[dict[str, Any]]) -> np.ndarray:
+    """(runs, steps) NEES of one configuration's runs (NaN where none)."""
+    return stack_runs([np.array([np.nan if v is None else v for v in r["nees"]]) for r in runs])
+
+
+def _inside_difference(rows: list[dict[str, Any]], draws: int = 2000) -> list[float]:
+    """paper − default of the fraction of steps whose ANEES is inside its bounds, with a
+    95 % interval from a paired bootstrap over the logs (seeded: the same rows give the
+    same interval)."""
+    paper, default = (_nees_matrix([r[c] for r in rows]) for c in ("paper", "default"))
+    diff = anees_series(paper).fraction_inside - anees_series(default).fraction_inside
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(draws):
+        i = rng.integers(0, len(rows), len(rows))
+        boot.append(
+            anees_series(paper[i]).fraction_inside - anees_series(default[i]).fraction_inside
+        )
+    lo, hi = np.quantile(boot, [0.025, 0.975])
+    return [round(float(v), 3) for v in (diff, lo, hi)]
+
+
+def _paired(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """paper − default, per log, with Student-t 95 % intervals (a bootstrap one for the
+    steps inside the ANEES bounds)."""
+    rmse = [r["paper"]["rmse_m"] - r["default"]["rmse_m"] for r in rows]
+    ratio = [math.log(r["paper"]["rmse_m"] / r["default"]["rmse_m"]) for r in rows]
+    within = [r["paper"]["nees_within_chi2_95"] - r["default"]["nees_within_chi2_95"] for r in rows]
+    both = [r for r in rows if r["paper"]["anchor"] and r["default"]["anchor"]]
+    iv = mean_interval(ratio)
+    return {
+        "rmse_m": _interval(rmse),
+        "rmse_ratio_geomean": [round(math.exp(v), 3) for v in (iv.value, iv.low, iv.high)],
+        "run_nees_within_chi2_95": _interval(within, 3),
+        "anees_steps_inside": _inside_difference(rows),
+        "anchor_nees": _interval(
+            [r["paper"]["anchor"]["nees"] - r["default"]["anchor"]["nees"] for r in both], 3
+        ),
+        "anchor_error_m": _interval(
+            [r["paper"]["anchor"]["error_m"] - r["default"]["anchor"]["error_m"] for r in both]
+        ),
+        "logs_paper_rmse_lower": sum(d < -1e-9 for d in rmse),
+        "logs_paper_rmse_higher": sum(d > 1e-9 for d in rmse),
+        "logs_identical": sum(r["paper"]["rmse_m"] == r["default"]["rmse_m"] for r in rows),
+    }
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per group: each configuration's figures and the paired difference."""
+    out: dict[str, Any] = {}
+    for group in GROUPS:
+        sel = sorted((r for r in rows if r["group"] == group), key=lambda r: r["seed"])
+        if not sel:
+            continue
+        out[group] = {
+            "seeds": [r["seed"] for r in sel],
+            **{c: _summary([r[c] for r in sel]) for c in CONFIGS},
+            "paper_minus_default": _paired(sel),
+        }
+    return out
+
+
+def _read(path: Path) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"{path}:{n}: not a JSON line ({e})") from None
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--groups", default=",".join(GROUPS), help="comma-separated, of %(default)s")
+    ap.add_argument("--loop600-seeds", type=_seeds, default=_seeds("0-19"))
+    ap.add_argument("--world-seeds", type=_seeds, default=_seeds("1-20"))
+    ap.add_argument("--survey-seeds", type=_seeds, default=_seeds("101-110"))
+    ap.add_argument("--world", type=_world, default=_world(DEFAULT_WORLD))
+    ap.add_argument("--changes", type=float, default=0.2, help="fraction for 'changed'")
+    ap.add_argument("--out", type=Path, help="JSON lines, one per log (appended, resumed)")
+    ap.add_argument("--summarise", type=Path, metavar="FILE", help="only summarise FILE")
+    args = ap.parse_args()
+    if args.summarise is not None:
+        print(json.dumps(summarise(_read(args.summarise)), indent=1))
+        return
+    groups = [g.strip() for g in args.groups.split(",") if g.strip()]
+    if not groups or not set(groups) <= set(GROUPS):
+        raise SystemExit(f"--groups: choose from {', '.join(GROUPS)}")
+    if not 0.0 < args.changes <= 1.0:
+        raise SystemExit(f"--changes must be in (0, 1], got {args.changes}")
+    rows = _read(args.out) if args.out else []
+    done = {(r["group"], r["seed"]) for r in rows}
+    seeds = {"loop600": args.loop600_seeds, "survey": args.survey_seeds}
+    wanted = [(g, s) for g in groups for s in seeds.get(g, args.world_seeds)]
+    todo = [gs for gs in wanted if gs not in done]
+    for group, seed in todo:
+        row = run_log(group, seed, args.world, args.changes)
+        rows.append(row)
+        if args.out:
+            with args.out.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+    keep = set(wanted)
+    print(json.dumps(summarise([r for r in rows if (r["group"], r["seed"]) in keep]), indent=1))
+
+
+if __name__ == "__main__":
+    main()
