@@ -3,7 +3,9 @@
 The default goes beyond the paper in the settings ``EKFConfig.extensions()`` lists,
 all of them about the fusion with the known map; without fusion the two are the same
 filter (``tests/test_ekf_paper_preset.py``), so each log is run three times: fused
-with ``paper``, fused with ``default``, and once without fusion (``plain``).
+with ``paper``, fused with ``default``, and once without fusion (``plain``).  With
+``--ablation`` it is also run with the default less one extension at a time
+(``default-no-<name>``, :data:`ABLATIONS`: that extension at the paper's value).
 
 Groups of logs (``--groups``):
 
@@ -23,10 +25,12 @@ and pairings (a pairing is wrong when the landmark's observations are mostly of
 another feature), and the observations fused into a known feature: of another
 feature (``wrong_fused_obs``), or of a feature the world moved or removed
 (``changed_fused_obs``).  One JSON line per log is appended to ``--out`` (logs
-already there are skipped, so a campaign resumes); then the summary per group and
-configuration is printed as JSON: means with Student-t 95 % intervals, the paired
-difference paper − default, the ANEES over the runs with its two-sided 95 % bounds and
-the fraction of steps inside them, and counts with Clopper–Pearson intervals.
+One JSON line per run (log and configuration) is appended to ``--out``; runs already
+there are skipped, so a campaign resumes and ``--ablation`` adds to one.  Then the
+summary per group and configuration is printed as JSON: means with Student-t 95 %
+intervals, the paired difference of each configuration less ``default``, the ANEES
+over the runs with its two-sided 95 % bounds and the fraction of steps inside them, and
+counts with Clopper–Pearson intervals.
 
     OPENBLAS_NUM_THREADS=1 nice -n 10 python benchmarks/ekf_paper_vs_default.py \\
         --out /tmp/paper_vs_default.jsonl
@@ -36,6 +40,7 @@ the fraction of steps inside them, and counts with Clopper–Pearson intervals.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -66,6 +71,23 @@ from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
 GROUPS = ("loop600", "worlds", "changed", "survey")
 CONFIGS = ("paper", "default", "plain")
+
+ABLATIONS: dict[str, tuple[str, ...]] = {
+    "min_pairings": ("data_association.ccda.min_pairings",),
+    "min_obs_for_matching": ("data_association.min_obs_for_matching",),
+    "ccda_acceptance": (
+        "data_association.ccda.redundant_pairings",
+        "data_association.ccda.ambiguity_margin",
+    ),
+    "match_tests": (
+        "data_association.match_joint_test",
+        "data_association.match_pairing_test",
+        "data_association.match_exclusions",
+    ),
+    "known_map_gating": ("known_map_gating",),
+}
+"""The extensions, grouped where one needs another (the pairing test runs with the
+joint test, the re-runs after a failed pairing test), for ``--ablation``."""
 DEFAULT_WORLD = "shape=figure8,laser_range_m=40,walls=22,trees=50,loop_length_m=400"
 
 
@@ -136,8 +158,38 @@ def _run(log: MeasurementLog, config: EKFConfig, changed: set[int]) -> dict[str,
     return row
 
 
-def run_log(group: str, seed: int, world: dict[str, Any], changes: float) -> dict[str, Any]:
-    """Simulate one log of ``group`` and run the three configurations on it."""
+def _with_paper(config: Any, paper: Any, path: str) -> Any:
+    """``config`` with the setting at dotted ``path`` taken from ``paper``."""
+    head, _, rest = path.partition(".")
+    if not rest:
+        return dataclasses.replace(config, **{head: getattr(paper, head)})
+    inner = _with_paper(getattr(config, head), getattr(paper, head), rest)
+    return dataclasses.replace(config, **{head: inner})
+
+
+def config_of(name: str) -> EKFConfig:
+    """The configuration a run name stands for."""
+    if name == "paper":
+        return EKFConfig.paper()
+    if name == "default":
+        return EKFConfig()
+    if name == "plain":
+        return EKFConfig(fusion=False)
+    cfg = EKFConfig()
+    for path in ABLATIONS[name.removeprefix("default-no-")]:
+        cfg = _with_paper(cfg, EKFConfig.paper(), path)
+    return cfg
+
+
+def _check_ablations() -> None:
+    """Every extension is in exactly one ablation (a new one must be placed)."""
+    listed = sorted(p for paths in ABLATIONS.values() for p in paths)
+    ext = sorted(EKFConfig.extensions())
+    if listed != ext:
+        raise SystemExit(f"ABLATIONS lists {listed}, EKFConfig.extensions() {ext}")
+
+
+def _scenario(group: str, seed: int, world: dict[str, Any], changes: float) -> Scenario:
     base = load_scenario("loop600")
     if group == "loop600":
         sc = base
@@ -146,13 +198,18 @@ def run_log(group: str, seed: int, world: dict[str, Any], changes: float) -> dic
     else:
         frac = changes if group == "changed" else 0.0
         sc = generate_scenario(WorldParams(seed=seed, changes=frac, **world), base=base)
+    return sc
+
+
+def run_log(
+    group: str, seed: int, configs: list[str], world: dict[str, Any], changes: float
+) -> list[dict[str, Any]]:
+    """Simulate one log of ``group`` and run ``configs`` on it: one line per run."""
+    sc = _scenario(group, seed, world, changes)
     log = simulate(sc, seed=seed, workers=1).log
     changed = _changed_ids(sc)
-    row: dict[str, Any] = {"group": group, "seed": seed, "steps": log.n_steps}
-    row["paper"] = _run(log, EKFConfig.paper(), changed)
-    row["default"] = _run(log, EKFConfig(), changed)
-    row["plain"] = _run(log, EKFConfig(fusion=False), changed)
-    return row
+    head = {"group": group, "seed": seed, "steps": log.n_steps}
+    return [{**head, "config": c, **_run(log, config_of(c), changed)} for c in configs]
 
 
 def _interval(values: list[float], digits: int = 4) -> list[float] | None:
@@ -212,61 +269,91 @@ def _nees_matrix(runs: list[dict[str, Any]]) -> np.ndarray:
     return stack_runs([np.array([np.nan if v is None else v for v in r["nees"]]) for r in runs])
 
 
-def _inside_difference(rows: list[dict[str, Any]], draws: int = 2000) -> list[float]:
-    """paper − default of the fraction of steps whose ANEES is inside its bounds, with a
-    95 % interval from a paired bootstrap over the logs (seeded: the same rows give the
+def _inside_difference(rows: list[dict[str, Any]], name: str, draws: int = 2000) -> list[float]:
+    """``name`` − default of the fraction of steps whose ANEES is inside its bounds, with
+    a 95 % interval from a paired bootstrap over the logs (seeded: the same rows give the
     same interval)."""
-    paper, default = (_nees_matrix([r[c] for r in rows]) for c in ("paper", "default"))
-    diff = anees_series(paper).fraction_inside - anees_series(default).fraction_inside
+    x, d = (_nees_matrix([r[c] for r in rows]) for c in (name, "default"))
+    # A resample keeps the number of runs at every step, so the bounds stay as they are.
+    a = anees_series(d)
+    lo, hi = a.lower, a.upper
+
+    def inside(m: np.ndarray) -> float:
+        v = np.nansum(m, axis=0) / np.maximum(a.runs, 1)
+        return float(np.mean(((v >= lo) & (v <= hi))[a.valid]))
+
+    diff = anees_series(x).fraction_inside - a.fraction_inside
     rng = np.random.default_rng(0)
     boot = []
     for _ in range(draws):
         i = rng.integers(0, len(rows), len(rows))
-        boot.append(
-            anees_series(paper[i]).fraction_inside - anees_series(default[i]).fraction_inside
-        )
-    lo, hi = np.quantile(boot, [0.025, 0.975])
-    return [round(float(v), 3) for v in (diff, lo, hi)]
+        boot.append(inside(x[i]) - inside(d[i]))
+    q = np.quantile(boot, [0.025, 0.975])
+    return [round(float(v), 3) for v in (diff, *q)]
 
 
-def _paired(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """paper − default, per log, with Student-t 95 % intervals (a bootstrap one for the
-    steps inside the ANEES bounds)."""
-    rmse = [r["paper"]["rmse_m"] - r["default"]["rmse_m"] for r in rows]
-    ratio = [math.log(r["paper"]["rmse_m"] / r["default"]["rmse_m"]) for r in rows]
-    within = [r["paper"]["nees_within_chi2_95"] - r["default"]["nees_within_chi2_95"] for r in rows]
-    both = [r for r in rows if r["paper"]["anchor"] and r["default"]["anchor"]]
+def _paired(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
+    """``name`` − default, per log, with Student-t 95 % intervals (a bootstrap one for
+    the steps inside the ANEES bounds)."""
+    x, d = [r[name] for r in rows], [r["default"] for r in rows]
+    rmse = [a["rmse_m"] - b["rmse_m"] for a, b in zip(x, d, strict=True)]
+    ratio = [math.log(a["rmse_m"] / b["rmse_m"]) for a, b in zip(x, d, strict=True)]
+    within = [
+        a["nees_within_chi2_95"] - b["nees_within_chi2_95"] for a, b in zip(x, d, strict=True)
+    ]
+    both = [
+        (a["anchor"], b["anchor"]) for a, b in zip(x, d, strict=True) if a["anchor"] and b["anchor"]
+    ]
     iv = mean_interval(ratio)
     return {
         "rmse_m": _interval(rmse),
         "rmse_ratio_geomean": [round(math.exp(v), 3) for v in (iv.value, iv.low, iv.high)],
         "run_nees_within_chi2_95": _interval(within, 3),
-        "anees_steps_inside": _inside_difference(rows),
-        "anchor_nees": _interval(
-            [r["paper"]["anchor"]["nees"] - r["default"]["anchor"]["nees"] for r in both], 3
-        ),
-        "anchor_error_m": _interval(
-            [r["paper"]["anchor"]["error_m"] - r["default"]["anchor"]["error_m"] for r in both]
-        ),
-        "logs_paper_rmse_lower": sum(d < -1e-9 for d in rmse),
-        "logs_paper_rmse_higher": sum(d > 1e-9 for d in rmse),
-        "logs_identical": sum(r["paper"]["rmse_m"] == r["default"]["rmse_m"] for r in rows),
+        "anees_steps_inside": _inside_difference(rows, name),
+        "anchor_nees": _interval([a["nees"] - b["nees"] for a, b in both], 3),
+        "anchor_error_m": _interval([a["error_m"] - b["error_m"] for a, b in both]),
+        "anchor_step": _interval([a["step"] - b["step"] for a, b in both], 1),
+        "logs_lower_rmse": sum(v < -1e-9 for v in rmse),
+        "logs_higher_rmse": sum(v > 1e-9 for v in rmse),
+        "logs_identical": sum(a["rmse_m"] == b["rmse_m"] for a, b in zip(x, d, strict=True)),
     }
 
 
-def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per group: each configuration's figures and the paired difference."""
+def _by_log(lines: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The run lines gathered per log: ``{"group", "seed", <config>: <run>, ...}``."""
+    logs: dict[tuple[str, int], dict[str, Any]] = {}
+    for line in lines:
+        row = logs.setdefault(
+            (line["group"], line["seed"]), {"group": line["group"], "seed": line["seed"]}
+        )
+        row[line["config"]] = line
+    return list(logs.values())
+
+
+def summarise(lines: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per group: each configuration's figures (over the logs that have every
+    configuration run) and each one's paired difference with the default."""
     out: dict[str, Any] = {}
+    rows = _by_log(lines)
     for group in GROUPS:
         sel = sorted((r for r in rows if r["group"] == group), key=lambda r: r["seed"])
-        if not sel:
+        configs = [c for c in _all_configs() if sel and all(c in r for r in sel)]
+        if "default" not in configs:
             continue
         out[group] = {
             "seeds": [r["seed"] for r in sel],
-            **{c: _summary([r[c] for r in sel]) for c in CONFIGS},
-            "paper_minus_default": _paired(sel),
+            **{c: _summary([r[c] for r in sel]) for c in configs},
+            **{
+                f"{c}_minus_default": _paired(sel, c)
+                for c in configs
+                if c not in ("default", "plain")
+            },
         }
     return out
+
+
+def _all_configs() -> list[str]:
+    return [*CONFIGS, *(f"default-no-{a}" for a in ABLATIONS)]
 
 
 def _read(path: Path) -> list[dict[str, Any]]:
@@ -289,6 +376,7 @@ def main() -> None:
     ap.add_argument("--survey-seeds", type=_seeds, default=_seeds("101-110"))
     ap.add_argument("--world", type=_world, default=_world(DEFAULT_WORLD))
     ap.add_argument("--changes", type=float, default=0.2, help="fraction for 'changed'")
+    ap.add_argument("--ablation", action="store_true", help="also the default less each extension")
     ap.add_argument("--out", type=Path, help="JSON lines, one per log (appended, resumed)")
     ap.add_argument("--summarise", type=Path, metavar="FILE", help="only summarise FILE")
     args = ap.parse_args()
@@ -300,19 +388,23 @@ def main() -> None:
         raise SystemExit(f"--groups: choose from {', '.join(GROUPS)}")
     if not 0.0 < args.changes <= 1.0:
         raise SystemExit(f"--changes must be in (0, 1], got {args.changes}")
-    rows = _read(args.out) if args.out else []
-    done = {(r["group"], r["seed"]) for r in rows}
+    _check_ablations()
+    configs = _all_configs() if args.ablation else list(CONFIGS)
+    lines = _read(args.out) if args.out else []
+    done = {(r["group"], r["seed"], r["config"]) for r in lines}
     seeds = {"loop600": args.loop600_seeds, "survey": args.survey_seeds}
     wanted = [(g, s) for g in groups for s in seeds.get(g, args.world_seeds)]
-    todo = [gs for gs in wanted if gs not in done]
-    for group, seed in todo:
-        row = run_log(group, seed, args.world, args.changes)
-        rows.append(row)
+    for group, seed in wanted:
+        todo = [c for c in configs if (group, seed, c) not in done]
+        if not todo:
+            continue
+        new = run_log(group, seed, todo, args.world, args.changes)
+        lines += new
         if args.out:
             with args.out.open("a") as f:
-                f.write(json.dumps(row) + "\n")
+                f.writelines(json.dumps(r) + "\n" for r in new)
     keep = set(wanted)
-    print(json.dumps(summarise([r for r in rows if (r["group"], r["seed"]) in keep]), indent=1))
+    print(json.dumps(summarise([r for r in lines if (r["group"], r["seed"]) in keep]), indent=1))
 
 
 if __name__ == "__main__":
