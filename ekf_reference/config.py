@@ -120,7 +120,7 @@ class EKFConfig:
         it gives them.  :data:`PAPER_FIELDS` classifies every setting;
         :meth:`extensions` lists where the default differs, and why.
 
-        From the paper (Chanier et al., sections as in ``docs/method.md``):
+        From the paper (Chanier et al.; § are the paper's sections):
 
         * ``fusion``: on (§3, Algorithm 1).
         * ``data_association.ccda.min_pairings``: 4, "more than three" pairings (§3.2).
@@ -135,11 +135,12 @@ class EKFConfig:
           ``match_exclusions``: 0: CCDA's accepted match is fused as it is (§3.2–3.3).
         * ``known_map_gating``: off: every pairing the association accepts is fused at
           every step (§3.3.2).
-        * ``tentative_min_sightings``: 1, every new feature enters the map (§2.1.1);
-          ``min_obs_to_join``: 1, every local feature is joined (§2.1.2);
+        * ``tentative_min_sightings``: 1, no condition on a new feature (§2.1.1);
+          ``min_obs_to_join``: 1, the whole local map is joined (§2.1.2);
           ``carry_seen_steps``: 0, a local map starts with its base and the anchor only
           (§3.3.1, eq. 17); ``loop_closure``: ``None`` and ``join_circle_sigma_m``: 0,
-          a join pairs local and global features by association alone (§2.1.2).
+          a join pairs local and global features by association alone, with the local
+          map's own covariance (§2.1.2, eq. 4).
 
         Where the paper is silent the preset keeps the default, each a *(choice)*:
 
@@ -173,11 +174,13 @@ class EKFConfig:
 
         Not configurable, so the same in every preset (``docs/method.md`` §5.2–5.3 gives
         the reasons): the accepted match's pairings fix the anchor by an iterated update
-        under the flat prior; the anchor and the known features are shared between the
-        global map and the local map started from it (conditionally independent local
-        maps) rather than copied into every local map; a known wall's lateral residual is
-        measured at the observed segment.  The paper's own forms count the same
-        information more than once.
+        under the flat prior, where the paper inserts CCDA's estimate (eq. 15); the
+        anchor and the known features are shared between the global map and the local
+        map started from it (conditionally independent local maps), where the paper
+        copies them into every local map (eqs. 17–19) and fuses the copy back at the join
+        (eqs. 22–24), which counts their information again at every join; a known wall's
+        lateral residual is measured at the observed segment, not at the wall's
+        reference point, whose along-wall place the anchor knows poorly.
         """
         d = cls()
         assoc = d.data_association
@@ -296,12 +299,12 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _CCDA + "unique_partners": _c("re-association under the fit; not described."),
         _CCDA + "var_floor_m": _c("1e-4 m: keeps zero-covariance maps' gates invertible."),
         _CCDA + "var_floor_rad": _c("1e-5 rad: keeps zero-covariance maps' gates invertible."),
-        "min_obs_to_join": _p("§2.1.2: every local feature joins the global map (1)."),
-        "tentative_min_sightings": _p("§2.1.1: every new feature enters the map (1)."),
+        "min_obs_to_join": _p("§2.1.2: the whole local map is joined to the global map (1)."),
+        "tentative_min_sightings": _p("§2.1.1 sets no condition on a new feature (1)."),
         "tentative_window_steps": _c("unused with tentative_min_sightings 1."),
         "carry_seen_steps": _p("§3.3.1, eq. 17: a local map starts with base and anchor (0)."),
         "loop_closure": _p("§2.1.2: a join pairs features by association alone (None)."),
-        "join_circle_sigma_m": _p("§2.1.2: local maps are joined as estimated (0)."),
+        "join_circle_sigma_m": _p("§2.1.2, eq. 4: a local map joins with its own covariance (0)."),
         "known_map_gating": _x(
             "on: a known feature whose pairings keep failing their χ² tests stops being "
             "fused (a map out of date); §3.3.2 fuses every accepted pairing (off)."
