@@ -16,6 +16,7 @@ from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
+from tests.scripts import load_benchmark
 
 
 def _leaves(obj: object, prefix: str = "") -> dict[str, object]:
@@ -154,3 +155,15 @@ def test_a_match_of_four_pairings(config: str) -> None:
     assert len(res.anchor.pairings) == 4
     assert all(t == k for t, k in res.anchor.pairings)
     assert _anchor_nees(res.anchor.x_Wknown_Wglobal, res.anchor.cov, log) < chi2.ppf(0.999, 3)
+
+
+def test_benchmark_ablations_cover_the_extensions_one_group_each() -> None:
+    """``benchmarks/ekf_paper_vs_default.py --ablation``: each of its configurations is
+    the default with exactly its group of extensions at the paper's values."""
+    bench = load_benchmark("ekf_paper_vs_default")
+    bench._check_ablations()
+    default, paper = _leaves(EKFConfig()), _leaves(EKFConfig.paper())
+    for name, paths in bench.ABLATIONS.items():
+        cfg = _leaves(bench.config_of(f"default-no-{name}"))
+        assert {k for k in cfg if cfg[k] != default[k]} == set(paths)
+        assert all(cfg[p] == paper[p] for p in paths)
