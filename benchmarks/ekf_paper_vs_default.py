@@ -118,17 +118,18 @@ def _changed_ids(sc: Scenario) -> set[int]:
     return {m.id for m in sc.known_map.moved} | {f.id for f in sc.known_map.removed}
 
 
-def _run(log: MeasurementLog, config: EKFConfig, changed: set[int]) -> dict[str, Any]:
-    """One EKF run's figures (see the module docstring)."""
+def _run(log: MeasurementLog, name: str, changed: set[int]) -> dict[str, Any]:
+    """The figures of one EKF run, configuration ``name`` (see the module docstring)."""
     assert log.true_poses is not None
     t0 = time.perf_counter()
-    res = run_ekf(log, config)
+    res = run_ekf(log, config_of(name), fusion=name != "plain")
     wall = time.perf_counter() - t0
+    assert res.decisions is not None
     e = pose_errors(res.poses, truth_in_global(log.true_poses))
     err = e.position
     nees = nees_series(e.dx, res.covs)
     nees[0] = np.nan  # step 0 is the frame's origin, exactly known
-    kid, tid = res.obs_known_id, log.feat_true_id
+    kid, tid = res.decisions.obs_known_id, log.feat_true_id
     fused = kid >= 0
     row: dict[str, Any] = {
         "rmse_m": float(np.sqrt(np.mean(err**2))),
@@ -138,8 +139,8 @@ def _run(log: MeasurementLog, config: EKFConfig, changed: set[int]) -> dict[str,
         "fused_obs": int(fused.sum()),
         "wrong_fused_obs": int(np.sum(fused & (tid >= 0) & (kid != tid))),
         "changed_fused_obs": int(np.sum(fused & np.isin(kid, sorted(changed)))),
-        "ccda_attempts": res.ccda_attempts,
-        "ccda_reasons": dict(res.ccda_reasons),
+        "ccda_attempts": 0 if res.matching is None else res.matching.attempts,
+        "ccda_reasons": {} if res.matching is None else dict(res.matching.reasons),
         "wall_s": round(wall, 2),
         "anchor": None,
     }
@@ -168,13 +169,12 @@ def _with_paper(config: Any, paper: Any, path: str) -> Any:
 
 
 def config_of(name: str) -> EKFConfig:
-    """The configuration a run name stands for."""
+    """The configuration a run name stands for (``plain``: the default, run without
+    fusion)."""
     if name == "paper":
         return EKFConfig.paper()
-    if name == "default":
+    if name in ("default", "plain"):
         return EKFConfig()
-    if name == "plain":
-        return EKFConfig(fusion=False)
     cfg = EKFConfig()
     for path in ABLATIONS[name.removeprefix("default-no-")]:
         cfg = _with_paper(cfg, EKFConfig.paper(), path)
@@ -209,7 +209,7 @@ def run_log(
     log = simulate(sc, seed=seed, workers=1).log
     changed = _changed_ids(sc)
     head = {"group": group, "seed": seed, "steps": log.n_steps}
-    return [{**head, "config": c, **_run(log, config_of(c), changed)} for c in configs]
+    return [{**head, "config": c, **_run(log, c, changed)} for c in configs]
 
 
 def _interval(values: list[float], digits: int = 4) -> list[float] | None:

@@ -118,11 +118,12 @@ class EKFConfig:
     def paper(cls) -> EKFConfig:
         """The paper's method: every extension beyond it off, the paper's values where
         it gives them.  :data:`PAPER_FIELDS` classifies every setting;
-        :meth:`extensions` lists where the default differs, and why.
+        :meth:`extensions` lists where the default differs, and why.  With
+        :func:`~ekf_reference.run_ekf`'s ``fusion=True`` (its default) it is the paper's
+        Algorithm 1 (§3); with ``fusion=False`` the paper's SLAM without the known map.
 
         From the paper (Chanier et al.; § are the paper's sections):
 
-        * ``fusion``: on (§3, Algorithm 1).
         * ``data_association.ccda.min_pairings``: 4, "more than three" pairings (§3.2).
         * ``data_association.ccda.redundant_pairings``: off, and
           ``data_association.ccda.ambiguity_margin``: 0: the match is accepted on the
@@ -189,7 +190,6 @@ class EKFConfig:
         )
         return dataclasses.replace(
             d,
-            fusion=True,
             known_map_gating=False,
             tentative_min_sightings=1,
             min_obs_to_join=1,
@@ -244,7 +244,6 @@ _CCDA = "data_association.ccda."
 
 PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
     {
-        "fusion": _p("§3, Algorithm 1: the known map is fused once a match is accepted."),
         "local_map_steps": _c("40: the paper bounds a local map by iterations, not how many."),
         _DA + "gate_prob": _c("0.999: the association's gate is not given (ref. [5])."),
         _DA + "prefilter_m": _c("3 m: a cheap pre-gate far wider than the χ² gate."),

@@ -60,7 +60,6 @@ def test_paper_values() -> None:
     p = EKFConfig.paper()
     a = p.data_association
     # The paper's values (docs/method.md §4–5): extensions off.
-    assert p.fusion is True
     assert p.known_map_gating is False
     assert (a.match_joint_test, a.match_pairing_test, a.match_exclusions) == (False, False, 0)
     assert a.min_obs_for_matching == 1
@@ -112,7 +111,8 @@ def _anchor_nees(x: np.ndarray, cov: np.ndarray, log: MeasurementLog) -> float:
 def test_paper_preset_runs_and_fuses_on_loop600() -> None:
     log = _loop600_start()
     res = run_ekf(log, EKFConfig.paper())
-    assert res.known_gating is None
+    assert res.decisions is not None
+    assert res.decisions.known_gating is None
     assert res.anchor is not None
     assert res.anchor.accepted_at_step == 39  # the first join: 9 pairings, all right
     assert len(res.anchor.pairings) >= 4
@@ -123,19 +123,22 @@ def test_paper_preset_runs_and_fuses_on_loop600() -> None:
     d = pose_errors(res.poses, truth_in_global(log.true_poses)).dx
     # The paper's figure: the fused position error stays under 0.15 m.
     assert float(np.hypot(d[:, 0], d[:, 1]).max()) < 0.15
-    fused = (res.obs_known_id >= 0) & (log.feat_true_id >= 0)
+    known = res.decisions.obs_known_id
+    fused = (known >= 0) & (log.feat_true_id >= 0)
     assert fused.sum() > 0
-    assert np.array_equal(res.obs_known_id[fused], log.feat_true_id[fused])
+    assert np.array_equal(known[fused], log.feat_true_id[fused])
 
 
 def test_without_fusion_the_preset_is_the_default_filter() -> None:
     """Every extension acts on the fusion: without it the two filters are one."""
     log = _loop600_start()
-    paper = run_ekf(log, dataclasses.replace(EKFConfig.paper(), fusion=False))
-    default = run_ekf(log, EKFConfig(fusion=False))
+    paper = run_ekf(log, EKFConfig.paper(), fusion=False)
+    default = run_ekf(log, EKFConfig(), fusion=False)
     np.testing.assert_array_equal(paper.poses, default.poses)
     np.testing.assert_array_equal(paper.covs, default.covs)
-    np.testing.assert_array_equal(paper.obs_landmark, default.obs_landmark)
+    assert paper.decisions is not None
+    assert default.decisions is not None
+    np.testing.assert_array_equal(paper.decisions.obs_landmark, default.decisions.obs_landmark)
 
 
 @pytest.mark.parametrize("config", ["paper", "default"])
