@@ -249,12 +249,11 @@ def test_nees_random_poses_in_a_paper_like_world() -> None:
 
 @pytest.mark.slow
 def test_nees_along_the_loop600_trajectory() -> None:
-    scenario_mod = pytest.importorskip("mapfuse_core.sim.scenario")
-    vehicle_mod = pytest.importorskip("mapfuse_core.sim.vehicle")
-    sc = scenario_mod.load_scenario("loop600")
-    motion = vehicle_mod.simulate_motion(
-        sc.start, sc.waypoints, sc.steps, sc.vehicle, np.random.default_rng(0)
-    )
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.vehicle import simulate_motion
+
+    sc = load_scenario("loop600")
+    motion = simulate_motion(sc.start, sc.waypoints, sc.steps, sc.vehicle, np.random.default_rng(0))
     stats = nees_run(sc.world, motion.true_poses, sc.laser, seed=1)
     check(stats, f"loop600, {motion.true_poses.shape[0]} scans", min_lines=5000, min_circles=200)
 

@@ -224,7 +224,6 @@ def test_unfused_ids_survive_saving_the_decisions(tmp_path):
 
 
 def test_graph_adds_no_tie_for_a_feature_the_ekf_unfused():
-    pytest.importorskip("gtsam")
     from mapfuse_graph.builder import GraphBuilder
     from mapfuse_graph.options import GraphOptions
 

@@ -1,8 +1,8 @@
 """The paper's per-seed criteria on loop600, seeds 0–4: accuracy, anchor, consistency (slow).
 
-Where the EKF does not meet the paper's figure on a seed, the case is marked ``xfail``
+Where the EKF does not meet the paper's figure on a seed, the case is a strict ``xfail``
 with the measured value, so the gap stays visible in every test run (and an
-improvement shows up as XPASS).
+improvement fails the run as XPASS, to be looked at and the mark removed).
 
 The extracted features are unbiased (``tests/test_extraction_consistency.py``) and the
 odometry is white with its stated covariance.  ``tests/test_loop600_graph.py`` compares
@@ -31,7 +31,7 @@ pytestmark = pytest.mark.slow
 
 def _seeds(known_gaps: dict[int, str]) -> list[object]:
     return [
-        pytest.param(s, marks=pytest.mark.xfail(reason=known_gaps[s], strict=False))
+        pytest.param(s, marks=pytest.mark.xfail(reason=known_gaps[s], strict=True))
         if s in known_gaps
         else s
         for s in SEEDS
@@ -120,7 +120,7 @@ def test_carrying_seen_features_across_joins_meets_the_papers_max_error(seed: in
 @pytest.mark.parametrize(
     ("seed", "fusion"),
     [
-        pytest.param(s, f, marks=pytest.mark.xfail(reason=why, strict=False))
+        pytest.param(s, f, marks=pytest.mark.xfail(reason=why, strict=True))
         if (
             why := {
                 (4, True): "85 % within; iSAM2's filter on the same inputs 84 % "
