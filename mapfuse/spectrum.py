@@ -285,7 +285,7 @@ def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = Non
         assert m.position_error is not None  # the log has truth
         assert m.nees is not None
         iv = m.nees.mean_interval
-        bounds = (math.nan, math.nan) if iv is None else (iv.interval_95[0], iv.interval_95[1])
+        bounds = (math.nan, math.nan) if iv is None else (iv.acceptance_95[0], iv.acceptance_95[1])
         runs.append(
             SeedRun(
                 estimator=req.estimator,
