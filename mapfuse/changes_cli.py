@@ -33,6 +33,7 @@ def add_parser(sub: Any) -> None:
         add_seed,
         add_source,
         add_steps,
+        seed_int,
     )
     from mapfuse_core.changes import ChangeParams
 
@@ -52,6 +53,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--level",
         type=float,
+        metavar="P",
         default=ChangeParams().level,
         help="probability of the χ² tests that classify a feature",
     )
@@ -69,7 +71,13 @@ def add_parser(sub: Any) -> None:
         metavar="DX,DY,DTHETA",
         help="simulation only: a rigid shift of the whole known map (m, m, rad) (default: none)",
     )
-    p.add_argument("--change-seed", type=int, default=0, help="seed of the known-map perturbation")
+    p.add_argument(
+        "--change-seed",
+        type=seed_int,
+        default=0,
+        metavar="N",
+        help="seed of the known-map perturbation",
+    )
     add_plugins(p)
     add_output(p)
     add_quiet(p)
@@ -102,9 +110,10 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mapfuse.carmen_input import carmen_change_params
-    from mapfuse.changes import change_section, detect_changes
+    from mapfuse.changes import NoChangeEvidenceError, change_section, detect_changes
     from mapfuse.changes_figure import changes_figure
     from mapfuse.cli_common import (
+        InputError,
         UsageError,
         check_out_dir,
         check_source,
@@ -113,6 +122,7 @@ def _cmd_changes(args: argparse.Namespace) -> int:
         load_source,
         progress_bar,
         run_with_bars,
+        source_kind,
         summary,
         warn_runs,
     )
@@ -126,10 +136,10 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     with checking():
         estimator = resolve(args.estimator).name
         params = ChangeParams(level=args.level)
-    src = check_source(args)
     perturbed = args.moved or args.removed or args.added or args.shift
-    if perturbed and src.kind != "scenario":
+    if perturbed and source_kind(args.scenario) != "scenario":
         raise UsageError("--moved/--removed/--added/--shift perturb a simulated scenario only")
+    src = check_source(args)
     scenario = truth = None
     if src.scenario is not None:
         scenario = src.scenario
@@ -156,7 +166,11 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     if len(log.known_map) == 0:
         raise UsageError(f"{args.scenario}: the log has no known map, so nothing can change")
     run = run_with_bars(args, log, estimator, True)
-    report = detect_changes(run.result, log, params)
+    warn_runs([run.metrics])
+    try:
+        report = detect_changes(run.result, log, params)
+    except NoChangeEvidenceError as exc:
+        raise InputError(f"{args.scenario}: {exc}") from None
     with checking():
         out = prepare_output_dir(args.out, force=args.force)
     section: dict[str, Any] = {
@@ -172,7 +186,6 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     fig = changes_figure(report, log, run.result.poses, scenario, truth)
     png_path = out / "changes.png"
     fig.savefig(png_path, dpi=110)
-    warn_runs([run.metrics])
     counts = report.counts()
     result: dict[str, Any] = {
         "counts": counts,

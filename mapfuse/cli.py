@@ -21,6 +21,7 @@ from typing import Any
 
 from mapfuse.cli_args import (
     Formatter,
+    Parser,
     add_data,
     add_estimator,
     add_estimators,
@@ -544,7 +545,12 @@ def _add_baseline(sub: Any) -> None:
     add_seed(rec)
     add_steps(rec)
     add_data(rec)
-    rec.add_argument("--note", default="", help="free text stored with the baseline")
+    rec.add_argument(
+        "--note",
+        default="",
+        metavar="TEXT",
+        help="free text stored with the baseline (default: none)",
+    )
     add_plugins(rec)
     add_output(rec, kind="file", what="baseline JSON file to write")
     add_quiet(rec)
@@ -573,7 +579,7 @@ def _add_baseline(sub: Any) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="mapfuse",
         description="Map fusion SLAM toolkit: simulate, run the EKF reference or the GTSAM "
         "mirror, compare them, keep baselines. Results are JSON on stdout; progress, "
@@ -587,7 +593,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_compare(sub)
 
-    from mapfuse.campaign.cli import add_montecarlo, add_world
+    from mapfuse.campaign_cli import add_montecarlo, add_world
 
     add_montecarlo(sub)
     add_world(sub)
@@ -640,6 +646,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if plugins:
                     from mapfuse.registry import registered_plugins
 
+                    # A plug-in module in the current folder imports as from ``python``
+                    # (the ``mapfuse`` script's own folder is first on the path).
+                    if "" not in sys.path and os.getcwd() not in sys.path:
+                        sys.path.append(os.getcwd())
                     try:
                         stack.enter_context(registered_plugins(plugins))
                     except (ValueError, TypeError) as exc:

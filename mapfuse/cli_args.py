@@ -1,19 +1,19 @@
 """The command line's shared options: one helper per option, used by every command that
 takes it, so that an option has one name, one syntax, one check and one help text.
 
-| helper | options |
-| --- | --- |
-| :func:`add_source` | ``SOURCE`` (scenario, TOML, log ``.npz``, dataset, ``carmen:PATH``) |
-| :func:`add_estimator` | ``--estimator NAME`` (deprecated alias ``--backend``) |
-| :func:`add_estimators` | ``--estimators A,B`` (deprecated alias ``--backends``) |
-| :func:`add_fusion` | ``--fusion on|off[|both]`` (deprecated ``--no-fusion``, bare ``--fusion``) |
-| :func:`add_output` | ``--out`` and ``--force`` |
-| :func:`add_quiet` | ``--quiet`` |
-| :func:`add_cluster` | ``--workers``, ``--scheduler``, ``--serial`` |
-| :func:`add_plugins` | ``--plugin MODULE:ATTR`` (repeatable) |
-| :func:`add_seed` / :func:`add_seeds` | ``--seed N`` / ``--seeds 0-4,7`` |
-| :func:`add_steps` | ``--steps N`` |
-| :func:`add_data` | ``--data DIR`` (default ``$MAPFUSE_DATA``) |
+* :func:`add_source`: the positional ``SCENARIO`` (scenario, TOML, log ``.npz``,
+  dataset, ``carmen:PATH``);
+* :func:`add_estimator`: ``--estimator NAME`` (deprecated alias ``--backend``);
+* :func:`add_estimators`: ``--estimators A,B`` (deprecated alias ``--backends``);
+* :func:`add_fusion`: ``--fusion on/off`` or ``on/off/both`` (deprecated ``--no-fusion``
+  and a bare ``--fusion``);
+* :func:`add_output`: ``--out`` and ``--force``;
+* :func:`add_quiet`: ``--quiet``;
+* :func:`add_cluster`: ``--workers``, ``--scheduler``, ``--serial``;
+* :func:`add_plugins`: ``--plugin MODULE:ATTR`` (repeatable);
+* :func:`add_seed`, :func:`add_seeds`: ``--seed N``, ``--seeds 0-4,7``;
+* :func:`add_steps`: ``--steps N``;
+* :func:`add_data`: ``--data DIR`` (default ``$MAPFUSE_DATA``).
 
 Values that are impossible whatever the input (``--steps 0``, ``--workers 0``, a
 negative seed) are refused by the parser itself (exit status 2).  Every help text
@@ -27,11 +27,12 @@ import argparse
 import os
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 __all__ = [
     "DATA_ENV",
     "Formatter",
+    "Parser",
     "add_cluster",
     "add_data",
     "add_estimator",
@@ -54,6 +55,14 @@ __all__ = [
 DATA_ENV = "MAPFUSE_DATA"
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr, as every other
+    error of the command line (exit status 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"mapfuse: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
 class Formatter(argparse.ArgumentDefaultsHelpFormatter):
     """Appends ``(default: X)`` to an option's help where it has a value to show; a
     flag, or an option whose absence the help text describes, shows none."""
@@ -61,6 +70,7 @@ class Formatter(argparse.ArgumentDefaultsHelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str | None:
         if (
             action.default is None
+            or action.default == ""
             or action.default is argparse.SUPPRESS
             or isinstance(action.default, bool)
             or action.nargs == 0
@@ -125,16 +135,15 @@ def positive_int(text: str) -> int:
 
 def seed_int(text: str) -> int:
     """A seed: an integer in ``0 … MAX_SEED``."""
-    from mapfuse_core.sim.limits import check_seed
+    from mapfuse_core.sim.limits import MAX_SEED
 
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    try:
-        return check_seed(value, "a seed")
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be in 0 … 2**63 - 1, got {value}")
+    return value
 
 
 def _seed_list(text: str) -> tuple[int, ...]:

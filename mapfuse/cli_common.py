@@ -1,23 +1,20 @@
 """What every ``mapfuse`` command does the same way: exit statuses and errors, stdout
 and stderr, progress, the input and the output checks made before any work.
 
-Exit statuses (:func:`mapfuse.cli.main`):
+Exit statuses (:func:`mapfuse.cli.main`; ``docs/cli.md``, *Exit status*):
 
-======  ==================================================================================
-status  meaning
-======  ==================================================================================
-0       done
-1       a check failed (``baseline check``)
-2       usage error: a bad option or value, an option that does not apply, ``--steps``
-        beyond the log, an output folder or file refused (``--force``); found before
-        any work
-3       input error: a named input (scenario, TOML, log, CARMEN file, dataset, baseline)
-        is missing, unreadable or malformed, or a file cannot be written
-70      internal error (a bug): one line naming the exception; ``MAPFUSE_DEBUG=1``
-        prints the traceback too
-130     interrupted by Ctrl-C
-141     stdout closed by its reader (``mapfuse ... | head``), as a shell reports SIGPIPE
-======  ==================================================================================
+* 0 done;
+* 1 a check failed (``baseline check``);
+* 2 usage error: a bad option or value, an option that does not apply, ``--steps``
+  beyond the log, an output folder or file refused (``--force``); found before any
+  work;
+* 3 input error: a named input (scenario, TOML, log, CARMEN file, dataset, baseline) is
+  missing, unreadable or malformed, a run cannot give the command's result, or a file
+  cannot be written;
+* 70 internal error (a bug): one line naming the exception; ``MAPFUSE_DEBUG=1`` prints
+  the traceback too;
+* 130 interrupted by Ctrl-C;
+* 141 stdout closed by its reader (``mapfuse ... | head``), as a shell reports SIGPIPE.
 
 Streams: a command's result is JSON alone on stdout (:func:`emit`); progress bars
 (rate and ETA), warnings, errors and a one-line summary at the end (:func:`summary`)
@@ -125,9 +122,14 @@ def checking() -> Iterator[None]:
 @contextmanager
 def reading() -> Iterator[None]:
     """Reading a named input: a :class:`ValueError` or :class:`OSError` in the block is
-    an input error (the readers name the file and the problem)."""
+    an input error (the readers name the file and the problem), but an option the input
+    needs or refuses (:class:`~mapfuse.carmen_input.CarmenOptionError`) a usage error."""
+    from mapfuse.carmen_input import CarmenOptionError
+
     try:
         yield
+    except CarmenOptionError as exc:
+        raise UsageError(str(exc)) from None
     except (ValueError, OSError) as exc:
         raise InputError(str(exc)) from None
 
@@ -343,9 +345,10 @@ def check_source(
     data = _data_dir(args, text, kind)
     scenario = None
     if kind == "carmen":
-        path = Path(text.partition(":")[2])
-        if text.partition(":")[2] and not path.exists():
-            raise InputError(f"CARMEN log {path} does not exist")
+        raw = text.partition(":")[2]
+        if raw and not Path(raw).is_file():
+            problem = "is not a file" if Path(raw).exists() else "does not exist"
+            raise InputError(f"CARMEN log {raw} {problem}")
         with checking():
             parse_carmen_source(text)
             text = with_odometry(text, odometry)

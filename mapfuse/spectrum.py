@@ -301,21 +301,24 @@ def _spectrum_seed(
         raise ValueError(f"{job.source}: the spectrum needs true poses (a simulated log)")
     roles = job.estimators
     graph = {"association": job.association}
+    # Labelled, so that each is found in the plan whether or not its estimator fuses.
     requests: list[tuple[Role, float, RunRequest]] = [
-        ("filter", 0.0, RunRequest(roles.filter, job.fusion))
+        ("filter", 0.0, RunRequest(roles.filter, job.fusion, label=roles.filter))
     ]
     for lag in job.lags:
         opts = {**graph, "fixedlag": FixedLagOptions(lag_s=lag, landmarks=job.landmarks)}
         label = f"{roles.window} {_lag(lag)}"
         requests.append(("window", lag, RunRequest(roles.window, job.fusion, opts, label)))
-    requests.append(("smoother", math.inf, RunRequest(roles.smoother, job.fusion, graph)))
+    requests.append(
+        ("smoother", math.inf, RunRequest(roles.smoother, job.fusion, graph, roles.smoother))
+    )
     plan = plan_runs([r for _, _, r in requests], len(log.known_map) > 0)
     done = execute(plan, log, progress=run_progress)
     made = {d.planned.label: d for d in done}
     runs: list[SeedRun] = []
     for role, lag, req in requests:
-        fusion = fusion_for(log, job.fusion)
-        d = made[req.label or f"{req.estimator} {'with' if fusion else 'without'} fusion"]
+        assert req.label is not None
+        d = made[req.label]
         assert d.result is not None  # errors raise
         m = run_metrics(d.result, log)
         assert m.position_error is not None  # the log has truth

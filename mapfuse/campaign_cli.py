@@ -1,48 +1,13 @@
 """The ``mapfuse montecarlo`` and ``mapfuse world generate`` commands: argument parsing
-and the calls of the engine and of the world generator."""
+and the calls of the campaign engine (:mod:`mapfuse.campaign`) and of the world
+generator."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
-__all__ = ["add_montecarlo", "add_world", "parse_world_args"]
-
-
-_KIND_NAMES = {int: "an integer", float: "a number", str: "text"}
-
-
-def parse_world_args(text: str) -> dict[str, Any]:
-    """``--world-per-run`` arguments, ``"walls=6,trees=40,shape=figure8"``, as the
-    generator's keywords (numbers converted; the seed comes from each run)."""
-    from mapfuse_core.sim.worldgen import WorldParams
-
-    out: dict[str, Any] = {}
-    if not text.strip():
-        return out
-    fields = WorldParams.__dataclass_fields__
-    for part in text.split(","):
-        key, eq, value = (s.strip() for s in part.partition("="))
-        key = key.replace("-", "_")
-        if not eq or not key:
-            raise ValueError(f"--world-per-run: expected key=value items, got {part!r}")
-        if key == "seed":
-            raise ValueError("--world-per-run: the seed of each world is the run's seed")
-        if key not in fields:
-            raise ValueError(
-                f"--world-per-run: unknown generator argument {key!r} "
-                f"(known: {', '.join(k for k in fields if k != 'seed')})"
-            )
-        kind = type(getattr(WorldParams(seed=0), key))
-        try:
-            out[key] = kind(value)
-        except ValueError:
-            raise ValueError(
-                f"--world-per-run: {key} must be "
-                f"{_KIND_NAMES.get(kind, kind.__name__)}, got {value!r}"
-            ) from None
-    WorldParams(seed=0, **out)  # validates the values now, not on the workers
-    return out
+__all__ = ["add_montecarlo", "add_world"]
 
 
 def _check_carmen_campaign(source: str, world: dict[str, Any] | None) -> None:
@@ -121,7 +86,7 @@ def _check_campaign_out(args: argparse.Namespace, spec: Any) -> bool:
 def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from mapfuse.campaign.engine import run_campaign
     from mapfuse.campaign.report import write_report
-    from mapfuse.campaign.spec import CampaignSpec
+    from mapfuse.campaign.spec import CampaignSpec, parse_world_args
     from mapfuse.cli_args import fusions
     from mapfuse.cli_common import checking, emit, summary
     from mapfuse.outdir import prepare_output_dir
@@ -298,17 +263,19 @@ def add_world(sub: Any) -> None:
         formatter_class=Formatter,
     )
     gen.add_argument("--seed", type=seed_int, required=True, metavar="N", help="seed of the layout")
-    gen.add_argument("--walls", type=int, default=d.walls, help="wall segments")
-    gen.add_argument("--trees", type=int, default=d.trees, help="trees")
+    gen.add_argument("--walls", type=int, metavar="N", default=d.walls, help="wall segments")
+    gen.add_argument("--trees", type=int, metavar="N", default=d.trees, help="trees")
     gen.add_argument(
         "--laser-range",
         type=float,
+        metavar="M",
         default=d.laser_range_m,
         help="laser range, m",
     )
     gen.add_argument(
         "--loop-length",
         type=float,
+        metavar="M",
         default=d.loop_length_m,
         help="drive length, m",
     )
@@ -316,18 +283,23 @@ def add_world(sub: Any) -> None:
     gen.add_argument(
         "--known-fraction",
         type=float,
+        metavar="F",
         default=d.known_fraction,
         help="fraction of the features in the known map",
     )
     gen.add_argument(
         "--changes",
         type=float,
+        metavar="F",
         default=d.changes,
         help="fraction of the known map changed since it was made: half moved, a "
         "quarter removed, a quarter added (seeded by --seed)",
     )
     gen.add_argument(
-        "--base", default="loop600", help="scenario whose vehicle, laser and map noise to use"
+        "--base",
+        default="loop600",
+        metavar="SCENARIO",
+        help="scenario whose vehicle, laser and map noise to use",
     )
     add_output(gen, kind="file", what="scenario TOML file to write")
     add_quiet(gen)
