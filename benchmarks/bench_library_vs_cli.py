@@ -6,7 +6,7 @@ Each run is a fresh process started without the thread variables
 (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``, ...), as a notebook
 or a researcher's script starts; the rest of the environment is passed on.  Both do
 the same work: simulate the scenario, run the backend with fusion and write the run's
-files (metrics, trajectories, figure).  The command is ``mapfuse run SCENARIO --backend
+files (metrics, trajectories, figure).  The command is ``mapfuse run SCENARIO --estimator
 B --seed S --out DIR --quiet``; the library's process calls :func:`mapfuse.runner.prepare_log`,
 :func:`mapfuse.runner.run` and :func:`mapfuse.outputs.write_outputs`, and reports the CPU
 and wall time of each of the three.
@@ -106,7 +106,7 @@ def library_run(source: str, seed: int, backend: str, out: Path) -> dict[str, An
 
 def cli_run(source: str, seed: int, backend: str, out: Path) -> dict[str, Any]:
     """The command's run in a fresh process: totals."""
-    args = ["run", source, "--backend", backend, "--seed", str(seed), "--out", str(out)]
+    args = ["run", source, "--estimator", backend, "--seed", str(seed), "--out", str(out)]
     cmd = [*cli_command(), *args, "--force", "--quiet"]
     cpu, wall, _ = timed(cmd, clean_environment())
     return {"cpu_s": cpu, "wall_s": wall}

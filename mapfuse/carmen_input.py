@@ -32,6 +32,7 @@ __all__ = [
     "CARMEN_PREFIX",
     "KNOWN_MAPS",
     "ODOMETRY_KINDS",
+    "CarmenOptionError",
     "CarmenSource",
     "carmen_change_params",
     "carmen_log_kind",
@@ -135,8 +136,13 @@ def with_odometry(source: str, odometry: str | None) -> str:
     return replace(src, odometry="raw" if odometry == "raw" else "corrected").text()
 
 
-def _undecided(exc: UndecidedOdometryError) -> ValueError:
-    return ValueError(
+class CarmenOptionError(ValueError):
+    """A CARMEN log that needs an option stated (its odometry kind) or refuses one
+    given (a floor plan of a log without a reference trajectory)."""
+
+
+def _undecided(exc: UndecidedOdometryError) -> CarmenOptionError:
+    return CarmenOptionError(
         f"CARMEN log {exc.question()}; state it with --odometry raw|corrected "
         "(in a campaign: carmen,odometry=raw|corrected:PATH)"
     )
@@ -189,7 +195,7 @@ def load_carmen_input(
         raise _undecided(exc) from None
     if log.true_poses is None:
         if known_map == "floorplan":
-            raise ValueError(
+            raise CarmenOptionError(
                 f"CARMEN log {path} has no reference trajectory (raw odometry, "
                 f"{log.metadata['log_kind']}): no floor plan can be built from it; use "
                 "--known-map none, or --odometry corrected if its poses are corrected ones"

@@ -26,21 +26,26 @@ from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario
 
-__all__ = ["change_report_lines", "change_section", "detect_changes"]
+__all__ = ["NoChangeEvidenceError", "change_report_lines", "change_section", "detect_changes"]
+
+
+class NoChangeEvidenceError(ValueError):
+    """A run that cannot tell a known map's changes: it put no known map in its frame
+    (no accepted match), or it holds no association decisions."""
 
 
 def detect_changes(
     result: EstimatorResult, log: MeasurementLog, params: ChangeParams | None = None
 ) -> ChangeReport:
     """Classify ``log``'s known map after ``result``'s run (a fused run with an anchor
-    and association decisions)."""
+    and association decisions; :class:`NoChangeEvidenceError` otherwise)."""
     if not result.fusion or result.anchor is None:
-        raise ValueError(
+        raise NoChangeEvidenceError(
             f"{result.estimator}: change detection needs a fused run whose map match was "
             "accepted (no anchor: the known map was never put in the run's frame)"
         )
     if result.decisions is None:
-        raise ValueError(
+        raise NoChangeEvidenceError(
             f"{result.estimator}: change detection needs the run's association decisions, "
             "and this run has none"
         )

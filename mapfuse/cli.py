@@ -1,29 +1,69 @@
-"""The ``mapfuse`` command line: parses arguments, calls the library, prints results."""
+"""The ``mapfuse`` command line: parses arguments, calls the library, prints results.
+
+Every command keeps the same promises (``docs/cli.md``): options, inputs and the
+output folder are checked before any work (:mod:`mapfuse.cli_common`); the result is
+JSON alone on stdout and a one-line summary ends on stderr; progress bars show rate
+and ETA; the exit status says what went wrong.  The options shared by several commands
+are made by one helper each (:mod:`mapfuse.cli_args`).
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
+import dataclasses
+import os
 import sys
 import time
+import traceback
 from collections.abc import Sequence
-from pathlib import Path
+from contextlib import ExitStack
 from typing import Any
 
+from mapfuse.cli_args import (
+    Formatter,
+    Parser,
+    add_data,
+    add_estimator,
+    add_estimators,
+    add_fusion,
+    add_output,
+    add_plugins,
+    add_quiet,
+    add_seed,
+    add_source,
+    add_steps,
+    fusions,
+)
+from mapfuse.cli_common import (
+    DEBUG_ENV,
+    EXIT_BROKEN_PIPE,
+    EXIT_CHECK_FAILED,
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    CommandError,
+    UsageError,
+    check_out_dir,
+    check_out_file,
+    check_source,
+    checking,
+    emit,
+    labelled_bars,
+    load_source,
+    note,
+    progress_bar,
+    reading,
+    run_line,
+    run_with_bars,
+    source_kind,
+    summary,
+    warn_runs,
+)
 from mapfuse.interrupt import catching_sigint
-from mapfuse_core.measlog import MeasurementLog, save_log
-from mapfuse_core.sim.limits import check_seed
-from mapfuse_core.sim.scenario import ScenarioError, list_builtin_scenarios, load_scenario
-from mapfuse_core.sim.simulate import default_workers, simulate
 
-__all__ = ["main"]
-
-#: Exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
-EXIT_INTERRUPTED = 130
-
-
-class UsageError(ValueError):
-    """An option that does not apply, or a bad option value, found before any work."""
+__all__ = ["EXIT_INTERRUPTED", "main"]
 
 
 def _version() -> str:
@@ -35,84 +75,7 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def _emit(obj: Any) -> None:
-    """The command's result: JSON alone on stdout."""
-    print(json.dumps(obj, indent=2))
-
-
-def _note(text: str) -> None:
-    """A message for the user, on stderr."""
-    print(text, file=sys.stderr)
-
-
-def _warn_runs(runs: Sequence[Any], label: bool = False) -> None:
-    """Each run's ``metrics.json`` warnings, once each, on stderr (stdout is JSON)."""
-    for r in runs:
-        m = r.metrics
-        who = f"{m.estimator} {'with' if m.fusion else 'without'} fusion: " if label else ""
-        for w in m.warnings:
-            _note(f"mapfuse: warning: {who}{w}")
-
-
-# --------------------------------------------------------------------------- validation
-
-
-def _is_dataset(source: str) -> bool:
-    from mapfuse.runner import DATASETS
-
-    return source in DATASETS
-
-
-def _is_carmen(source: str) -> bool:
-    from mapfuse.carmen_input import is_carmen
-
-    return is_carmen(source)
-
-
-def _simulated(source: str) -> bool:
-    """Whether ``source`` is a scenario to simulate (not a saved log or real data)."""
-    return not (source.endswith(".npz") or _is_dataset(source) or _is_carmen(source))
-
-
-def _source(args: argparse.Namespace) -> str:
-    """The command's input, with ``--odometry`` folded into a CARMEN source."""
-    from mapfuse.carmen_input import with_odometry
-
-    odometry = getattr(args, "odometry", None)
-    if odometry is not None and not _is_carmen(args.scenario):
-        raise UsageError(
-            f"--odometry applies to CARMEN logs (carmen:PATH) only, not {args.scenario!r}"
-        )
-    return with_odometry(args.scenario, odometry)
-
-
-def _check_source(args: argparse.Namespace, source: str, seed: int | None) -> None:
-    """The input and the options that depend on it, checked before any work."""
-    data = getattr(args, "data", None)
-    known_map = getattr(args, "known_map", None)
-    if known_map is not None and not _is_carmen(source):
-        raise UsageError(f"--known-map applies to CARMEN logs (carmen:PATH) only, not {source!r}")
-    if _is_carmen(source):
-        from mapfuse.carmen_input import parse_carmen_source
-
-        parse_carmen_source(source)  # names a bad option or a missing file
-    elif source.endswith(".npz"):
-        if not Path(source).is_file():
-            raise UsageError(f"log file {source} does not exist")
-        if seed is not None:
-            raise UsageError(f"--seed does not apply to a saved log ({source}): it is simulated")
-    elif _is_dataset(source):
-        if seed is not None:
-            raise UsageError(f"--seed does not apply to the real dataset {source!r}")
-        if data is None:
-            raise UsageError(f"dataset {source!r} needs a data directory (--data DIR)")
-        if not Path(data).is_dir():
-            raise UsageError(f"--data {data} is not a directory")
-    else:
-        load_scenario(source)  # ScenarioError names what is wrong
-    if data is not None and not _is_dataset(source):
-        raise UsageError(f"--data applies to carpark and victoria-park only, not {source!r}")
-
+# --------------------------------------------------------------------------- graph options
 
 #: Command-line flags that set an option field, and that field's path in the options.
 _OPTION_FLAGS: dict[str, tuple[str, ...]] = {
@@ -123,8 +86,6 @@ _OPTION_FLAGS: dict[str, tuple[str, ...]] = {
 
 def _has_option(estimator: str, path: tuple[str, ...]) -> bool:
     """Whether ``estimator``'s default options have the (nested) field ``path``."""
-    import dataclasses
-
     from mapfuse.registry import resolve
 
     obj: Any = resolve(estimator).options_type()
@@ -145,20 +106,20 @@ def _nest(path: tuple[str, ...], value: Any) -> dict[str, Any]:
 
 
 def _check_graph_flags(
-    args: argparse.Namespace, backends: Sequence[str]
+    args: argparse.Namespace, estimators: Sequence[str]
 ) -> dict[str, dict[str, Any]]:
     """``--association`` / ``--robust`` as option overrides, by estimator, for the
     estimators whose options have those fields (the graph backends); an error when none
-    of ``backends`` has them, or when a value is bad."""
+    of ``estimators`` has them, or when a value is bad."""
     given = {f: getattr(args, f) for f in _OPTION_FLAGS if getattr(args, f) is not None}
     if not given:
         return {}
     out: dict[str, dict[str, Any]] = {}
     for flag, value in given.items():
-        takers = [b for b in backends if _has_option(b, _OPTION_FLAGS[flag])]
+        takers = [b for b in estimators if _has_option(b, _OPTION_FLAGS[flag])]
         if not takers:
             raise UsageError(
-                f"--{flag}: no option of {', '.join(backends)} takes it (the graph backends do)"
+                f"--{flag}: no option of {', '.join(estimators)} takes it (the graph backends do)"
             )
         for b in takers:
             out.setdefault(b, {}).update(_nest(_OPTION_FLAGS[flag], value))
@@ -172,54 +133,49 @@ def _check_graph_flags(
     return out
 
 
-def _check_out(args: argparse.Namespace) -> Path:
-    from mapfuse.outdir import prepare_output_dir
+def _resolve_all(names: Sequence[str]) -> None:
+    """Every estimator name known (a plug-in registered by ``--plugin`` included)."""
+    from mapfuse.registry import resolve
 
-    return prepare_output_dir(args.out, force=args.force)
-
-
-def _check_file_out(path: str) -> Path:
-    """A file to write: its folder must exist or be creatable, and be writable."""
-    import tempfile
-
-    p = Path(path)
-    if p.is_dir():
-        raise UsageError(f"--out {p} is a folder; give a file name")
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=p.parent, prefix=".mapfuse-probe-"):
-            pass
-    except OSError as exc:
-        raise UsageError(f"--out {p}: folder not writable: {exc.strerror or exc}") from None
-    return p
+    with checking():
+        for name in names:
+            resolve(name)
 
 
-# --------------------------------------------------------------------------- commands
-
-
-def _progress(label: str, args: argparse.Namespace) -> Any:
-    from mapfuse.progress import progress_bar
-
-    return progress_bar(label, enabled=not args.quiet)
+# --------------------------------------------------------------------------- simulate
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    from mapfuse.outdir import prepare_output_dir
     from mapfuse.plotting import world_figure
+    from mapfuse_core.measlog import save_log
+    from mapfuse_core.sim.scenario import load_scenario
+    from mapfuse_core.sim.simulate import default_workers, simulate
 
-    if args.seed is not None:
-        check_seed(args.seed, "--seed")
-    scenario = load_scenario(args.scenario)
-    if args.plot_step is not None and args.plot_step < 0:
-        raise UsageError(f"--plot-step must be >= 0, got {args.plot_step}")
-    out = _check_out(args)
+    with checking():
+        scenario = load_scenario(args.scenario)
+    steps = scenario.steps if args.steps is None else args.steps
+    if args.steps is not None and args.steps > scenario.steps:
+        raise UsageError(
+            f"--steps {args.steps} is more than scenario {scenario.name!r} drives "
+            f"({scenario.steps} steps)"
+        )
+    if args.plot_step is not None and args.plot_step >= steps:
+        raise UsageError(f"--plot-step {args.plot_step} is beyond the log's {steps} steps")
+    check_out_dir(args)
     t0 = time.perf_counter()
+    # A drive through waypoints stops at --steps; one by a table of controls is cut.
+    run_sc = scenario if scenario.controls else dataclasses.replace(scenario, steps=steps)
     result = simulate(
-        scenario, seed=args.seed, progress=_progress("simulate", args), workers=default_workers()
+        run_sc,
+        seed=args.seed,
+        progress=progress_bar(args, "simulate"),
+        workers=default_workers(),
     )
+    log = result.log if result.log.n_steps == steps else result.log.head(steps)
     elapsed = time.perf_counter() - t0
-    log = result.log
-    if args.plot_step is not None and args.plot_step >= log.n_steps:
-        raise UsageError(f"--plot-step {args.plot_step} beyond the log's {log.n_steps} steps")
+    with checking():
+        out = prepare_output_dir(args.out, force=args.force)
     log_path = save_log(log, out / "log.npz")
     counts = [log.feature_slice(k).stop - log.feature_slice(k).start for k in range(log.n_steps)]
     step = (
@@ -230,7 +186,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     fig = world_figure(scenario.world, log, result.scans[step], step)
     fig_path = out / "world.png"
     fig.savefig(fig_path, dpi=120)
-    _emit(
+    emit(
         {
             "scenario": log.scenario,
             "seed": log.seed,
@@ -242,200 +198,175 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             "wall_time_s": round(elapsed, 3),
         }
     )
-    return 0
-
-
-def _log_from_args(args: argparse.Namespace, source: str, seed: int | None) -> MeasurementLog:
-    """The measurement log a command works on: a .npz, a dataset or a simulation.
-
-    A simulation extracts with the default pool: the command's main module is guarded.
-    """
-    from mapfuse.runner import prepare_log
-
-    return prepare_log(
-        source,
-        seed=seed,
-        progress=_progress("simulate", args),
-        data_dir=getattr(args, "data", None),
-        known_map=getattr(args, "known_map", None),
-        workers=default_workers(),
+    summary(
+        args,
+        f"simulated {log.scenario} seed {log.seed}: {log.n_steps} steps, "
+        f"{log.n_features} features in {elapsed:.1f} s → {log_path}",
     )
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- run
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from mapfuse.outdir import prepare_output_dir
     from mapfuse.outputs import write_outputs
     from mapfuse.registry import resolve
-    from mapfuse.runner import run as run_estimator
 
-    estimator = resolve(args.backend)
-    source = _source(args)
-    _check_source(args, source, args.seed)
-    flags = _check_graph_flags(args, [args.backend]).get(estimator.name, {})
-    if args.steps is not None and args.steps < 1:
-        raise UsageError(f"--steps must be >= 1, got {args.steps}")
+    with checking():
+        estimator = resolve(args.estimator)
+    src = check_source(args)
+    flags = _check_graph_flags(args, [estimator.name]).get(estimator.name, {})
     if args.export_graph and not estimator.capabilities.exports_graph:
-        raise UsageError(f"--export-graph: the {args.backend} estimator holds no factor graph")
-    out = _check_out(args)
-    log = _log_from_args(args, source, args.seed)
-    if args.steps is not None:
-        log = log.head(args.steps)
-    run = run_estimator(
-        log, estimator, fusion=args.fusion, progress=_progress(args.backend, args), **flags
-    )
+        raise UsageError(f"--export-graph: the {estimator.name} estimator holds no factor graph")
+    check_out_dir(args)
+    log = load_source(args, src)
+    run = run_with_bars(args, log, estimator.name, args.fusion == "on", flags)
+    with checking():
+        out = prepare_output_dir(args.out, force=args.force)
     paths = write_outputs(run, out)
-    _warn_runs([run])
+    warn_runs([run.metrics])
     if args.export_graph:
         from mapfuse_graph.export import export_graph
 
         ex = export_graph(run.result, out)
         paths.update({"graph_g2o": str(ex.g2o), "graph_sidecar": str(ex.sidecar)})
-        _note(ex.summary())
-    _emit({"metrics": run.metrics.to_json(), "outputs": paths})
-    return 0
+        note(ex.summary())
+    emit({"metrics": run.metrics.to_json(), "outputs": paths})
+    summary(args, f"{run_line(run.metrics)} → {out}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- compare
+
+
+def _check_beside(args: argparse.Namespace) -> list[str]:
+    """The ``--beside`` scenarios: simulated ones, at least ``--steps`` long."""
+    from mapfuse_core.sim.scenario import load_scenario
+
+    beside = list(args.beside or ())
+    for b in beside:
+        if source_kind(b) != "scenario":
+            raise UsageError(f"--beside {b}: only simulated scenarios, not a log or dataset")
+        with checking():
+            sc = load_scenario(b)
+        if args.steps is not None and args.steps > sc.steps:
+            raise UsageError(
+                f"--steps {args.steps} is more than --beside scenario {sc.name!r} drives "
+                f"({sc.steps} steps)"
+            )
+    return beside
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapfuse.comparison import DEFAULT_ESTIMATORS, compare, write_comparison
-    from mapfuse.progress import LabelledProgress
-    from mapfuse.registry import resolve
+    from mapfuse.comparison import compare, write_comparison
+    from mapfuse.outdir import prepare_output_dir
 
-    backends = list(DEFAULT_ESTIMATORS)
-    if args.backends is not None:
-        backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-        if not backends or len(set(backends)) != len(backends):
-            raise UsageError(f"--backends needs distinct names, got {args.backends!r}")
-    for b in backends:
-        resolve(b)  # an unknown name fails before any work
-    source = _source(args)
-    _check_source(args, source, args.seed)
-    overrides = _check_graph_flags(args, backends)
-    fusions = (True, False) if args.fusion is None else (args.fusion,)
-    beside = list(args.beside or ())
-    for b in beside:
-        if b.endswith(".npz") or _is_dataset(b):
-            raise UsageError(f"--beside {b}: only simulated scenarios, not a log or dataset")
-        load_scenario(b)  # ScenarioError names what is wrong
-    out = _check_out(args)
-    log = _log_from_args(args, source, args.seed)
-    progress = LabelledProgress(not args.quiet)
-    comparison = compare(
-        log, progress=progress, estimators=backends, fusions=fusions, overrides=overrides
-    )
+    names = list(args.estimators)
+    _resolve_all(names)
+    src = check_source(args)
+    overrides = _check_graph_flags(args, names)
+    fus = fusions(args.fusion)
+    beside = _check_beside(args)
+    check_out_dir(args)
+    log = load_source(args, src)
+    bars = labelled_bars(args)
+    comparison = compare(log, names, fusions=fus, overrides=overrides, progress=bars)
     others: tuple[Any, ...] = ()
     if beside:
         from mapfuse.compare_beside import compare_beside
 
-        others = compare_beside(beside, args.seed, backends, fusions, overrides, progress)
-    progress.close()
-    scenario = load_scenario(args.scenario) if _simulated(args.scenario) else None
-    paths = write_comparison(comparison, out, scenario=scenario, beside=others)
-    _warn_runs(comparison.runs, label=True)
-    _emit({"outputs": paths})
-    if not args.quiet:
-        _note(f"Report: {paths['report']}")
-    return 0
+        others = compare_beside(beside, args.seed, names, fus, overrides, bars, steps=args.steps)
+    bars.close()
+    # The report's wall time is the command's so far: simulation and every run included.
+    wall = time.perf_counter() - args.started
+    comparison = dataclasses.replace(comparison, wall_time_s=wall)
+    with checking():
+        out = prepare_output_dir(args.out, force=args.force)
+    paths = write_comparison(comparison, out, scenario=src.scenario, beside=others)
+    warn_runs(comparison.metrics, label=True)
+    # The command's whole wall time: the files written too.
+    total = time.perf_counter() - args.started
+    emit({"outputs": paths, "runs": len(comparison.runs), "wall_time_s": round(total, 2)})
+    seed = f" seed {log.seed}" if log.seed >= 0 else ""
+    summary(
+        args,
+        f"compared {len(comparison.runs)} runs ({', '.join(names)}; fusion {args.fusion}) on "
+        f"{log.scenario}{seed} in {total:.1f} s → {paths['report']}",
+    )
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- baseline
 
 
 def _cmd_baseline_record(args: argparse.Namespace) -> int:
     from mapfuse.baseline import record_baselines, save_baseline
-    from mapfuse.registry import resolve
 
-    resolve(args.backend)
-    _check_source(args, args.scenario, args.seed)
-    out = _check_file_out(args.out)
-    log = _log_from_args(args, args.scenario, args.seed)
-    fusions = (True, False) if args.fusion is None else (args.fusion,)
-    entries = record_baselines(log, estimators=(args.backend,), fusions=fusions, note=args.note)
-    save_baseline(entries, out)
-    _emit({"baseline": str(out), "entries": len(entries)})
-    return 0
+    _resolve_all([args.estimator])
+    src = check_source(args)
+    check_out_file(args)
+    log = load_source(args, src)
+    bars = labelled_bars(args)
+    entries = record_baselines(
+        log, estimators=(args.estimator,), fusions=fusions(args.fusion), note=args.note,
+        progress=bars,
+    )  # fmt: skip
+    bars.close()
+    out = save_baseline(entries, args.out)
+    emit(
+        {
+            "baseline": str(out),
+            "entries": len(entries),
+            "runs": [run_line(e.metrics) for e in entries],
+        }
+    )
+    runs = f"{len(entries)} run{'s' if len(entries) > 1 else ''}"
+    summary(args, f"recorded a baseline of {runs} of {args.estimator} → {out}")
+    return EXIT_OK
 
 
 def _cmd_baseline_check(args: argparse.Namespace) -> int:
     from mapfuse.baseline import Tolerance, check_log_against_baseline, load_baseline
 
-    if args.tolerance is not None and not args.tolerance > 0:
-        raise UsageError(f"--tolerance must be > 0, got {args.tolerance}")
-    entries = load_baseline(args.baseline)
+    with reading():
+        entries = load_baseline(args.baseline)
     m0 = entries[0].metrics
+    _resolve_all(sorted({e.metrics.estimator for e in entries}))
     source = args.scenario or m0.scenario
+    src = check_source(args, source=source)
     # A CARMEN log's seed is that of its simulated odometry (-1: raw odometry, none).
-    keeps_seed = _simulated(source) or (_is_carmen(source) and m0.seed >= 0)
-    seed = m0.seed if keeps_seed else None
-    _check_source(args, source, seed)
-    log = _log_from_args(args, source, seed)
-    tolerances = None
-    if args.tolerance is not None:
-        tolerances = Tolerance(rel=args.tolerance)
-    reports = check_log_against_baseline(log, entries, tolerances=tolerances)
+    if src.kind == "scenario" or (src.kind == "carmen" and m0.seed >= 0):
+        src = dataclasses.replace(src, seed=m0.seed)
+    # The baseline's own length: a simulation stops there, a longer log is cut.
+    if src.kind == "scenario" and src.scenario is not None:
+        src = dataclasses.replace(src, steps=min(m0.steps, src.scenario.steps))
+    log = load_source(args, src)
+    if log.n_steps > m0.steps:
+        log = log.head(m0.steps)
+    tolerances = None if args.tolerance is None else Tolerance(rel=args.tolerance)
+    bars = labelled_bars(args)
+    reports = check_log_against_baseline(log, entries, tolerances=tolerances, progress=bars)
+    bars.close()
+    passed = all(r.passed for r in reports)
     for r in reports:
-        print(r.summary())
-    return 0 if all(r.passed for r in reports) else 1
-
-
-class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows every option's default, except where there is none to show."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        if action.default is None or action.default is argparse.SUPPRESS or action.nargs == 0:
-            return action.help
-        return super()._get_help_string(action)
-
-
-def _sources() -> str:
-    from mapfuse.runner import DATASETS
-
-    return (
-        f"built-in scenario ({', '.join(list_builtin_scenarios())}), a scenario .toml path, "
-        f"a saved log .npz, a real dataset ({', '.join(DATASETS)}; needs --data), or a "
-        "CARMEN laser log carmen:PATH.log[.gz] (carmen,odometry=raw|corrected:PATH states "
-        "its kind)"
+        if not r.passed or not args.quiet:
+            note(r.summary())
+    reports_json = [r.to_dict() for r in reports]
+    emit({"baseline": str(args.baseline), "passed": passed, "reports": reports_json})
+    bad = sum(not r.passed for r in reports)
+    verdict = f"FAILED, {bad} of {len(reports)} runs" if bad else f"all {len(reports)} runs"
+    summary(
+        args,
+        f"baseline check {args.baseline}: {verdict} within tolerance"
+        if not bad
+        else f"baseline check {args.baseline}: {verdict} out of tolerance",
     )
+    return EXIT_OK if passed else EXIT_CHECK_FAILED
 
 
-def _add_common(
-    p: argparse.ArgumentParser, *, seed: bool = True, data: bool = True, out: str | None = "dir"
-) -> None:
-    if seed:
-        p.add_argument(
-            "--seed",
-            type=int,
-            default=None,
-            help="random seed of the simulation (default: the scenario's), or of a corrected "
-            "CARMEN log's simulated odometry (default 0); not for a saved log or the car park "
-            "and Victoria Park",
-        )
-    if data:
-        p.add_argument(
-            "--data",
-            default=None,
-            help="data directory of the real datasets (carpark, victoria-park)",
-        )
-    if out == "dir":
-        p.add_argument("--out", required=True, help="output folder")
-        p.add_argument(
-            "--force",
-            action="store_true",
-            help="replace the files of another run in --out (without it such a folder is refused)",
-        )
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
-def _add_fusion(p: argparse.ArgumentParser, default: bool | None, what: str) -> None:
-    fusion = p.add_mutually_exclusive_group()
-    fusion.add_argument(
-        "--fusion",
-        dest="fusion",
-        action="store_true",
-        default=default,
-        help=f"{what} with map fusion only" if default is None else "fuse the known map (default)",
-    )
-    fusion.add_argument(
-        "--no-fusion",
-        dest="fusion",
-        action="store_false",
-        help=f"{what} without map fusion only" if default is None else "SLAM without map fusion",
-    )
+# --------------------------------------------------------------------------- parser
 
 
 def _add_known_map(p: argparse.ArgumentParser) -> None:
@@ -469,150 +400,208 @@ def _add_graph_flags(p: argparse.ArgumentParser) -> None:
         "--association",
         default=None,
         choices=["ekf", "truth", "own"],
-        help="graph backends only: the EKF's decisions (their default), simulation truth, "
-        "or the graph's own χ²-gated nearest neighbour",
+        help="graph backends only: the EKF's decisions, simulation truth, or the graph's "
+        "own χ²-gated nearest neighbour (default: the EKF's decisions)",
     )
     p.add_argument(
         "--robust",
         default=None,
+        metavar="KERNEL",
         help="graph backends only: robust kernel on observations, huber[:k] or cauchy[:k] "
         "(default: none)",
     )
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="mapfuse",
-        description="Map fusion SLAM toolkit: simulate, run the EKF reference or the GTSAM "
-        "mirror, compare them, keep baselines.  Results are JSON on stdout; progress and "
-        "messages go to stderr.",
-        formatter_class=_Formatter,
-    )
-    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _add_simulate(sub: Any) -> None:
+    from mapfuse_core.sim.scenario import list_builtin_scenarios
+
     sim = sub.add_parser(
         "simulate",
         help="simulate a scenario into a measurement log",
         description="Simulate SCENARIO and write OUT/log.npz and OUT/world.png.",
-        formatter_class=_Formatter,
+        formatter_class=Formatter,
     )
     sim.add_argument(
         "scenario",
+        metavar="SCENARIO",
         help=f"built-in scenario ({', '.join(list_builtin_scenarios())}) or a .toml path",
     )
-    _add_common(sim, data=False)
+    add_seed(sim, "seed of the simulation (default: the scenario's own)")
+    add_steps(sim)
     sim.add_argument(
         "--plot-step",
-        type=int,
+        type=_non_negative_int,
         default=None,
+        metavar="K",
         help="step whose scan world.png shows (default: the one with most features)",
     )
+    add_output(sim)
+    add_quiet(sim)
     sim.set_defaults(func=_cmd_simulate)
 
+
+def _add_run(sub: Any) -> None:
     run = sub.add_parser(
         "run",
         help="run an estimator on a scenario, a log or a dataset",
-        description="Run BACKEND on SCENARIO and write OUT/metrics.json, the TUM "
+        description="Run ESTIMATOR on SCENARIO and write OUT/metrics.json, the TUM "
         "trajectories (trajectory.tum, trajectory_known.tum, truth.tum, ...) and the "
         "error figures.",
-        formatter_class=_Formatter,
+        formatter_class=Formatter,
     )
-    run.add_argument("scenario", help=_sources())
-    run.add_argument(
-        "--backend",
-        default="ekf",
-        help="registered estimator (built-in: ekf, batch, isam2; plugins: entry points of "
-        "the 'mapfuse.estimators' group)",
-    )
+    add_source(run)
+    add_estimator(run)
+    add_fusion(run, several=False)
     _add_graph_flags(run)
     _add_known_map(run)
     _add_odometry(run)
-    _add_fusion(run, True, "run")
-    run.add_argument("--steps", type=int, default=None, help="run only the log's first STEPS steps")
+    add_seed(run)
+    add_steps(run)
+    add_data(run)
     run.add_argument(
         "--export-graph",
         action="store_true",
         help="graph backends: also write the solved graph, OUT/graph.g2o (poses and "
         "odometry) and OUT/graph.json (what g2o cannot hold, by name)",
     )
-    _add_common(run)
+    add_plugins(run)
+    add_output(run)
+    add_quiet(run)
     run.set_defaults(func=_cmd_run)
+
+
+def _add_compare(sub: Any) -> None:
+    from mapfuse.comparison import DEFAULT_ESTIMATORS
 
     cmp_ = sub.add_parser(
         "compare",
-        help="several backends, with and without fusion, on one log",
-        description="Run BACKENDS x {fusion, no fusion} on one measurement log (without "
-        "fusion only, on a log without a known map) and write OUT/comparison.json, "
-        "OUT/report.md, the paper's figures and each run's files in OUT/runs/.",
-        formatter_class=_Formatter,
+        help="several estimators, with and without fusion, on one log",
+        description="Run ESTIMATORS x FUSION on one measurement log (without fusion only, "
+        "on a log without a known map) and write OUT/comparison.json, OUT/report.md, the "
+        "paper's figures and each run's files in OUT/runs/.",
+        formatter_class=Formatter,
     )
-    cmp_.add_argument("scenario", help=_sources())
-    cmp_.add_argument(
-        "--backends",
-        default="ekf,batch,isam2",
-        help="comma-separated registered estimators",
-    )
-    _add_fusion(cmp_, None, "compare")
+    add_source(cmp_)
+    add_estimators(cmp_, ",".join(DEFAULT_ESTIMATORS))
+    add_fusion(cmp_, several=True)
     _add_graph_flags(cmp_)
     _add_known_map(cmp_)
     _add_odometry(cmp_)
+    add_seed(cmp_)
+    add_steps(cmp_)
+    add_data(cmp_)
     cmp_.add_argument(
         "--beside",
         action="append",
+        default=None,
         metavar="SCENARIO",
-        help="also compare the same backends on this simulated scenario, same seed, and "
-        "put its table in the report (repeatable; e.g. loop600-sparse, the paper's regime)",
+        help="also compare the same estimators on this simulated scenario, same seed and "
+        "steps, and put its table in the report (repeatable; e.g. loop600-sparse, the "
+        "paper's regime) (default: none)",
     )
-    _add_common(cmp_)
+    add_plugins(cmp_)
+    add_output(cmp_)
+    add_quiet(cmp_)
     cmp_.set_defaults(func=_cmd_compare)
 
-    from mapfuse.campaign.cli import add_montecarlo, add_world
 
-    add_montecarlo(sub)
-    add_world(sub)
-
+def _add_baseline(sub: Any) -> None:
     base = sub.add_parser(
         "baseline",
         help="record or check regression baselines",
-        description="Record a backend's metrics as a baseline JSON file, or re-run and "
+        description="Record an estimator's metrics as a baseline JSON file, or re-run and "
         "check against one.",
-        formatter_class=_Formatter,
+        formatter_class=Formatter,
     )
     bsub = base.add_subparsers(dest="baseline_command", required=True, metavar="SUBCOMMAND")
     rec = bsub.add_parser(
         "record",
-        help="record a backend's metrics as a baseline",
-        description="Run BACKEND on SCENARIO (with and without fusion unless one is "
+        help="record an estimator's metrics as a baseline",
+        description="Run ESTIMATOR on SCENARIO (with and without fusion unless one is "
         "chosen) and write its metrics to the baseline file OUT.",
-        formatter_class=_Formatter,
+        formatter_class=Formatter,
     )
-    rec.add_argument("scenario", help=_sources())
-    rec.add_argument("--backend", default="ekf", help="registered estimator")
-    _add_fusion(rec, None, "record")
-    rec.add_argument("--note", default="", help="free text stored with the baseline")
-    rec.add_argument("--out", required=True, help="baseline JSON file to write")
-    _add_common(rec, out=None)
+    add_source(rec)
+    add_estimator(rec)
+    add_fusion(rec, several=True)
+    add_seed(rec)
+    add_steps(rec)
+    add_data(rec)
+    rec.add_argument(
+        "--note",
+        default="",
+        metavar="TEXT",
+        help="free text stored with the baseline (default: none)",
+    )
+    add_plugins(rec)
+    add_output(rec, kind="file", what="baseline JSON file to write")
+    add_quiet(rec)
     rec.set_defaults(func=_cmd_baseline_record)
     chk = bsub.add_parser(
         "check",
         help="re-run and compare against a stored baseline",
-        description="Re-run the baseline's runs and compare their metrics; exit 1 when "
-        "one is out of tolerance.",
-        formatter_class=_Formatter,
+        description="Re-run the baseline's runs (same seed and steps) and compare their "
+        "metrics; exit 1 when one is out of tolerance. The reports are JSON on stdout.",
+        formatter_class=Formatter,
     )
-    chk.add_argument(
-        "scenario", nargs="?", default=None, help="input to re-run (default: the baseline's)"
-    )
-    chk.add_argument("--baseline", required=True, help="baseline JSON file")
+    add_source(chk, nargs="?", default=None)
+    chk.add_argument("--baseline", required=True, metavar="FILE", help="baseline JSON file")
     chk.add_argument(
         "--tolerance",
-        type=float,
+        type=_positive_float,
         default=None,
-        help="relative tolerance for every checked metric (default: per-metric defaults)",
+        metavar="REL",
+        help="relative tolerance for every checked metric (default: per-metric defaults, "
+        "docs in mapfuse/baseline.py)",
     )
-    _add_common(chk, seed=False, out=None)
+    add_data(chk)
+    add_plugins(chk)
+    add_quiet(chk)
     chk.set_defaults(func=_cmd_baseline_check)
-    from mapfuse.spectrum import add_spectrum_parser
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = Parser(
+        prog="mapfuse",
+        description="Map fusion SLAM toolkit: simulate, run the EKF reference or the GTSAM "
+        "mirror, compare them, keep baselines. Results are JSON on stdout; progress, "
+        "messages and a one-line summary go to stderr. Exit status: 0 done, 1 a check "
+        "failed, 2 usage error, 3 input error, 70 internal error, 130 interrupted.",
+        formatter_class=Formatter,
+    )
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulate(sub)
+    _add_run(sub)
+    _add_compare(sub)
+
+    from mapfuse.campaign_cli import add_montecarlo, add_world
+
+    add_montecarlo(sub)
+    add_world(sub)
+    _add_baseline(sub)
+
+    from mapfuse.spectrum_cli import add_spectrum_parser
 
     add_spectrum_parser(sub)
 
@@ -622,28 +611,72 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+# --------------------------------------------------------------------------- main
+
+
+def _internal_error(exc: BaseException) -> int:
+    if os.environ.get(DEBUG_ENV):
+        traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
+    first = (str(exc).splitlines() or [""])[0]
+    note(
+        f"mapfuse: internal error: {type(exc).__name__}: {first} (a bug; run again with "
+        f"{DEBUG_ENV}=1 for the traceback, and report it)"
+    )
+    return EXIT_INTERNAL
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapfuse`` command.
 
-    Exit status: 0 done, 1 a baseline check failed, 2 a usage or input error (one line
-    on stderr), 130 interrupted by Ctrl-C.
+    Exit status (:mod:`mapfuse.cli_common`): 0 done, 1 a check failed (``baseline
+    check``), 2 a usage error, 3 an input error (one line on stderr each), 70 an
+    internal error (one line; ``MAPFUSE_DEBUG=1`` adds the traceback), 130 interrupted
+    by Ctrl-C.
     """
-    args = _parser().parse_args(argv)
+    started = time.perf_counter()
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error argparse printed
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    args.started = started
+    from mapfuse.progress import close_all
+
     with catching_sigint():
         try:
-            code: int = args.func(args)
+            with ExitStack() as stack:
+                plugins = getattr(args, "plugin", None) or ()
+                if plugins:
+                    from mapfuse.registry import registered_plugins
+
+                    # A plug-in module in the current folder imports as from ``python``
+                    # (the ``mapfuse`` script's own folder is first on the path).
+                    if "" not in sys.path and os.getcwd() not in sys.path:
+                        sys.path.append(os.getcwd())
+                    try:
+                        stack.enter_context(registered_plugins(plugins))
+                    except (ValueError, TypeError) as exc:
+                        raise UsageError(f"--plugin: {exc}") from None
+                code: int = args.func(args)
         except KeyboardInterrupt:
-            from mapfuse.progress import close_all
-
             close_all()
-            _note("mapfuse: interrupted")
+            note("mapfuse: interrupted")
             return EXIT_INTERRUPTED
-        except (ScenarioError, ValueError, OSError) as exc:
-            from mapfuse.progress import close_all
-
+        except CommandError as exc:
             close_all()
-            _note(f"mapfuse: error: {exc}")
-            return 2
+            note(f"mapfuse: error: {exc}")
+            return exc.code
+        except BrokenPipeError:
+            # The reader of stdout went away (``| head``): nothing more reaches it.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return EXIT_BROKEN_PIPE
+        except OSError as exc:
+            close_all()
+            where = f"{exc.filename}: " if exc.filename else ""
+            note(f"mapfuse: error: {where}{exc.strerror or exc}")
+            return EXIT_INPUT
+        except Exception as exc:
+            close_all()
+            return _internal_error(exc)
     return code
 
 

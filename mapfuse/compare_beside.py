@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from mapfuse.comparison import Comparison, Progress, compare
-from mapfuse.runner import prepare_log
+from mapfuse.runner import load
 
 __all__ = ["compare_beside"]
 
@@ -26,12 +26,14 @@ def compare_beside(
     fusions: Sequence[bool] = (True, False),
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
     progress: Progress | None = None,
+    steps: int | None = None,
 ) -> tuple[Comparison, ...]:
     """:func:`mapfuse.comparison.compare` on each of ``scenarios`` (built-in names or TOML
-    paths), simulated with ``seed`` (``None``: each scenario's own)."""
+    paths), simulated with ``seed`` (``None``: each scenario's own) for its first
+    ``steps`` steps (``None``: all)."""
     out = []
     for name in scenarios:
-        log = prepare_log(name, seed=seed)
+        log = load(name, seed=seed, steps=steps)
         p = None if progress is None else _prefixed(progress, name)
         out.append(
             compare(log, progress=p, estimators=estimators, fusions=fusions, overrides=overrides)

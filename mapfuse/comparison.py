@@ -97,7 +97,8 @@ class Comparison:
     """Runs ordered by fusion setting (as requested; only without fusion on a log without a
     known map), then estimator (as requested, those whose results others consume first)."""
     wall_time_s: float
-    """Wall time of the whole :func:`compare` call (s)."""
+    """Wall time (s) of the whole :func:`compare` call; ``mapfuse compare`` sets the
+    command's own (its simulation included) before writing the report."""
 
     @property
     def metrics(self) -> list[RunMetrics]:

@@ -11,7 +11,8 @@ running process (a notebook, a test).
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from importlib import metadata
 from typing import Any
 
@@ -25,6 +26,7 @@ __all__ = [
     "load_plugin",
     "register",
     "register_plugin",
+    "registered_plugins",
     "resolve",
     "unregister",
 ]
@@ -96,6 +98,20 @@ def load_plugin(spec: str) -> Any:
 def register_plugin(spec: str, *, replace: bool = False) -> Estimator:
     """Load the ``module:attribute`` plug-in (:func:`load_plugin`) and register it."""
     return register(load_plugin(spec), replace=replace)
+
+
+@contextmanager
+def registered_plugins(specs: Sequence[str]) -> Iterator[tuple[Estimator, ...]]:
+    """The ``module:attribute`` plug-ins (:func:`load_plugin`) registered for the
+    duration of the block (``--plugin``; a plug-in named like an available estimator
+    replaces it there); what the block registered is removed again, so the registry is
+    left as it was found (a serial campaign, a command run inside a test)."""
+    before = dict(_registered)
+    try:
+        yield tuple(register(load_plugin(spec), replace=True) for spec in specs)
+    finally:
+        _registered.clear()
+        _registered.update(before)
 
 
 def get(name: str) -> Estimator:

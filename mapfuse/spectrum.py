@@ -17,8 +17,6 @@ that of its mean).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
 import time
@@ -27,6 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+#: ``progress(label, k, n)``: run ``label`` has done ``k`` of ``n`` steps.
+LabelledProgress = Callable[[str, int, int], None]
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
@@ -34,10 +35,11 @@ if TYPE_CHECKING:
 __all__ = [
     "SeedRun",
     "SeedSpectrum",
+    "SpectrumEstimators",
     "SpectrumJob",
     "SpectrumResult",
     "SpectrumRow",
-    "add_spectrum_parser",
+    "check_roles",
     "parse_lags",
     "plot_spectrum",
     "spectrum",
@@ -207,6 +209,8 @@ class SpectrumJob:
     """Data directory for a real dataset."""
     estimators: SpectrumEstimators = field(default_factory=lambda: SpectrumEstimators())
     """The estimator of each role."""
+    plugins: tuple[str, ...] = ()
+    """``module:attribute`` estimators registered for the job (on a worker too)."""
 
 
 @dataclass(frozen=True)
@@ -248,44 +252,79 @@ def _run_name(job: SpectrumJob) -> str:
     return f"seed {job.seed}" if job.seed is not None else Path(job.source).name
 
 
-def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = None) -> SeedSpectrum:
+def _prefixed(progress: LabelledProgress | None, prefix: str) -> LabelledProgress | None:
+    """``progress`` with ``prefix`` in front of every label."""
+    if progress is None or not prefix:
+        return progress
+    cb = progress
+
+    def call(label: str, k: int, n: int) -> None:
+        cb(f"{prefix}{label}", k, n)
+
+    return call
+
+
+def spectrum_seed(
+    job: SpectrumJob,
+    progress: Callable[[str], None] | None = None,
+    run_progress: LabelledProgress | None = None,
+) -> SeedSpectrum:
     """The filter, the fixed-lag smoother at each lag and the full smoother on the log of
     one seed, planned together (:mod:`mapfuse.plan`: the smoothers consume the filter's
-    run)."""
+    run).  ``progress(line)`` after each run; ``run_progress(label, k, n)`` as the
+    simulation and each run advance."""
+    from mapfuse.registry import registered_plugins
+
+    with registered_plugins(job.plugins):
+        return _spectrum_seed(job, progress, run_progress)
+
+
+def _spectrum_seed(
+    job: SpectrumJob,
+    progress: Callable[[str], None] | None,
+    run_progress: LabelledProgress | None,
+) -> SeedSpectrum:
     from mapfuse.execution import fusion_for
     from mapfuse.metrics import run_metrics
     from mapfuse.plan import RunRequest, execute, plan_runs
-    from mapfuse.runner import prepare_log
+    from mapfuse.runner import labelled, load
     from mapfuse_graph.fixedlag import FixedLagOptions
 
-    log = prepare_log(job.source, seed=job.seed, data_dir=job.data_dir)
+    log = load(
+        job.source,
+        seed=job.seed,
+        steps=job.steps,
+        data=job.data_dir,
+        progress=labelled(run_progress, "simulate"),
+    )
     if log.true_poses is None:
         raise ValueError(f"{job.source}: the spectrum needs true poses (a simulated log)")
-    if job.steps is not None:
-        log = log.head(min(job.steps, log.n_steps))
     roles = job.estimators
     graph = {"association": job.association}
+    # Labelled, so that each is found in the plan whether or not its estimator fuses.
     requests: list[tuple[Role, float, RunRequest]] = [
-        ("filter", 0.0, RunRequest(roles.filter, job.fusion))
+        ("filter", 0.0, RunRequest(roles.filter, job.fusion, label=roles.filter))
     ]
     for lag in job.lags:
         opts = {**graph, "fixedlag": FixedLagOptions(lag_s=lag, landmarks=job.landmarks)}
         label = f"{roles.window} {_lag(lag)}"
         requests.append(("window", lag, RunRequest(roles.window, job.fusion, opts, label)))
-    requests.append(("smoother", math.inf, RunRequest(roles.smoother, job.fusion, graph)))
+    requests.append(
+        ("smoother", math.inf, RunRequest(roles.smoother, job.fusion, graph, roles.smoother))
+    )
     plan = plan_runs([r for _, _, r in requests], len(log.known_map) > 0)
-    done = execute(plan, log)
+    done = execute(plan, log, progress=run_progress)
     made = {d.planned.label: d for d in done}
     runs: list[SeedRun] = []
     for role, lag, req in requests:
-        fusion = fusion_for(log, job.fusion)
-        d = made[req.label or f"{req.estimator} {'with' if fusion else 'without'} fusion"]
+        assert req.label is not None
+        d = made[req.label]
         assert d.result is not None  # errors raise
         m = run_metrics(d.result, log)
         assert m.position_error is not None  # the log has truth
         assert m.nees is not None
         iv = m.nees.mean_interval
-        bounds = (math.nan, math.nan) if iv is None else (iv.interval_95[0], iv.interval_95[1])
+        bounds = (math.nan, math.nan) if iv is None else (iv.acceptance_95[0], iv.acceptance_95[1])
         runs.append(
             SeedRun(
                 estimator=req.estimator,
@@ -307,6 +346,27 @@ def spectrum_seed(job: SpectrumJob, progress: Callable[[str], None] | None = Non
     )
 
 
+def check_roles(roles: SpectrumEstimators) -> None:
+    """Each role's estimator exists and takes the options the spectrum sets: the
+    window's and the smoother's an ``association``, the window's a ``fixedlag``."""
+    import dataclasses
+
+    from mapfuse.registry import resolve
+
+    def fields(name: str) -> set[str]:
+        opts = resolve(name).options_type
+        if not dataclasses.is_dataclass(opts):
+            return set()
+        return {f.name for f in dataclasses.fields(opts)}
+
+    resolve(roles.filter)
+    for role, name in (("window", roles.window), ("smoother", roles.smoother)):
+        if "association" not in fields(name):
+            raise ValueError(f"the spectrum's {role} {name!r} takes no association option")
+    if "fixedlag" not in fields(roles.window):
+        raise ValueError(f"the spectrum's window {roles.window!r} takes no fixedlag option")
+
+
 def spectrum(
     source: str,
     lags: Sequence[float],
@@ -321,6 +381,10 @@ def spectrum(
     workers: int | None = None,
     scheduler: str | None = None,
     serial: bool | None = None,
+    estimators: SpectrumEstimators | None = None,
+    plugins: Sequence[str] = (),
+    run_progress: LabelledProgress | None = None,
+    seed_progress: Callable[[int, int], None] | None = None,
 ) -> SpectrumResult:
     """Run the EKF, the fixed-lag smoother at each of ``lags`` and batch on each seed's
     log of ``source`` (a scenario, ``.toml`` or a log ``.npz``).
@@ -331,9 +395,19 @@ def spectrum(
     other in this process, with a ``progress`` line per run; by default a single seed
     runs so, several seeds on the cluster, with a line per finished seed.  Each seed's
     runs depend on the seed alone, and the table is built in the order of ``seeds``, so
-    the result is the same serially and on any number of workers (but the times)."""
+    the result is the same serially and on any number of workers (but the times).
+
+    ``estimators``: the estimator of each role (default :class:`SpectrumEstimators`);
+    ``plugins``: ``module:attribute`` estimators registered for every seed, on the
+    workers too.  ``run_progress(label, k, n)``: the simulation and every run of a
+    serial spectrum as they advance (labels prefixed by the seed when there are
+    several); ``seed_progress(k, n)``: ``k`` of the ``n`` seeds done."""
+    from mapfuse.registry import registered_plugins
     from mapfuse_graph.fixedlag import FixedLagOptions
 
+    roles = SpectrumEstimators() if estimators is None else estimators
+    with registered_plugins(tuple(plugins)):
+        check_roles(roles)
     if association not in ("ekf", "truth"):
         raise ValueError(f"association must be 'ekf' or 'truth', got {association!r}")
     if steps is not None and steps < 2:
@@ -364,6 +438,8 @@ def spectrum(
             landmarks=landmarks,
             steps=steps,
             data_dir=data_dir,
+            estimators=roles,
+            plugins=tuple(plugins),
         )
         for seed in seeds
     ]
@@ -371,9 +447,13 @@ def spectrum(
     if serial is None:
         serial = len(jobs) == 1 and workers is None and scheduler is None
     done: dict[int | None, SeedSpectrum] = {}
+    several = len(jobs) > 1
     if serial:
-        for job in jobs:
-            done[job.seed] = spectrum_seed(job, progress)
+        for i, job in enumerate(jobs):
+            prefix = f"{_run_name(job)}: " if several else ""
+            done[job.seed] = spectrum_seed(job, progress, _prefixed(run_progress, prefix))
+            if seed_progress is not None:
+                seed_progress(i + 1, len(jobs))
     else:
         from mapfuse.campaign.engine import map_on_cluster
 
@@ -382,6 +462,8 @@ def spectrum(
             spectrum_seed, jobs, workers=n, scheduler=scheduler, name="mapfuse-spectrum"
         ):
             done[out.seed] = out
+            if seed_progress is not None:
+                seed_progress(len(done), len(jobs))
             if progress is not None:
                 best = min(out.runs, key=lambda r: r.rmse_m)
                 progress(
@@ -520,87 +602,3 @@ def spectrum_markdown(result: SpectrumResult, figure: str | None = None) -> str:
     if figure:
         lines += ["", f"![spectrum]({figure})"]
     return "\n".join(lines) + "\n"
-
-
-def _cmd_spectrum(args: argparse.Namespace) -> int:
-    import sys
-
-    from mapfuse.campaign.spec import parse_seeds
-
-    lags = parse_lags(args.lags)
-    seeds = parse_seeds(args.seeds)
-
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(msg, file=sys.stderr, flush=True)
-
-    result = spectrum(
-        args.scenario,
-        lags,
-        seeds,
-        fusion=args.fusion,
-        association=args.association,
-        landmarks=args.landmarks,
-        steps=args.steps,
-        data_dir=args.data,
-        progress=say,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        serial=True if args.serial else None,
-    )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig_path = out / "spectrum.png"
-    spectrum_figure(result).savefig(fig_path, dpi=120)
-    (out / "spectrum.json").write_text(json.dumps(result.as_dict(), indent=2) + "\n")
-    (out / "report.md").write_text(spectrum_markdown(result, fig_path.name))
-    print(json.dumps(result.as_dict(), indent=2))
-    return 0
-
-
-def add_spectrum_parser(sub: Any) -> None:
-    """Register ``mapfuse spectrum`` on the CLI's subparsers."""
-    p = sub.add_parser(
-        "spectrum",
-        help="RMSE and ANEES against lag: EKF, fixed-lag smoother, batch",
-        description="Run the EKF (lag 0), the fixed-lag smoother at each --lags and batch "
-        "(lag inf) on each seed (several seeds on a dask LocalCluster, one per core, or "
-        "--scheduler; one seed, or --serial, in this process); write OUT/spectrum.json, "
-        "OUT/report.md and OUT/spectrum.png, and print the table as JSON.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    p.add_argument("scenario", help="built-in scenario, .toml path, or log .npz")
-    p.add_argument("--lags", default="0,1,5,30,inf", help="lags in seconds")
-    p.add_argument("--seeds", default="0", help="seeds: A-B or a comma list")
-    fz = p.add_mutually_exclusive_group()
-    fz.add_argument(
-        "--fusion", dest="fusion", action="store_true", default=True, help="fuse the known map"
-    )
-    fz.add_argument("--no-fusion", dest="fusion", action="store_false", help="SLAM without the map")
-    p.add_argument(
-        "--association",
-        default="ekf",
-        choices=("ekf", "truth"),
-        help="graph association: the EKF's decisions or the true ids",
-    )
-    p.add_argument(
-        "--landmarks",
-        default="keep",
-        choices=("keep", "window"),
-        help="fixed-lag landmarks: kept in the window or marginalised after the lag",
-    )
-    p.add_argument("--steps", type=int, default=None, help="use only the first STEPS steps")
-    p.add_argument("--data", default=None, help="data directory for real datasets")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=None,
-        help="local worker processes (default: the cores, at most one per seed)",
-    )
-    p.add_argument("--scheduler", default=None, help="address of a running dask scheduler")
-    p.add_argument(
-        "--serial", action="store_true", help="run every seed in this process, without dask"
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    p.set_defaults(func=_cmd_spectrum)

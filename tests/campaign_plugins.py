@@ -56,3 +56,13 @@ class HangsWhenAsked(_ToyVariant):
         start = os.environ.get("MAPFUSE_TEST_HANG_FROM_SEED")
         if start is not None and log.seed >= int(start):
             time.sleep(600.0)
+
+
+class DividesByZero(_ToyVariant):
+    """The toy dead-reckoning estimator with a bug: it divides by zero on every log (the
+    command line's internal-error test)."""
+
+    name = "divides_by_zero"
+
+    def before(self, log: MeasurementLog) -> None:
+        raise ZeroDivisionError("deliberate division by zero")

@@ -275,7 +275,7 @@ def test_mapfuse_run_ekf_works_without_gtsam(tmp_path: Path) -> None:
     }
     out = tmp_path / "out"
     code = "import sys; from mapfuse.cli import main; sys.exit(main(sys.argv[1:]))"
-    args = ["run", "loop600", "--backend", "ekf", "--steps", "120", "--out", str(out), "--quiet"]
+    args = ["run", "loop600", "--estimator", "ekf", "--steps", "120", "--out", str(out), "--quiet"]
     proc = subprocess.run(
         [sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, cwd=tmp_path
     )

@@ -408,7 +408,7 @@ def test_a_log_without_known_map_gets_one_unfused_baseline_entry(tmp_path: Path)
     no_map = dataclasses.replace(log, known_map=empty)
     path = save_log(no_map, tmp_path / "log.npz")
     out = tmp_path / "base.json"
-    assert main(["baseline", "record", str(path), "--backend", "ekf", "--out", str(out)]) == 0
+    assert main(["baseline", "record", str(path), "--estimator", "ekf", "--out", str(out)]) == 0
     entries = load_baseline(out)
     assert [e.metrics.fusion for e in entries] == [False]
     # Unambiguous: a run asked to fuse is reported without fusion and matches the entry.

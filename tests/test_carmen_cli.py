@@ -84,7 +84,7 @@ def test_run_measures_errors_against_the_reference_and_fuses_its_floor_plan(
 ) -> None:
     out = tmp_path / "run"
     res = _main_json(
-        ["run", f"carmen:{room_log}", "--backend", "ekf", "--out", str(out), "--quiet"], capsys
+        ["run", f"carmen:{room_log}", "--estimator", "ekf", "--out", str(out), "--quiet"], capsys
     )
     m = json.loads((out / "metrics.json").read_text())
     assert res["metrics"] == m
@@ -150,16 +150,17 @@ def _out(tmp_path: Path) -> list[str]:
 
 
 @pytest.mark.parametrize(
-    ("args", "message"),
+    ("args", "code", "message"),
     [
-        (["carmen:"], "give the log file after 'carmen:'"),
-        (["carmen:/no/such.log.gz"], "CARMEN log /no/such.log.gz does not exist"),
-        ([f"carmen:{SNIPPET.parent}"], "is not a file"),
-        (["loop600", "--known-map", "none"], "--known-map applies to CARMEN logs"),
+        (["carmen:"], 2, "give the log file after 'carmen:'"),
+        (["carmen:/no/such.log.gz"], 3, "CARMEN log /no/such.log.gz does not exist"),
+        ([f"carmen:{SNIPPET.parent}"], 3, "is not a file"),
+        (["loop600", "--known-map", "none"], 2, "--known-map applies to CARMEN logs"),
     ],
 )
 def test_bad_carmen_inputs_fail_before_any_work(
     args: list[str],
+    code: int,
     message: str,
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
@@ -168,8 +169,8 @@ def test_bad_carmen_inputs_fail_before_any_work(
     def fail(*a: object, **kw: object) -> None:
         raise AssertionError("work started before the options were checked")
 
-    monkeypatch.setattr(mapfuse.runner, "prepare_log", fail)
-    assert main(["run", *args, *_out(tmp_path)]) == 2
+    monkeypatch.setattr(mapfuse.runner, "load", fail)
+    assert main(["run", *args, *_out(tmp_path)]) == code
     err = capsys.readouterr().err
     assert message in err
     assert len(err.strip().splitlines()) == 1
@@ -179,10 +180,8 @@ def test_compare_report_states_the_simulated_odometry_and_the_plan(
     room_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "cmp"
-    _main_json(
-        ["compare", f"carmen:{room_log}", "--backends", "ekf,isam2", "--quiet", "--out", str(out)],
-        capsys,
-    )
+    argv = ["compare", f"carmen:{room_log}", "--estimators", "ekf,isam2", "--quiet"]
+    _main_json([*argv, "--out", str(out)], capsys)
     report = (out / "report.md").read_text()
     assert "odometry: simulated from reference" in report
     assert "known map: floor plan from the reference trajectory" in report
@@ -244,7 +243,7 @@ def test_real_csail_log_runs_end_to_end(
         [
             "run",
             f"carmen:{path}",
-            "--backend",
+            "--estimator",
             "ekf",
             "--known-map",
             "none",
@@ -297,7 +296,7 @@ def test_changes_cli_reads_a_carmen_log_and_names_a_refused_match(
 ) -> None:
     # The indoor profile's 12 pairings are more than the room's 6 walls: the command
     # reads the log (not as a file name of a scenario) and says why it cannot go on.
-    assert main(["changes", f"carmen:{room_log}", "--out", str(tmp_path / "c"), "--quiet"]) == 2
+    assert main(["changes", f"carmen:{room_log}", "--out", str(tmp_path / "c"), "--quiet"]) == 3
     err = capsys.readouterr().err
     assert "change detection needs a fused run whose map match" in err
     assert "not found" not in err

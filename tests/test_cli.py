@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 import mapfuse.runner
+import mapfuse_core.sim.simulate
 from mapfuse.cli import EXIT_INTERRUPTED, _parser, main
 from mapfuse_core.measlog import save_log
 from tests.synthetic import synthetic_log
@@ -37,7 +38,10 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     def fail(*args: object, **kwargs: object) -> None:
         raise AssertionError("work started before the options were checked")
 
-    monkeypatch.setattr(mapfuse.runner, "prepare_log", fail)
+    monkeypatch.setattr(mapfuse.runner, "load", fail)
+    monkeypatch.setattr(mapfuse.runner, "simulate", fail)
+    monkeypatch.setattr(mapfuse_core.sim.simulate, "simulate", fail)
+    monkeypatch.delenv("MAPFUSE_DATA", raising=False)
 
 
 def _env() -> dict[str, str]:
@@ -85,47 +89,50 @@ def test_every_option_has_help_and_shows_its_default() -> None:
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as exc:
-        main(["--version"])
-    assert exc.value.code == 0
+    assert main(["--version"]) == 0
     out = capsys.readouterr().out.strip()
     assert out.startswith("mapfuse ")
     assert len(out.split()) >= 2
 
 
 @pytest.mark.parametrize(
-    ("argv", "message"),
+    ("argv", "code", "message"),
     [
-        (["run", "{npz}", "--backend", "batch", "--robust", "tukey"], "--robust: unknown robust"),
-        (["run", "{npz}", "--backend", "batch", "--robust", "huber:-1"], "must be > 0"),
-        (["run", "{npz}", "--robust", "huber"], GRAPH_ONLY),
-        (["run", "{npz}", "--association", "truth"], GRAPH_ONLY),
-        (["run", "{npz}", "--backend", "ekf", "--robust", "huber"], GRAPH_ONLY),
-        (["run", "{npz}", "--backend", "ekf", "--association", "own"], GRAPH_ONLY),
-        (["run", "{npz}", "--seed", "3"], "--seed does not apply to a saved log"),
-        (["run", "loop600", "--data", "{tmp}"], "--data applies to carpark and victoria-park"),
-        (["run", "carpark"], "needs a data directory"),
-        (["run", "carpark", "--data", "{tmp}/none"], "is not a directory"),
-        (["run", "victoria-park", "--data", "{tmp}", "--seed", "1"], "--seed does not apply"),
-        (["run", "{npz}", "--steps", "0"], "--steps must be >= 1"),
-        (["run", "{npz}", "--export-graph"], "--export-graph: the ekf estimator holds no factor"),
-        (["run", "{npz}", "--backend", "nope"], "unknown estimator 'nope'"),
-        (["run", "{tmp}/missing.npz"], "does not exist"),
-        (["run", "no-such-scenario"], "no-such-scenario"),
-        (["compare", "{npz}", "--backends", "ekf", "--robust", "huber"], GRAPH_ONLY),
-        (["compare", "{npz}", "--backends", "batch", "--robust", "x"], "unknown robust kernel"),
-        (["compare", "{npz}", "--backends", "ekf", "--association", "own"], GRAPH_ONLY),
-        (["compare", "{npz}", "--backends", "ekf,nope"], "unknown estimator 'nope'"),
-        (["compare", "{npz}", "--backends", "ekf,ekf"], "distinct names"),
-        (["compare", "{npz}", "--seed", "1"], "--seed does not apply"),
-        (["compare", "loop600", "--beside", "carpark"], "--beside carpark: only simulated"),
-        (["compare", "loop600", "--beside", "{npz}"], "only simulated scenarios"),
-        (["compare", "loop600", "--beside", "no-such-scenario"], "no-such-scenario"),
-        (["simulate", "loop600", "--plot-step", "-1"], "--plot-step must be >= 0"),
+        (["run", "{npz}", "--estimator", "batch", "--robust", "tukey"], 2, "--robust: unknown"),
+        (["run", "{npz}", "--estimator", "batch", "--robust", "huber:-1"], 2, "must be > 0"),
+        (["run", "{npz}", "--robust", "huber"], 2, GRAPH_ONLY),
+        (["run", "{npz}", "--association", "truth"], 2, GRAPH_ONLY),
+        (["run", "{npz}", "--estimator", "ekf", "--robust", "huber"], 2, GRAPH_ONLY),
+        (["run", "{npz}", "--estimator", "ekf", "--association", "own"], 2, GRAPH_ONLY),
+        (["run", "{npz}", "--seed", "3"], 2, "--seed does not apply to a saved log"),
+        (["run", "loop600", "--data", "{tmp}"], 2, "--data applies to carpark and victoria-park"),
+        (["run", "carpark"], 2, "needs a data directory (--data DIR or $MAPFUSE_DATA)"),
+        (["run", "carpark", "--data", "{tmp}/none"], 2, "is not a directory"),
+        (["run", "victoria-park", "--data", "{tmp}", "--seed", "1"], 2, "--seed does not apply"),
+        (["run", "{npz}", "--steps", "61"], 2, "--steps 61 is more than"),
+        (["run", "loop600", "--steps", "99999"], 2, "more than scenario 'loop600' drives (2400"),
+        (["run", "{npz}", "--export-graph"], 2, "--export-graph: the ekf estimator holds no"),
+        (["run", "{npz}", "--estimator", "nope"], 2, "unknown estimator 'nope'"),
+        (["run", "{npz}", "--plugin", "no_such_module:X"], 2, "--plugin: plugin"),
+        (["run", "{npz}", "--plugin", "math:pi"], 2, "is not a mapfuse estimator"),
+        (["run", "{tmp}/missing.npz"], 3, "does not exist"),
+        (["run", "no-such-scenario"], 3, "no-such-scenario"),
+        (["run", "carmen:{tmp}/missing.log"], 3, "CARMEN log"),
+        (["compare", "{npz}", "--estimators", "ekf", "--robust", "huber"], 2, GRAPH_ONLY),
+        (["compare", "{npz}", "--estimators", "batch", "--robust", "x"], 2, "unknown robust"),
+        (["compare", "{npz}", "--estimators", "ekf", "--association", "own"], 2, GRAPH_ONLY),
+        (["compare", "{npz}", "--estimators", "ekf,nope"], 2, "unknown estimator 'nope'"),
+        (["compare", "{npz}", "--seed", "1"], 2, "--seed does not apply"),
+        (["compare", "loop600", "--beside", "carpark"], 2, "--beside carpark: only simulated"),
+        (["compare", "loop600", "--beside", "{npz}"], 2, "only simulated scenarios"),
+        (["compare", "loop600", "--beside", "no-such-scenario"], 3, "no-such-scenario"),
+        (["simulate", "loop600", "--steps", "5000"], 2, "more than scenario 'loop600' drives"),
+        (["simulate", "loop600", "--steps", "50", "--plot-step", "50"], 2, "beyond the log's"),
     ],
 )
 def test_bad_options_fail_before_any_work(
     argv: list[str],
+    code: int,
     message: str,
     log_npz: Path,
     tmp_path: Path,
@@ -135,14 +142,68 @@ def test_bad_options_fail_before_any_work(
     args = [a.format(npz=log_npz, tmp=tmp_path) for a in argv]
     if "--out" not in args:
         args += ["--out", str(tmp_path / "out")]
-    assert main([*args, "--quiet"]) == 2
+    assert main([*args, "--quiet"]) == code
     err = capsys.readouterr()
     assert err.out == ""
     lines = err.err.strip().splitlines()
-    assert len(lines) == 1
+    assert len(lines) == 1, lines
     assert lines[0].startswith("mapfuse: error: ")
     assert message in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["run", "{npz}", "--steps", "0"], "argument --steps: must be >= 1, got 0"),
+        (["run", "{npz}", "--steps", "many"], "argument --steps: expected an integer"),
+        (["run", "loop600", "--seed", "-1"], "argument --seed: must be in 0 … 2**63 - 1, got -1"),
+        (["run", "{npz}", "--fusion", "both"], "argument --fusion: invalid choice: 'both'"),
+        (["compare", "{npz}", "--estimators", "ekf,ekf"], "needs distinct comma-separated"),
+        (["simulate", "loop600", "--plot-step", "-1"], "argument --plot-step: must be >= 0"),
+        (["montecarlo", "loop600", "--runs", "0"], "argument --runs: must be >= 1"),
+        (["montecarlo", "loop600", "--runs", "2", "--workers", "0"], "--workers: must be >= 1"),
+        (["montecarlo", "loop600", "--runs", "2", "--serial", "--workers", "2"], "not allowed"),
+        (["spectrum", "loop600", "--lags", "0,-1"], "a lag must be >= 0 seconds"),
+        (["spectrum", "loop600", "--steps", "1"], "argument --steps: must be >= 2"),
+        (["baseline", "check", "--baseline", "b.json", "--tolerance", "0"], "must be a finite"),
+    ],
+)
+def test_impossible_values_are_refused_by_the_parser(
+    argv: list[str], message: str, log_npz: Path, tmp_path: Path, no_work: None,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    args = [a.format(npz=log_npz, tmp=tmp_path) for a in argv]
+    if "--out" not in args and argv[0] != "baseline":
+        args += ["--out", str(tmp_path / "out")]
+    assert main(args) == 2
+    err = capsys.readouterr()
+    assert err.out == ""
+    assert message in err.err.strip().splitlines()[-1]
+    assert "Traceback" not in err.err
+
+
+def test_deprecated_spellings_still_work_with_one_warning_each(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    p = _parser()
+    args = p.parse_args(["run", "x.npz", "--backend", "batch", "--no-fusion", "--out", "o"])
+    assert (args.estimator, args.fusion) == ("batch", "off")
+    args = p.parse_args(["compare", "x.npz", "--backends", "ekf,isam2", "--fusion", "--out", "o"])
+    assert (args.estimators, args.fusion) == (("ekf", "isam2"), "on")
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "mapfuse: warning: --backend is deprecated; use --estimator",
+        "mapfuse: warning: --no-fusion is deprecated; use --fusion off",
+        "mapfuse: warning: --backends is deprecated; use --estimators",
+        "mapfuse: warning: --fusion without a value is deprecated; use --fusion on",
+    ]
+    # The new spellings warn of nothing.
+    args = p.parse_args(
+        ["compare", "x.npz", "--estimators", "ekf", "--fusion", "off", "--out", "o"]
+    )
+    assert (args.estimators, args.fusion) == (("ekf",), "off")
+    assert capsys.readouterr().err == ""
 
 
 def test_unwritable_out_fails_before_any_work(
@@ -164,7 +225,8 @@ def test_force_refuses_then_clears_another_runs_files(
     log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "out"
-    base = ["run", str(log_npz), "--backend", "ekf", "--no-fusion", "--out", str(out), "--quiet"]
+    base = ["run", str(log_npz), "--estimator", "ekf", "--fusion", "off", "--out", str(out)]
+    base.append("--quiet")
     assert main(base) == 0
     capsys.readouterr()
     stale = out / "associations.npz"
@@ -192,7 +254,7 @@ def test_compare_options_choose_backends_fusion_association_robust(
     log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "cmp"
-    argv = ["compare", str(log_npz), "--backends", "ekf,batch", "--no-fusion"]
+    argv = ["compare", str(log_npz), "--estimators", "ekf,batch", "--fusion", "off"]
     argv += ["--association", "truth", "--robust", "huber", "--out", str(out), "--quiet"]
     assert main(argv) == 0
     printed = json.loads(capsys.readouterr().out)
@@ -206,11 +268,14 @@ def test_compare_options_choose_backends_fusion_association_robust(
 def test_compare_stdout_is_json_alone(log_npz: Path, tmp_path: Path) -> None:
     out = tmp_path / "cmp"
     # With progress bars on: they go to stderr.
-    proc = _mapfuse("compare", str(log_npz), "--backends", "ekf,isam2", "--out", str(out))
+    proc = _mapfuse("compare", str(log_npz), "--estimators", "ekf,isam2", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     parsed = json.loads(proc.stdout)
     assert parsed["outputs"]["report"] == str(out / "report.md")
-    assert f"Report: {out / 'report.md'}" in proc.stderr
+    # The one-line summary ends stderr, after the progress bars.
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("compared 4 runs (ekf, isam2; fusion both) on synthetic")
+    assert last.endswith(f"→ {out / 'report.md'}")
     # The check a user runs: mapfuse compare ... | python -c 'json.load(sys.stdin)'.
     check = subprocess.run(
         [sys.executable, "-c", "import json,sys; json.load(sys.stdin)"],
@@ -224,11 +289,11 @@ def test_compare_stdout_is_json_alone(log_npz: Path, tmp_path: Path) -> None:
 def test_progress_bars_show_rate_and_eta_and_quiet_silences_them(
     log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    argv = ["run", str(log_npz), "--backend", "ekf", "--out", str(tmp_path / "a")]
+    argv = ["run", str(log_npz), "--estimator", "ekf", "--out", str(tmp_path / "a")]
     assert main(argv) == 0
     cap = capsys.readouterr()
     json.loads(cap.out)
-    assert "ekf: 100%" in cap.err
+    assert "ekf with fusion: 100%" in cap.err
     assert "60/60" in cap.err
     assert "step/s" in cap.err  # the rate
     assert "<" in cap.err  # elapsed<remaining, tqdm's ETA
@@ -245,7 +310,7 @@ def test_ctrl_c_is_one_line_and_exit_130(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mapfuse.runner, "prepare_log", interrupted)
+    monkeypatch.setattr(mapfuse.runner, "load", interrupted)
     assert main(["run", str(log_npz), "--out", str(tmp_path / "o")]) == EXIT_INTERRUPTED
     assert capsys.readouterr().err == "mapfuse: interrupted\n"
 
@@ -283,7 +348,7 @@ def test_sigint_during_a_simulation(tmp_path: Path) -> None:
 def test_run_export_graph_writes_g2o_and_names_what_it_leaves_out(
     log_npz: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    argv = ["run", str(log_npz), "--backend", "batch", "--export-graph", "--quiet"]
+    argv = ["run", str(log_npz), "--estimator", "batch", "--export-graph", "--quiet"]
     assert main([*argv, "--out", str(tmp_path)]) == 0
     cap = capsys.readouterr()
     outputs = json.loads(cap.out)["outputs"]

@@ -171,7 +171,7 @@ def test_nees_interval_widens_with_correlation_and_covers_consistent_runs() -> N
         e = np.column_stack([_ar1(0.99, 2000, seed=1000 * seed + i) for i in range(3)])
         e *= math.sqrt(1.0 - 0.99**2)  # unit variance per component
         nees = np.sum(e * e, axis=1)
-        lo, hi = nees_mean_interval(nees).interval_95
+        lo, hi = nees_mean_interval(nees).acceptance_95
         misses += not lo <= nees.mean() <= hi
         naive = (scipy_chi2.ppf(0.025, 3 * 2000) / 2000, scipy_chi2.ppf(0.975, 3 * 2000) / 2000)
         misses_naive += not naive[0] <= nees.mean() <= naive[1]

@@ -68,7 +68,7 @@ def test_cli_simulate_refuses_a_seed_of_2_64_in_one_line(
     err = capsys.readouterr().err
     assert code == 2
     assert err.strip().count("\n") == 0
-    assert "--seed must be in 0 … 2**63 - 1, got 18446744073709551616" in err
+    assert "argument --seed: must be in 0 … 2**63 - 1, got 18446744073709551616" in err
     assert not (tmp_path / "o").exists()
 
 

@@ -155,13 +155,14 @@ def _mapfuse(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str
 def test_entry_point_plugin_runs_from_the_command_line(log: MeasurementLog, tmp_path: Path) -> None:
     env = _plugin_env(tmp_path)
     path = str(save_log(log, tmp_path / "log.npz"))
-    done = _mapfuse(env, "run", path, "--backend", "toy", "--out", str(tmp_path / "run"), "--quiet")
+    run_out = str(tmp_path / "run")
+    done = _mapfuse(env, "run", path, "--estimator", "toy", "--out", run_out, "--quiet")
     assert done.returncode == 0, done.stderr
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert (metrics["backend"], metrics["steps"]) == ("toy", log.n_steps)
     assert (tmp_path / "run" / "errors.png").read_bytes()[:8] == PNG
     out = tmp_path / "cmp"
-    cmp_ = _mapfuse(env, "compare", path, "--backends", "ekf,toy", "--out", str(out), "--quiet")
+    cmp_ = _mapfuse(env, "compare", path, "--estimators", "ekf,toy", "--out", str(out), "--quiet")
     assert cmp_.returncode == 0, cmp_.stderr
     rows = json.loads((out / "comparison.json").read_text())
     assert [(m["backend"], m["fusion"]) for m in rows] == [
@@ -170,6 +171,6 @@ def test_entry_point_plugin_runs_from_the_command_line(log: MeasurementLog, tmp_
         ("toy", False),
     ]
     assert "| toy without fusion |" in (out / "report.md").read_text()
-    bad = _mapfuse(env, "compare", path, "--backends", "ekf,nope", "--out", str(out), "--quiet")
+    bad = _mapfuse(env, "compare", path, "--estimators", "ekf,nope", "--out", str(out), "--quiet")
     assert bad.returncode == 2
     assert "unknown estimator 'nope'" in bad.stderr

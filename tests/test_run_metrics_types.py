@@ -8,10 +8,11 @@ import math
 import pytest
 
 import mapfuse as mf
-from mapfuse_core.estimate import RunMetrics
+from mapfuse_core.estimate import METRICS_SCHEMA_VERSION, RunMetrics
 
 #: The keys of ``metrics.json`` in the README's table, in order, for a graph run.
 GRAPH_KEYS = [
+    "schema_version",
     "scenario",
     "seed",
     "backend",
@@ -80,3 +81,36 @@ def test_from_json_names_what_is_missing_or_mistyped(isam2_run: mf.Run) -> None:
 def test_a_field_with_a_default_may_be_absent(isam2_run: mf.Run) -> None:
     obj = {k: v for k, v in isam2_run.metrics.to_json().items() if k != "warnings"}
     assert RunMetrics.from_json(obj).warnings == ()
+
+
+def test_schema_version_is_written_and_a_newer_one_refused(isam2_run: mf.Run) -> None:
+    obj = isam2_run.metrics.to_json()
+    assert obj["schema_version"] == METRICS_SCHEMA_VERSION == 2
+    assert "schema_version" not in isam2_run.metrics.scalars()
+    with pytest.raises(ValueError, match="schema version 3 is newer than this mapfuse reads"):
+        RunMetrics.from_json({**obj, "schema_version": 3})
+    with pytest.raises(ValueError, match="schema_version must be an integer"):
+        RunMetrics.from_json({**obj, "schema_version": "2"})
+
+
+def test_the_nees_acceptance_region_is_named_so_and_old_files_still_read(
+    isam2_run: mf.Run,
+) -> None:
+    obj = isam2_run.metrics.to_json()
+    region = obj["nees"]["mean_interval"]
+    assert "interval_95" not in region
+    lo, hi = region["acceptance_95"]
+    # An acceptance region around the 3 degrees of freedom, not an interval around the
+    # run's own mean.
+    assert lo < 3.0 < hi
+    # A schema-1 file (no schema_version, the old key) reads to the same metrics.
+    old = json.loads(json.dumps(obj))
+    del old["schema_version"]
+    for block in ("nees", "nees_filtered"):
+        mi = old[block]["mean_interval"]
+        mi["interval_95"] = mi.pop("acceptance_95")
+    back = RunMetrics.from_json(old)
+    assert back == isam2_run.metrics
+    assert back.nees is not None
+    assert back.nees.mean_interval is not None
+    assert back.nees.mean_interval.interval_95 == back.nees.mean_interval.acceptance_95

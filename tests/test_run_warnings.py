@@ -196,7 +196,7 @@ def test_cli_prints_each_warning_once_on_stderr_and_keeps_stdout_json(
     assert lines == [f"mapfuse: warning: {w}" for w in warnings]
     # compare labels each run's warnings.
     cmp_out = tmp_path / "cmp"
-    argv = ["compare", str(path), "--backends", "ekf", "--fusion", "--out", str(cmp_out)]
+    argv = ["compare", str(path), "--estimators", "ekf", "--fusion", "on", "--out", str(cmp_out)]
     assert main([*argv, "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "mapfuse: warning: ekf with fusion: fusion requested, no match found" in err

@@ -54,7 +54,8 @@ def test_cli_reports_a_bad_scenario_clearly(
 ) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text("[scenario]\nname = 3\n")
-    assert main(["simulate", str(bad), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    # An input error (3), not a usage error: the command line is right, the file is not.
+    assert main(["simulate", str(bad), "--out", str(tmp_path / "o"), "--quiet"]) == 3
     err = capsys.readouterr().err
     assert "bad.toml" in err
 

@@ -1,4 +1,5 @@
-"""What a campaign runs: :class:`CampaignSpec`, and the ``--seeds`` syntax.
+"""What a campaign runs: :class:`CampaignSpec`, and the syntax of ``--seeds``,
+``--fusion`` and ``--world-per-run``.
 
 A campaign directory holds the spec it was started with (``campaign.json``); resuming
 with a different spec is refused, except for the seed list, which may grow.
@@ -10,7 +11,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["FUSION_CHOICES", "CampaignSpec", "parse_fusion", "parse_seeds"]
+__all__ = ["FUSION_CHOICES", "CampaignSpec", "parse_fusion", "parse_seeds", "parse_world_args"]
 
 #: ``--fusion`` values and the fusion settings they run.
 FUSION_CHOICES: Mapping[str, tuple[bool, ...]] = {
@@ -40,6 +41,42 @@ def parse_fusion(text: str) -> tuple[bool, ...]:
     if text not in FUSION_CHOICES:
         raise ValueError(f"--fusion must be one of {', '.join(FUSION_CHOICES)}, got {text!r}")
     return FUSION_CHOICES[text]
+
+
+_KIND_NAMES = {int: "an integer", float: "a number", str: "text"}
+
+
+def parse_world_args(text: str) -> dict[str, Any]:
+    """``--world-per-run`` arguments, ``"walls=6,trees=40,shape=figure8"``, as the
+    generator's keywords (numbers converted; the seed comes from each run)."""
+    from mapfuse_core.sim.worldgen import WorldParams
+
+    out: dict[str, Any] = {}
+    if not text.strip():
+        return out
+    fields = WorldParams.__dataclass_fields__
+    for part in text.split(","):
+        key, eq, value = (s.strip() for s in part.partition("="))
+        key = key.replace("-", "_")
+        if not eq or not key:
+            raise ValueError(f"--world-per-run: expected key=value items, got {part!r}")
+        if key == "seed":
+            raise ValueError("--world-per-run: the seed of each world is the run's seed")
+        if key not in fields:
+            raise ValueError(
+                f"--world-per-run: unknown generator argument {key!r} "
+                f"(known: {', '.join(k for k in fields if k != 'seed')})"
+            )
+        kind = type(getattr(WorldParams(seed=0), key))
+        try:
+            out[key] = kind(value)
+        except ValueError:
+            raise ValueError(
+                f"--world-per-run: {key} must be "
+                f"{_KIND_NAMES.get(kind, kind.__name__)}, got {value!r}"
+            ) from None
+    WorldParams(seed=0, **out)  # validates the values now, not on the workers
+    return out
 
 
 @dataclass(frozen=True)

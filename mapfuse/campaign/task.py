@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 import time
 import traceback
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,22 +66,11 @@ class RunOutcome:
     """Wall time of the whole run (simulation included), s."""
 
 
-@contextmanager
-def plugins_registered(plugins: tuple[str, ...]) -> Iterator[None]:
-    """Register the ``module:attribute`` estimators for the duration of one run; those
-    not registered before are removed again (a serial campaign leaves the registry of
-    its process as it found it)."""
-    before = set(registry.available())
-    added: list[str] = []
-    try:
-        for spec in plugins:
-            est = registry.register(registry.load_plugin(spec), replace=True)
-            if est.name not in before:
-                added.append(est.name)
-        yield
-    finally:
-        for name in added:
-            registry.unregister(name)
+def plugins_registered(plugins: tuple[str, ...]) -> AbstractContextManager[object]:
+    """The spec's ``module:attribute`` estimators registered for the duration of one run
+    (:func:`mapfuse.registry.registered_plugins`: a serial campaign leaves the registry
+    of its process as it found it)."""
+    return registry.registered_plugins(plugins)
 
 
 def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
@@ -96,16 +85,19 @@ def run_scenario(spec: CampaignSpec, seed: int) -> Scenario:
 
 def make_log(spec: CampaignSpec, seed: int) -> MeasurementLog:
     """The log of run ``seed``, made in this process, of its first ``spec.steps``
-    steps: a CARMEN log (``carmen:PATH``) loaded with ``seed`` drawing its simulated
-    odometry, else a simulation (:func:`mapfuse.runner.simulate`)."""
+    steps (more than it has: :class:`ValueError`): a CARMEN log (``carmen:PATH``)
+    loaded with ``seed`` drawing its simulated odometry, else a simulation
+    (:func:`mapfuse.runner.simulate`)."""
     from mapfuse.carmen_input import is_carmen, load_carmen_input
 
     if is_carmen(spec.scenario):
         log = load_carmen_input(spec.scenario, seed=seed)
+        if spec.steps is not None and spec.steps > log.n_steps:
+            raise ValueError(f"steps={spec.steps} is more than the log holds ({log.n_steps})")
         return log if spec.steps is None else log.head(spec.steps)
-    scenario = run_scenario(spec, seed)
-    steps = None if spec.steps is None else min(spec.steps, scenario.steps)
-    return simulate(scenario, seed, steps=steps, workers=1)
+    # More steps than the scenario drives is an error (a generated world's length
+    # depends on its seed: that run fails with this message).
+    return simulate(run_scenario(spec, seed), seed, steps=spec.steps, workers=1)
 
 
 def _error_text(exc: BaseException) -> str:

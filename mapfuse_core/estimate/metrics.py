@@ -31,8 +31,10 @@ __all__ = [
     "RuntimeMetrics",
 ]
 
-#: Version of the ``metrics.json`` schema; a new key or a changed meaning raises it.
-METRICS_SCHEMA_VERSION = 1
+#: Version of the ``metrics.json`` schema (its ``schema_version`` key; a file without
+#: the key is version 1); a new key or a changed meaning raises it.  Version 2 names
+#: ``nees.mean_interval.acceptance_95`` (version 1: ``interval_95``, still read).
+METRICS_SCHEMA_VERSION = 2
 
 #: Field metadata of an optional block, left out of the JSON when ``None``.
 _OMIT: Mapping[str, Any] = {"omit_none": True}
@@ -69,8 +71,10 @@ def _from_json(tp: Any, value: Any, where: str) -> Any:
         kwargs: dict[str, Any] = {}
         for f in fields(tp):
             key = f.metadata.get("json") or f.name
-            if key in value:
-                kwargs[f.name] = _from_json(hints[f.name], value[key], f"{where}.{key}")
+            # A key of an older schema version names the same field.
+            found = [k for k in (key, *f.metadata.get("json_old", ())) if k in value]
+            if found:
+                kwargs[f.name] = _from_json(hints[f.name], value[found[0]], f"{where}.{key}")
             elif f.default is MISSING and f.default_factory is MISSING:
                 raise ValueError(f"metrics: {where} has no {key!r}")
         return tp(**kwargs)
@@ -151,9 +155,16 @@ class NeesMeanInterval:
     """Integrated autocorrelation time τ of the NEES series (steps)."""
     effective_samples: float
     """``N / τ``: independent samples the mean is worth."""
-    interval_95: tuple[float, ...]
+    acceptance_95: tuple[float, ...] = field(metadata={"json_old": ("interval_95",)})
     """``(low, high)``: the two-sided 95 % acceptance region of a consistent
-    estimator's mean NEES (not a confidence interval of this run's mean)."""
+    estimator's mean NEES, around the 3 degrees of freedom: a run whose mean NEES lies
+    outside it is inconsistent at the 5 % level.  Not a confidence interval of this
+    run's mean (JSON ``acceptance_95``; schema version 1 called it ``interval_95``)."""
+
+    @property
+    def interval_95(self) -> tuple[float, ...]:
+        """:attr:`acceptance_95` under its schema-1 name (kept for old callers)."""
+        return self.acceptance_95
 
 
 @dataclass(frozen=True)
@@ -286,14 +297,25 @@ class RunMetrics:
     """What the numbers do not say (``docs/warnings.md``)."""
 
     def to_json(self) -> dict[str, Any]:
-        """The ``metrics.json`` object."""
-        out: dict[str, Any] = _to_json(self)
+        """The ``metrics.json`` object, its ``schema_version`` first."""
+        out: dict[str, Any] = {"schema_version": METRICS_SCHEMA_VERSION, **_to_json(self)}
         return out
 
     @classmethod
     def from_json(cls, obj: Mapping[str, Any]) -> RunMetrics:
-        """A ``metrics.json`` object read back; :class:`ValueError` naming a missing or
-        mistyped key."""
+        """A ``metrics.json`` object read back, of this schema version or an older one
+        (no ``schema_version`` key: version 1); :class:`ValueError` naming a missing or
+        mistyped key, or a newer schema."""
+        if not isinstance(obj, Mapping):
+            raise ValueError(f"metrics must be an object, got {type(obj).__name__}")
+        version = obj.get("schema_version", 1)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise ValueError(f"metrics: schema_version must be an integer >= 1, got {version!r}")
+        if version > METRICS_SCHEMA_VERSION:
+            raise ValueError(
+                f"metrics: schema version {version} is newer than this mapfuse reads "
+                f"({METRICS_SCHEMA_VERSION}); upgrade mapfuse"
+            )
         out: RunMetrics = _from_json(cls, obj, "metrics")
         return out
 
@@ -313,5 +335,5 @@ class RunMetrics:
             ):
                 out[prefix] = float(value)
 
-        walk("", self.to_json())
+        walk("", _to_json(self))
         return out

@@ -100,7 +100,7 @@ def nees_mean_interval(nees: FloatArray, dof: int = 3, p: float = 0.95) -> NeesM
     lo = float(chi2.ppf(0.5 * (1.0 - p), dof * n_eff) / n_eff)
     hi = float(chi2.ppf(0.5 * (1.0 + p), dof * n_eff) / n_eff)
     return NeesMeanInterval(
-        autocorrelation_steps=tau, effective_samples=n_eff, interval_95=(lo, hi)
+        autocorrelation_steps=tau, effective_samples=n_eff, acceptance_95=(lo, hi)
     )
 
 
