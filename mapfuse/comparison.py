@@ -73,12 +73,14 @@ __all__ = [
 #: Figure file names written by :func:`write_comparison`, and what each shows.
 FIGURE_FILES: Mapping[str, str] = {
     "fig6_errors_bounds.png": "EKF with fusion: x, y, θ errors with 2σ bounds (paper Fig. 6)",
-    "fig7_error_fusion.png": "position error with and without fusion, EKF and graph (Fig. 7)",
+    "fig7_error_fusion.png": "position error with fusion (top) and without (bottom), one "
+    "colour per estimator, on one scale (Fig. 7)",
     "fig10_maps.png": "estimated maps and trajectories over the known map, in Wknown (Fig. 10)",
-    "nees.png": "vehicle NEES against time with the χ²(3, 0.95) bound",
-    "timing.png": "per-step run time of each backend (log scale)",
-    "gps_errors.png": "position error against GPS over time (real data)",
-    "gps_trajectories.png": "estimated trajectories over the GPS track (real data)",
+    "nees.png": "vehicle NEES (running mean, from step 1) against 3 and χ²(3, 0.95)",
+    "timing.png": "per-step run time of each estimator (log scale)",
+    "gps_errors.png": "position error against GPS over time, with and without fusion (real data)",
+    "gps_trajectories.png": "estimated trajectories over the GPS track and the known map "
+    "(real data)",
 }
 
 #: Sub-folder of a comparison holding one folder of files per run.
@@ -275,9 +277,12 @@ def _map_and_runtime(m: RunMetrics) -> list[str]:
 def _figure_list(figures: Sequence[str]) -> list[str]:
     if not figures:
         return []
-    return ["", "Figures:", ""] + [
+    lines = ["", "Figures:", ""] + [
         f"- [`{n}`]({n}): {FIGURE_FILES.get(Path(n).name, '')}" for n in figures
     ]
+    # Fig. 7 shown in place: what fusion does, at a glance.
+    fig7 = [n for n in figures if Path(n).name == "fig7_error_fusion.png"]
+    return lines + [f"\n![{FIGURE_FILES['fig7_error_fusion.png']}]({n})" for n in fig7]
 
 
 def _row(cells: Sequence[str]) -> str:
@@ -534,8 +539,9 @@ def report_markdown(
     beside: Sequence[Comparison] = (),
     beside_figures: Sequence[Sequence[str]] = (),
 ) -> str:
-    """The ``report.md`` text: run description, one table, notes, the comparisons
-    ``beside`` it with their figures (:func:`beside_lines`), figure list."""
+    """The ``report.md`` text: run description, one table, notes, known-map changes,
+    warnings, figure list, then the comparisons ``beside`` it with their figures
+    (:func:`beside_lines`)."""
     log = comparison.log
     truth = comparison.has_truth
     lines = [f"# Backend comparison: {log_name(log.scenario, log.seed)}", ""]
@@ -571,10 +577,10 @@ def report_markdown(
     lines += ["", "Notes:", "", *_notes(log)]
     from mapfuse.changes import change_report_lines
 
-    lines += beside_lines(log.scenario, beside, beside_figures)
     lines += change_report_lines([r.result for r in comparison.runs], log, scenario)
     lines += _warning_lines(comparison.metrics)
     lines += _figure_list(figures)
+    lines += beside_lines(log.scenario, beside, beside_figures)
     return "\n".join(lines) + "\n"
 
 
