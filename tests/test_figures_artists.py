@@ -53,6 +53,7 @@ from mapfuse.plotting import (
     reference_line,
     running_mean,
 )
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 
@@ -559,3 +560,27 @@ def test_real_data_report_title_has_no_seed(gps: Comparison) -> None:
     assert report.splitlines()[0] == "# Backend comparison: synthetic-gps"
     assert "seed -1" not in report
     assert "*paper:" not in report
+
+
+def test_changes_figure_marks_circles_at_any_map_extent(ring: Comparison) -> None:
+    from mapfuse.changes import detect_changes
+    from mapfuse.changes_figure import changes_figure
+
+    run = ring.get("ekf", True)
+    report = detect_changes(run.result, ring.log)
+    fig = _drawn(changes_figure(report, ring.log, run.result.poses))
+    (ax,) = fig.axes
+    # Every known circle has a centre marker of fixed size on screen.
+    circles = int(np.sum(ring.log.known_map.kinds == FeatureKind.CIRCLE))
+    centres = [
+        ln
+        for ln in _data_lines(ax)
+        if ln.get_marker() == "o" and ln.get_linestyle() in ("None", "none", "")
+    ]
+    assert circles > 0
+    assert len(centres) >= circles
+    assert min(ln.get_markersize() for ln in centres) >= 4.0
+    legend = ax.get_legend()
+    assert legend is not None
+    for text, handle in zip(legend.get_texts(), legend.legend_handles, strict=True):
+        assert not isinstance(handle, Rectangle), text.get_text()
