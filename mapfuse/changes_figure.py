@@ -31,8 +31,23 @@ CLASS_COLOURS = {
 
 
 def _draw(ax: Axes, kind: int, p: FloatArray, extent: FloatArray | None, **kw: object) -> None:
+    """A feature in its class's style; a circle also gets a centre marker of fixed size
+    on screen (small beacons stay visible at any map extent), which carries the label
+    so that the legend shows the marker, not a patch's rectangle."""
     if kind == int(FeatureKind.CIRCLE):
+        label = kw.pop("label", None)
         draw_circle(ax, p, **kw)
+        ax.plot(
+            [p[0]],
+            [p[1]],
+            ls="none",
+            marker="o",
+            ms=7,
+            mfc="none",
+            mew=1.5,
+            mec=kw.get("color", "k"),
+            label=label,
+        )
         return
     e = (-5.0, 5.0) if extent is None or not np.all(np.isfinite(extent)) else tuple(extent)
     draw_line_feature(ax, p, (float(e[0]), float(e[1])), **kw)

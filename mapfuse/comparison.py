@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ from mapfuse.figures import (
     PAPER_ANCHOR_ESTIMATE,
     PAPER_ANCHOR_TRUTH,
     PAPER_FUSED_MAX_ERROR_M,
+    PAPER_SCENARIOS,
     PAPER_UNFUSED_ERROR_M,
     fig6_errors_bounds,
     fig7_error_fusion,
@@ -32,11 +34,13 @@ from mapfuse.figures import (
     gps_error_figure,
     gps_trajectory_figure,
     nees_figure,
+    run_colours,
     timing_figure,
 )
 from mapfuse.metrics import run_metrics
 from mapfuse.outputs import write_outputs
 from mapfuse.plan import RunRequest, execute, plan_runs
+from mapfuse.plotting import log_name
 from mapfuse.registry import resolve
 from mapfuse.runner import Run
 from mapfuse_core.estimate import RunMetrics
@@ -50,6 +54,7 @@ if TYPE_CHECKING:
     from mapfuse_core.sim.scenario import Scenario
 
 __all__ = [
+    "BESIDE_DIR",
     "DEFAULT_ESTIMATORS",
     "FIGURE_FILES",
     "PAPER_REGIME",
@@ -58,6 +63,7 @@ __all__ = [
     "beside_lines",
     "compare",
     "comparison_figures",
+    "is_paper_scenario",
     "report_markdown",
     "results_table",
     "run_folder_name",
@@ -67,16 +73,21 @@ __all__ = [
 #: Figure file names written by :func:`write_comparison`, and what each shows.
 FIGURE_FILES: Mapping[str, str] = {
     "fig6_errors_bounds.png": "EKF with fusion: x, y, θ errors with 2σ bounds (paper Fig. 6)",
-    "fig7_error_fusion.png": "position error with and without fusion, EKF and graph (Fig. 7)",
+    "fig7_error_fusion.png": "position error with fusion (top) and without (bottom), one "
+    "colour per estimator, on one scale (Fig. 7)",
     "fig10_maps.png": "estimated maps and trajectories over the known map, in Wknown (Fig. 10)",
-    "nees.png": "vehicle NEES against time with the χ²(3, 0.95) bound",
-    "timing.png": "per-step run time of each backend (log scale)",
-    "gps_errors.png": "position error against GPS over time (real data)",
-    "gps_trajectories.png": "estimated trajectories over the GPS track (real data)",
+    "nees.png": "vehicle NEES (running mean, from step 1) against 3 and χ²(3, 0.95)",
+    "timing.png": "per-step run time of each estimator (log scale)",
+    "gps_errors.png": "position error against GPS over time, with and without fusion (real data)",
+    "gps_trajectories.png": "estimated trajectories over the GPS track and the known map "
+    "(real data)",
 }
 
 #: Sub-folder of a comparison holding one folder of files per run.
 RUNS_DIR = "runs"
+#: Sub-folder of a comparison holding the full output (report, figures, runs) of each
+#: comparison beside it (``--beside``), one folder per scenario.
+BESIDE_DIR = "beside"
 
 # Figures that compare with truth: not written for a log without true poses.
 _NEEDS_TRUTH = ("fig6_errors_bounds.png", "fig7_error_fusion.png", "nees.png")
@@ -194,6 +205,12 @@ def compare(
 # --------------------------------------------------------------------------- figures
 
 
+def is_paper_scenario(log: MeasurementLog) -> bool:
+    """Whether the paper's numbers (Sect. 4.2) are a reference for ``log``: a simulated
+    log (true poses) of one of :data:`mapfuse.figures.PAPER_SCENARIOS`."""
+    return log.true_poses is not None and log.scenario in PAPER_SCENARIOS
+
+
 def comparison_figures(
     comparison: Comparison, scenario: Scenario | None = None
 ) -> dict[str, Figure]:
@@ -203,23 +220,28 @@ def comparison_figures(
     with fusion.  ``scenario`` (optional) supplies the true world's wall segments.
     """
     runs = comparison.runs
+    # One colour per estimator, in the comparison's order, in every figure.
+    colours = run_colours(runs)
     out: dict[str, Figure] = {}
     if comparison.has_truth:
         first_fused = next((r for r in runs if r.fusion), None)
         if first_fused is not None:
-            out["fig6_errors_bounds.png"] = fig6_errors_bounds(first_fused)
-        out["fig7_error_fusion.png"] = fig7_error_fusion(runs)
+            out["fig6_errors_bounds.png"] = fig6_errors_bounds(first_fused, colours=colours)
+        out["fig7_error_fusion.png"] = fig7_error_fusion(
+            runs, paper_reference=is_paper_scenario(comparison.log), colours=colours
+        )
     # The first two fused runs (the unfused ones when nothing was fused): the consumed
     # estimator first, then the first that consumes it.
     fused = [r for r in runs if r.fusion]
     panels = (fused if fused else list(runs))[:2]
-    out["fig10_maps.png"] = fig10_maps(panels, None if scenario is None else scenario.world)
+    world = None if scenario is None else scenario.world
+    out["fig10_maps.png"] = fig10_maps(panels, world, colours=colours)
     if comparison.has_truth:
-        out["nees.png"] = nees_figure(runs)
+        out["nees.png"] = nees_figure(runs, colours=colours)
     elif comparison.has_gps:
-        out["gps_errors.png"] = gps_error_figure(runs)
-        out["gps_trajectories.png"] = gps_trajectory_figure(runs)
-    out["timing.png"] = timing_figure(runs)
+        out["gps_errors.png"] = gps_error_figure(runs, colours=colours)
+        out["gps_trajectories.png"] = gps_trajectory_figure(runs, colours=colours)
+    out["timing.png"] = timing_figure(runs, colours=colours)
     return out
 
 
@@ -256,7 +278,12 @@ def _map_and_runtime(m: RunMetrics) -> list[str]:
 def _figure_list(figures: Sequence[str]) -> list[str]:
     if not figures:
         return []
-    return ["", "Figures:", ""] + [f"- [`{n}`]({n}): {FIGURE_FILES.get(n, '')}" for n in figures]
+    lines = ["", "Figures:", ""] + [
+        f"- [`{n}`]({n}): {FIGURE_FILES.get(Path(n).name, '')}" for n in figures
+    ]
+    # Fig. 7 shown in place: what fusion does, at a glance.
+    fig7 = [n for n in figures if Path(n).name == "fig7_error_fusion.png"]
+    return lines + [f"\n![{FIGURE_FILES['fig7_error_fusion.png']}]({n})" for n in fig7]
 
 
 def _row(cells: Sequence[str]) -> str:
@@ -396,8 +423,10 @@ def _paper_row(fusion: bool) -> list[str]:
 
 def results_table(comparison: Comparison) -> list[str]:
     """The markdown table of a comparison with truth: one row per run (and per
-    filtered estimate), the fused runs first, each group followed by the paper's row."""
+    filtered estimate), the fused runs first, each group followed by the paper's row
+    for a log of the paper's drive (:func:`is_paper_scenario`)."""
     truth = comparison.has_truth
+    paper = is_paper_scenario(comparison.log)
     metrics = comparison.metrics
     header = [
         "run",
@@ -420,7 +449,8 @@ def results_table(comparison: Comparison) -> list[str]:
             filtered = _filtered_row(m)
             if filtered is not None and truth:
                 lines.append(_row(filtered))
-        lines.append(_row(_paper_row(fusion)))
+        if paper:
+            lines.append(_row(_paper_row(fusion)))
     return lines
 
 
@@ -436,9 +466,14 @@ def _log_summary(log: MeasurementLog, span: str) -> str:
     return f"{out}; {log.n_features} extracted features; known map of {len(log.known_map)} features"
 
 
-def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
+def beside_lines(
+    main_scenario: str,
+    beside: Sequence[Comparison],
+    figures: Sequence[Sequence[str]] = (),
+) -> list[str]:
     """The report section of the comparisons ``beside`` the one of ``main_scenario``:
-    a heading, the log's description and the results table of each; with none, for a
+    a heading, the log's description, the results table and (``figures``, as
+    ``beside``: paths relative to the report) the figures of each; with none, for a
     scenario of :data:`PAPER_REGIME`, a note naming the option that adds it."""
     if not beside:
         other = PAPER_REGIME.get(main_scenario)
@@ -450,13 +485,52 @@ def beside_lines(main_scenario: str, beside: Sequence[Comparison]) -> list[str]:
             f"the start, is the sparser `{other}`: `--beside {other}` puts its table here.",
         ]
     lines: list[str] = []
-    for b in beside:
+    for i, b in enumerate(beside):
         log = b.log
         desc = f"{_log_summary(log, f'{log.n_steps} steps')}; {b.wall_time_s:.1f} s wall time."
         title = "the paper's regime" if log.scenario in PAPER_REGIME.values() else "beside"
-        lines += ["", f"## {log.scenario}, seed {log.seed} ({title})", "", desc, ""]
+        lines += ["", f"## {log_name(log.scenario, log.seed)} ({title})", "", desc, ""]
         lines += results_table(b)
+        lines += _figure_list(figures[i] if i < len(figures) else ())
     return lines
+
+
+def _notes(log: MeasurementLog) -> list[str]:
+    """The notes under the results table; the paper's numbers only for its drive."""
+    paper = is_paper_scenario(log)
+    anchor = (
+        "- Anchor error: distance and heading difference between the estimated pose of "
+        "`Wglobal` in the known map (`x^Wknown_Wglobal`) and the true start pose."
+    )
+    if paper:
+        anchor += (
+            " The paper estimates "
+            f"[{', '.join(f'{v:.3f}' for v in PAPER_ANCHOR_ESTIMATE[:2])}, "
+            f"{PAPER_ANCHOR_ESTIMATE[2]:.4f}] against the truth [−29, −11, π/3], i.e. "
+            f"{100 * _paper_anchor_error()[0]:.1f} cm."
+        )
+    notes = [
+        "- Errors are of the vehicle pose in `Wglobal` (the vehicle at step 0) against "
+        "truth; NEES is that of the 3-dof pose error, consistent when below "
+        f"χ²(3, 0.95) = {CHI2_3_95:.3f}.",
+        anchor,
+        "- Graph runs (batch, isam2) use the EKF's association decisions of the same fusion "
+        "setting. Their rows are smoothed estimates (every step uses the whole log), the "
+        "EKF's and iSAM2's *filtered* rows use only the steps so far, which is what the "
+        "paper's figures show.",
+        "- Run time: batch has no per-step cost; its build, solve and marginals are shared "
+        "equally over the steps.",
+    ]
+    if paper:
+        notes.append(
+            "- Rows in *italics* are the paper's simulation (Sect. 4.2) where it gives numbers."
+        )
+    if paper and log.scenario != PAPER_SCENARIOS[0]:
+        notes.append(
+            f"- The paper's numbers are for its 600 m loop (our `{PAPER_SCENARIOS[0]}`); this "
+            f"log is `{log.scenario}`, so they are only a scale reference here."
+        )
+    return notes
 
 
 def report_markdown(
@@ -464,12 +538,14 @@ def report_markdown(
     figures: Sequence[str] = (),
     scenario: Scenario | None = None,
     beside: Sequence[Comparison] = (),
+    beside_figures: Sequence[Sequence[str]] = (),
 ) -> str:
-    """The ``report.md`` text: run description, one table, notes, the comparisons
-    ``beside`` it (:func:`beside_lines`), figure list."""
+    """The ``report.md`` text: run description, one table, notes, known-map changes,
+    warnings, figure list, then the comparisons ``beside`` it with their figures
+    (:func:`beside_lines`)."""
     log = comparison.log
     truth = comparison.has_truth
-    lines = [f"# Backend comparison: {log.scenario}, seed {log.seed}", ""]
+    lines = [f"# Backend comparison: {log_name(log.scenario, log.seed)}", ""]
     span = f"{log.n_steps} steps over {log.timestamps[-1] - log.timestamps[0]:.1f} s"
     desc = f"{_log_summary(log, span)}. Whole comparison: {comparison.wall_time_s:.1f} s wall time."
     if scenario is not None and scenario.description:
@@ -499,37 +575,13 @@ def report_markdown(
             "",
         ]
     lines += results_table(comparison)
-    lines += [
-        "",
-        "Notes:",
-        "",
-        "- Errors are of the vehicle pose in `Wglobal` (the vehicle at step 0) against "
-        "truth; NEES is that of the 3-dof pose error, consistent when below "
-        f"χ²(3, 0.95) = {CHI2_3_95:.3f}.",
-        "- Anchor error: distance and heading difference between the estimated pose of "
-        "`Wglobal` in the known map (`x^Wknown_Wglobal`) and the true start pose. The paper "
-        f"estimates [{', '.join(f'{v:.3f}' for v in PAPER_ANCHOR_ESTIMATE[:2])}, "
-        f"{PAPER_ANCHOR_ESTIMATE[2]:.4f}] against the truth [−29, −11, π/3], i.e. "
-        f"{100 * _paper_anchor_error()[0]:.1f} cm.",
-        "- Graph runs (batch, isam2) use the EKF's association decisions of the same fusion "
-        "setting. Their rows are smoothed estimates (every step uses the whole log), the "
-        "EKF's and iSAM2's *filtered* rows use only the steps so far, which is what the "
-        "paper's figures show.",
-        "- Run time: batch has no per-step cost; its build, solve and marginals are shared "
-        "equally over the steps.",
-        "- Rows in *italics* are the paper's simulation (Sect. 4.2) where it gives numbers.",
-    ]
-    if log.scenario != "loop600":
-        lines.append(
-            f"- The paper's numbers are for its 600 m loop (our `loop600`); this log is "
-            f"`{log.scenario}`, so they are only a scale reference here."
-        )
+    lines += ["", "Notes:", "", *_notes(log)]
     from mapfuse.changes import change_report_lines
 
-    lines += beside_lines(log.scenario, beside)
     lines += change_report_lines([r.result for r in comparison.runs], log, scenario)
     lines += _warning_lines(comparison.metrics)
     lines += _figure_list(figures)
+    lines += beside_lines(log.scenario, beside, beside_figures)
     return "\n".join(lines) + "\n"
 
 
@@ -562,20 +614,49 @@ def write_comparison(
         p = out / name
         fig.savefig(p, dpi=110)
         paths[name.removesuffix(".png")] = p
+    beside_figures: list[list[str]] = []
+    nested: dict[str, str] = {}
     if beside:
         paths["beside"] = out / "beside.json"
         paths["beside"].write_text(
             json.dumps({b.log.scenario: [m.to_json() for m in b.metrics] for b in beside}, indent=2)
             + "\n"
         )
+        taken: set[str] = set()
+        for b in beside:
+            folder = _beside_folder(b.log.scenario, taken)
+            written = write_comparison(b, out / BESIDE_DIR / folder)
+            nested.update({f"{BESIDE_DIR}/{folder}/{k}": v for k, v in written.items()})
+            beside_figures.append(
+                [
+                    f"{BESIDE_DIR}/{folder}/{name}"
+                    for name in FIGURE_FILES
+                    if name.removesuffix(".png") in written
+                ]
+            )
     paths["report"] = out / "report.md"
-    paths["report"].write_text(report_markdown(comparison, tuple(figures), scenario, beside))
+    paths["report"].write_text(
+        report_markdown(comparison, tuple(figures), scenario, beside, beside_figures)
+    )
     result = {k: str(v) for k, v in paths.items()}
+    result.update(nested)
     for r in comparison.runs:
         name = run_folder_name(r)
         files = write_outputs(r, out / RUNS_DIR / name, figures=False)
         result.update({f"{RUNS_DIR}/{name}/{k}": v for k, v in files.items()})
     return result
+
+
+def _beside_folder(scenario: str, taken: set[str]) -> str:
+    """A folder name for a comparison beside the main one: the scenario's name (a TOML
+    file's stem), made safe for a path and distinct from those ``taken``."""
+    name = Path(scenario).stem if scenario.endswith(".toml") else scenario
+    base = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "scenario"
+    folder, k = base, 2
+    while folder in taken:
+        folder, k = f"{base}-{k}", k + 1
+    taken.add(folder)
+    return folder
 
 
 def run_folder_name(r: Run) -> str:

@@ -9,23 +9,42 @@ registered estimator can be drawn.
 
 Figures that compare against truth raise :class:`ValueError` for a log without true
 poses (real data); :func:`fig10_maps` and :func:`timing_figure` work without truth.
+
+Conventions (:mod:`mapfuse.plotting`): one colour per estimator, given in the order of
+the runs (:func:`run_colours`; pass one mapping as ``colours`` to every figure of a
+comparison); fusion settings in separate panels on one scale; curves identical to the
+drawing's resolution drawn once and named together; y axes scaled to the data, the
+paper's levels and χ² bounds annotated rather than stretching them; NEES from step 1;
+known and estimated features told apart by marker.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mapfuse.execution import fusion_for
 from mapfuse.plotting import (
+    ESTIMATOR_PALETTE,
+    KNOWN_MAP_COLOUR,
+    Curve,
     draw_circle,
+    draw_curves,
+    draw_features,
     draw_line_feature,
+    estimator_colours,
+    log_axis_ticks,
+    log_name,
+    outside_legend,
     plot_errors_with_bounds,
     plot_trajectory,
     plot_world,
+    reference_line,
+    running_mean,
+    scale_to_data,
 )
 from mapfuse.runner import Run
 from mapfuse_core.evaluation import (
@@ -47,9 +66,11 @@ if TYPE_CHECKING:
     from mapfuse_core.matching.ccda import CCDAResult
 
 __all__ = [
+    "NEES_POINTS",
     "PAPER_ANCHOR_ESTIMATE",
     "PAPER_ANCHOR_TRUTH",
     "PAPER_FUSED_MAX_ERROR_M",
+    "PAPER_SCENARIOS",
     "PAPER_UNFUSED_ERROR_M",
     "anchor_of",
     "ccda_figure",
@@ -62,6 +83,7 @@ __all__ = [
     "map_of",
     "nees_figure",
     "plot_map_arrays",
+    "run_colours",
     "run_errors",
     "run_label",
     "step_times",
@@ -77,9 +99,14 @@ PAPER_ANCHOR_ESTIMATE = (-28.968, -10.980, 1.0472)
 #: Paper, Sect. 4.2: its true value.
 PAPER_ANCHOR_TRUTH = (-29.0, -11.0, math.pi / 3)
 
-# One colour per backend, one line style per fusion setting, in every figure.
-_COLOURS = {"ekf": "tab:blue", "batch": "tab:orange", "isam2": "tab:green"}
-_STYLES = {True: "-", False: "--"}
+#: Built-in scenarios that drive the paper's 600 m loop from its start pose: the
+#: paper's numbers (Sect. 4.2) are a reference for these and no other log.
+PAPER_SCENARIOS: tuple[str, ...] = ("loop600", "loop600-sparse")
+#: NEES curves are running means over ``steps // NEES_POINTS`` steps: about this many
+#: independent values across the axis, few enough to read, many enough to show trends.
+NEES_POINTS = 100
+
+Colours = Mapping[str, str]
 
 
 def run_label(run: Run) -> str:
@@ -90,12 +117,37 @@ def run_label(run: Run) -> str:
     return f"{run.estimator} {'with' if run.fusion else 'without'} fusion"
 
 
-def _colour(run: Run) -> str:
-    return _COLOURS.get(run.estimator, "tab:gray")
+def run_colours(runs: Sequence[Run]) -> dict[str, str]:
+    """One colour per estimator of ``runs``, in their order
+    (:func:`mapfuse.plotting.estimator_colours`): pass the same mapping to every
+    figure of one comparison so that an estimator keeps its colour throughout."""
+    return estimator_colours(r.estimator for r in runs)
 
 
-def _style(run: Run) -> str:
-    return _STYLES[run.fusion]
+def _colours(runs: Sequence[Run], colours: Colours | None) -> Colours:
+    """``colours`` completed with a colour for every estimator of ``runs`` it lacks."""
+    if colours is None:
+        return run_colours(runs)
+    missing = [r.estimator for r in runs if r.estimator not in colours]
+    if not missing:
+        return colours
+    spare = [c for c in ESTIMATOR_PALETTE if c not in colours.values()]
+    extra = estimator_colours(missing)
+    out = dict(colours)
+    for i, name in enumerate(dict.fromkeys(missing)):
+        out[name] = spare[i] if i < len(spare) else extra[name]
+    return out
+
+
+def _title_source(run: Run) -> str:
+    """``"loop600, seed 0"``, or the log's name alone for real data."""
+    return log_name(run.metrics.scenario, run.metrics.seed)
+
+
+def _fusion_title(run: Run, fusion: bool) -> str:
+    if not fusion_for(run.log, True):
+        return "no known map: nothing to fuse"
+    return "with map fusion" if fusion else "without map fusion"
 
 
 def _truth(log: MeasurementLog, n: int) -> FloatArray:
@@ -139,7 +191,7 @@ def _finish(ax: Axes, xlabel: str, ylabel: str, title: str, legend: bool = True)
 # --------------------------------------------------------------------------- Fig. 6
 
 
-def fig6_errors_bounds(run: Run) -> Figure:
+def fig6_errors_bounds(run: Run, *, colours: Colours | None = None) -> Figure:
     """x, y, θ errors of one run (the paper: EKF with fusion) with ±2σ bounds."""
     from matplotlib.figure import Figure
 
@@ -147,7 +199,8 @@ def fig6_errors_bounds(run: Run) -> Figure:
     fig = Figure(figsize=(9, 7), layout="constrained")
     axes = list(fig.subplots(3, 1, sharex=True))
     t = run.timestamps
-    plot_errors_with_bounds(axes, t, dx, run.covs, label=run_label(run), color=_colour(run))
+    colour = _colours([run], colours)[run.estimator]
+    plot_errors_with_bounds(axes, t, dx, run.covs, label=run_label(run), color=colour)
     anchor = run.metrics.anchor
     if anchor is not None:
         # Where CCDA accepted the match: the bounds shrink there.
@@ -158,7 +211,7 @@ def fig6_errors_bounds(run: Run) -> Figure:
     m = run.metrics
     fig.suptitle(
         f"Fig. 6: vehicle errors and 2σ bounds, {run_label(run)} "
-        f"({m.scenario}, seed {m.seed}, {m.steps} steps)"
+        f"({_title_source(run)}, {m.steps} steps)"
     )
     return fig
 
@@ -166,41 +219,70 @@ def fig6_errors_bounds(run: Run) -> Figure:
 # --------------------------------------------------------------------------- Fig. 7
 
 
-def fig7_error_fusion(runs: Sequence[Run], paper_reference: bool = True) -> Figure:
-    """Position error against time of several runs (with and without fusion).
+def _matched_at(runs: Sequence[Run]) -> tuple[float, int] | None:
+    """``(time, step)`` of the earliest map match among ``runs``, if any."""
+    best: tuple[float, int] | None = None
+    for run in runs:
+        a = run.metrics.anchor
+        if a is None:
+            continue
+        k = min(a.accepted_at_step, run.timestamps.shape[0] - 1)
+        if best is None or k < best[1]:
+            best = (float(run.timestamps[k]), k)
+    return best
 
-    ``paper_reference`` draws the paper's two levels (fused < 0.15 m, unfused ≈ 0.5 m).
+
+def fig7_error_fusion(
+    runs: Sequence[Run], paper_reference: bool = True, *, colours: Colours | None = None
+) -> Figure:
+    """Position error against time: one panel per fusion setting (with fusion on
+    top), one colour per estimator, the same y scale in both panels so that the gap
+    fusion makes is read straight off them.
+
+    Curves identical to the drawing's resolution (batch and iSAM2's smoothed
+    estimates) are drawn once, dashed in both colours and named together.  The y axis
+    is scaled to the errors alone; ``paper_reference`` adds the paper's levels (fused
+    < 0.15 m, unfused ≈ 0.5 m) as lines when inside it, as a marked note on its edge
+    otherwise.  A dotted vertical line marks the first map match.
     """
     from matplotlib.figure import Figure
 
-    if not runs:
+    groups = _split_by_fusion(runs)
+    if not groups:
         raise ValueError("fig7_error_fusion needs at least one run")
-    fig = Figure(figsize=(10, 5), layout="constrained")
-    ax = fig.subplots()
-    for run in runs:
-        dx, _ = run_errors(run)
-        ax.plot(
-            run.timestamps,
-            np.hypot(dx[:, 0], dx[:, 1]),
-            color=_colour(run),
-            ls=_style(run),
-            lw=1.0,
-            label=run_label(run),
-        )
-    if paper_reference:
-        ax.axhline(
-            PAPER_FUSED_MAX_ERROR_M, color="k", lw=0.8, ls=":", label="paper: fused max 0.15 m"
-        )
-        ax.axhline(
-            PAPER_UNFUSED_ERROR_M, color="0.5", lw=0.8, ls=":", label="paper: unfused ≈ 0.50 m"
-        )
-    ax.set_ylim(bottom=0.0)
-    m = runs[0].metrics
-    _finish(
-        ax,
-        "time [s]",
-        "position error [m]",
-        f"Fig. 7: vehicle position error with and without map fusion ({m.scenario}, seed {m.seed})",
+    colour = _colours(runs, colours)
+    fig = Figure(figsize=(13, 1.2 + 2.9 * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
+    errors: list[FloatArray] = []
+    for ax, (fusion, sel) in zip(axes, groups, strict=True):
+        curves = []
+        for run in sel:
+            dx, _ = run_errors(run)
+            e = np.hypot(dx[:, 0], dx[:, 1])
+            errors.append(e)
+            note = f": RMSE {math.sqrt(float(np.mean(e**2))):.3f} m, max {float(e.max()):.3f} m"
+            curves.append(Curve(run.estimator, colour[run.estimator], run.timestamps, e, note))
+        draw_curves(ax, curves, unit="m")
+        matched = _matched_at(sel) if fusion else None
+        if matched is not None:
+            ax.axvline(
+                matched[0], color="0.4", lw=0.8, ls=":", label=f"map matched (step {matched[1]})"
+            )
+        ax.set_title(_fusion_title(sel[0], fusion), fontsize=10)
+    scale_to_data(axes[0], errors, zero=True)
+    for ax, (fusion, sel) in zip(axes, groups, strict=True):
+        if paper_reference and fusion_for(sel[0].log, True):
+            if fusion:
+                reference_line(ax, PAPER_FUSED_MAX_ERROR_M, "paper: fused max < 0.15 m")
+            else:
+                reference_line(ax, PAPER_UNFUSED_ERROR_M, "paper: unfused ≈ 0.50 m far from start")
+        ax.set_ylabel("position error [m]")
+        ax.grid(alpha=0.3)
+        outside_legend(ax)
+    for ax in axes:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(
+        f"Fig. 7: vehicle position error with and without map fusion ({_title_source(runs[0])})"
     )
     return fig
 
@@ -254,10 +336,30 @@ def _display_frame(run: Run) -> tuple[FloatArray, str]:
     return np.zeros(3), "in Wglobal (no anchor, no truth)"
 
 
+def _draw_gps(ax: Axes, xy: FloatArray) -> None:
+    """GPS fixes as small black dots, with a legend entry large enough to read."""
+    ax.plot(xy[:, 0], xy[:, 1], ".", ms=2, color="k", zorder=1.5)
+    ax.plot([], [], ".", ms=7, color="k", label="GPS fixes")
+
+
+def _draw_known(ax: Axes, known: KnownMapArrays) -> None:
+    draw_features(
+        ax,
+        known.kinds,
+        known.params,
+        known.extents,
+        role="known",
+        colour=KNOWN_MAP_COLOUR,
+        label=f"known map ({len(known)} features)",
+    )
+
+
 def fig10_maps(
     runs: Sequence[Run],
     world: World | None = None,
     line_extent_m: tuple[float, float] = (-4.0, 4.0),
+    *,
+    colours: Colours | None = None,
 ) -> Figure:
     """Estimated map and trajectory of each run over the known map, in ``Wknown``.
 
@@ -268,13 +370,17 @@ def fig10_maps(
     else in ``Wglobal``.  The true world (``world``, else the log's world arrays) and
     the true trajectory (or the GPS track of real data) are drawn underneath.
     Estimated lines are drawn over ``line_extent_m`` along them (m from their reference
-    point; short indoor walls want a shorter piece than the default).
+    point; short indoor walls want a shorter piece than the default).  Known features
+    are hollow red squares over dashed lines, estimated ones dots of the run's colour
+    over solid lines (:func:`mapfuse.plotting.draw_features`), so that they are told
+    apart whatever the map's extent.
     """
     from matplotlib.figure import Figure
 
     if not runs:
         raise ValueError("fig10_maps needs at least one run")
-    fig = Figure(figsize=(7.5 * len(runs), 7.5), layout="constrained")
+    colour = _colours(runs, colours)
+    fig = Figure(figsize=(7.0 * len(runs), 8.0), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(runs)))
     for ax, run in zip(axes, runs, strict=True):
         log = run.log
@@ -282,49 +388,43 @@ def fig10_maps(
         if world is not None:
             plot_world(ax, world, color="0.75", label="true world")
         elif log.world is not None:
-            plot_map_arrays(
+            draw_features(
                 ax,
                 log.world.kinds,
                 log.world.params,
                 log.world.extents,
-                color="0.75",
-                lw=1.0,
+                role="world",
+                colour="0.75",
                 label="true world",
             )
-        known = log.known_map
-        plot_map_arrays(
-            ax,
-            known.kinds,
-            known.params,
-            known.extents,
-            color="tab:red",
-            lw=1.0,
-            ls="--",
-            label="known map",
-        )
         if log.true_poses is not None:
             plot_trajectory(ax, log.true_poses, label="true trajectory", color="k", lw=0.8)
         elif log.gps_xy is not None:
-            ax.plot(log.gps_xy[:, 0], log.gps_xy[:, 1], ".", ms=2, color="k", label="GPS")
+            _draw_gps(ax, log.gps_xy)
+        _draw_known(ax, log.known_map)
         kinds, params, _, n_obs = map_of(run)
         # With fusion the EKF's map also holds every known feature; those never observed
         # are the known map itself, drawn already.
         seen = n_obs > 0
-        plot_map_arrays(
+        c = colour[run.estimator]
+        draw_features(
             ax,
             kinds[seen],
             _in_frame(T, kinds[seen], params[seen]),
             default_extent=line_extent_m,
-            color=_colour(run),
-            lw=1.6,
-            label="estimated map",
+            role="estimated",
+            colour=c,
+            label=f"estimated map ({int(seen.sum())} features observed)",
         )
         est = np.array([compose(T, p) for p in run.poses])
-        plot_trajectory(ax, est, label="estimated trajectory", color=_colour(run), lw=1.0, ls="-.")
+        plot_trajectory(ax, est, label="estimated trajectory", color=c, lw=1.0, ls="-.")
         ax.set_aspect("equal", adjustable="datalim")
-        _finish(ax, "x in Wknown [m]", "y in Wknown [m]", f"{run_label(run)}: map {how}")
-    m = runs[0].metrics
-    fig.suptitle(f"Fig. 10: estimated maps over the known map ({m.scenario}, seed {m.seed})")
+        ax.set_xlabel("x in Wknown [m]")
+        ax.set_ylabel("y in Wknown [m]")
+        ax.set_title(f"{run_label(run)}: map {how}", fontsize=10)
+        ax.grid(alpha=0.3)
+        outside_legend(ax, "below", ncols=2)
+    fig.suptitle(f"Fig. 10: estimated maps over the known map ({_title_source(runs[0])})")
     return fig
 
 
@@ -359,70 +459,79 @@ def gps_errors(run: Run) -> tuple[FloatArray, FloatArray]:
     return gps_error_series(run.timestamps, run.poses, *gps, T)
 
 
-def gps_error_figure(runs: Sequence[Run]) -> Figure:
-    """Position error against GPS over time, one curve per run (real data)."""
+def gps_error_figure(runs: Sequence[Run], *, colours: Colours | None = None) -> Figure:
+    """Position error against GPS over time (real data): one panel per fusion
+    setting on one y scale, one colour per estimator, identical curves named together."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(10, 4.5), layout="constrained")
-    ax = fig.subplots()
-    for run in runs:
-        t, e = gps_errors(run)
-        how = str(_alignment(run)).replace("_", " ")
-        ax.plot(
-            t - run.timestamps[0],
-            e,
-            _style(run),
-            color=_colour(run),
-            lw=1.0,
-            label=f"{run_label(run)} ({how}; median {np.median(e):.3f} m)",
-        )
-    scenario = runs[0].metrics.scenario if runs else "?"
-    _finish(
-        ax,
-        "time since the first scan [s]",
-        "position error against GPS [m]",
-        f"Position error against GPS ({scenario}); GPS itself has errors",
-    )
+    groups = _split_by_fusion(runs)
+    if not groups:
+        raise ValueError("gps_error_figure needs at least one run")
+    colour = _colours(runs, colours)
+    fig = Figure(figsize=(13, 1.2 + 2.7 * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
+    errors: list[FloatArray] = []
+    for ax, (fusion, sel) in zip(axes, groups, strict=True):
+        curves = []
+        for run in sel:
+            t, e = gps_errors(run)
+            errors.append(e)
+            how = str(_alignment(run)).replace("_", " ")
+            note = f" ({how}): median {np.median(e):.3f} m, max {np.max(e):.3f} m"
+            curves.append(
+                Curve(run.estimator, colour[run.estimator], t - run.timestamps[0], e, note)
+            )
+        draw_curves(ax, curves, unit="m")
+        ax.set_title(_fusion_title(sel[0], fusion), fontsize=10)
+        ax.set_ylabel("error against GPS [m]")
+        ax.grid(alpha=0.3)
+        outside_legend(ax)
+    scale_to_data(axes[0], errors, zero=True)
+    for ax in axes:
+        ax.set_xlabel("time since the first scan [s]")
+    fig.suptitle(f"Position error against GPS ({_title_source(runs[0])}); GPS itself has errors")
     return fig
 
 
-def gps_trajectory_figure(runs: Sequence[Run]) -> Figure:
-    """Estimated trajectories over the GPS track, in the GPS frame (real data)."""
+def gps_trajectory_figure(runs: Sequence[Run], *, colours: Colours | None = None) -> Figure:
+    """Estimated trajectories over the GPS track and the known map, in the GPS frame
+    (real data): one panel per fusion setting, one colour per estimator, identical
+    trajectories named together."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8, 8), layout="constrained")
-    ax = fig.subplots()
-    gps = runs[0].log.gps if runs else None
-    if gps is not None:
-        ax.plot(gps[1][:, 0], gps[1][:, 1], ".", ms=2, color="k", label="GPS")
-    for run in runs:
-        T = _gps_alignment(run)
-        if T is None:
-            continue
-        est = np.array([compose(T, p) for p in run.poses])
-        how = str(_alignment(run)).replace("_", " ")
-        ax.plot(
-            est[:, 0],
-            est[:, 1],
-            _style(run),
-            color=_colour(run),
-            lw=1.0,
-            label=f"{run_label(run)} ({how})",
-        )
-    known = runs[0].log.known_map if runs else None
-    if known is not None and len(known) > 0:
-        plot_map_arrays(
-            ax,
-            known.kinds,
-            known.params,
-            known.extents,
-            color="tab:red",
-            lw=1.0,
-            label="known map",
-        )
-    ax.set_aspect("equal", adjustable="datalim")
-    scenario = runs[0].metrics.scenario if runs else "?"
-    _finish(ax, "East [m]", "North [m]", f"Trajectories over GPS ({scenario})")
+    groups = [
+        (f, [r for r in sel if _gps_alignment(r) is not None]) for f, sel in _split_by_fusion(runs)
+    ]
+    groups = [(f, sel) for f, sel in groups if sel]
+    if not groups:
+        raise ValueError("gps_trajectory_figure needs a run with GPS-based errors")
+    colour = _colours(runs, colours)
+    fig = Figure(figsize=(6.5 * len(groups), 7.5), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(groups)))
+    gps = runs[0].log.gps
+    known = runs[0].log.known_map
+    for ax, (fusion, sel) in zip(axes, groups, strict=True):
+        if gps is not None:
+            _draw_gps(ax, gps[1])
+        curves = []
+        for run in sel:
+            T = _gps_alignment(run)
+            assert T is not None  # kept above
+            est = np.array([compose(T, p) for p in run.poses])
+            how = str(_alignment(run)).replace("_", " ")
+            curves.append(
+                Curve(run.estimator, colour[run.estimator], est[:, 0], est[:, 1], f" ({how})")
+            )
+        draw_curves(ax, curves, unit="m")
+        if len(known) > 0:
+            _draw_known(ax, known)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("East [m]")
+        ax.set_ylabel("North [m]")
+        ax.set_title(_fusion_title(sel[0], fusion), fontsize=10)
+        ax.grid(alpha=0.3)
+        outside_legend(ax, "below", ncols=2)
+    fig.suptitle(f"Trajectories over GPS ({_title_source(runs[0])})")
     return fig
 
 
@@ -438,56 +547,87 @@ def _split_by_fusion(runs: Sequence[Run]) -> list[tuple[bool, list[Run]]]:
     return out
 
 
-def nees_figure(runs: Sequence[Run]) -> Figure:
-    """Vehicle NEES against time with the χ²(3, 0.95) bound; one panel per fusion setting.
+def _nees_curve(
+    name: str, kind: str, colour: str, t: FloatArray, nees: FloatArray, window: int, style: str
+) -> Curve:
+    """The running mean of ``nees`` from step 1 on (step 0 is the frame ``Wglobal``
+    itself: its error and covariance are zero by construction), with the estimate's
+    ``kind`` and per-step statistics in the legend."""
+    t, nees = t[1:], nees[1:]
+    ok = np.isfinite(nees)
+    within = 100.0 * float(np.mean(nees[ok] <= CHI2_3_95)) if ok.any() else math.nan
+    mean = float(np.mean(nees[ok])) if ok.any() else math.nan
+    note = f"{kind}: mean {mean:.2f}, {within:.0f} % of steps ≤ {CHI2_3_95:.3f}"
+    return Curve(name, colour, running_mean(t, window), running_mean(nees, window), note, style)
 
-    Graph runs show the smoothed estimate; iSAM2 also its filtered (per-step)
-    estimate, the one comparable with the EKF's.
+
+def nees_figure(runs: Sequence[Run], *, colours: Colours | None = None) -> Figure:
+    """Vehicle NEES against time, one panel per fusion setting on one log scale.
+
+    Each curve is the running mean over ``steps // NEES_POINTS`` steps from step 1 on
+    (said in the title); the legend gives each run's per-step mean and the fraction
+    of its steps within χ²(3, 0.95).  Graph runs show the smoothed estimate; iSAM2
+    also its filtered (per-step) estimate, dashed, the one comparable with the EKF's.
+    Identical curves (batch and iSAM2 smoothed) are drawn once and named together.
+    The reference levels (3, the expectation; χ²(3, 0.95)) are lines when inside the
+    data's range, marked notes on the axis edge otherwise.
     """
     from matplotlib.figure import Figure
 
     groups = _split_by_fusion(runs)
     if not groups:
         raise ValueError("nees_figure needs at least one run")
-    fig = Figure(figsize=(10, 3.8 * len(groups)), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(len(groups), 1, sharex=True))
+    colour = _colours(runs, colours)
+    steps = max(r.poses.shape[0] for r in runs)
+    window = max(1, steps // NEES_POINTS)
+    fig = Figure(figsize=(13, 1.2 + 2.9 * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
+    values: list[FloatArray] = []
     for ax, (fusion, sel) in zip(axes, groups, strict=True):
+        curves = []
         for run in sel:
             _, nees = run_errors(run)
-            smoothed = " (smoothed)" if run.result.smoothed is not None else ""
-            ax.plot(
-                run.timestamps,
-                nees,
-                color=_colour(run),
-                lw=0.8,
-                label=run.estimator + smoothed,
-            )
+            c = colour[run.estimator]
+            kind = " smoothed" if run.result.smoothed is not None else ""
+            curves.append(_nees_curve(run.estimator, kind, c, run.timestamps, nees, window, "-"))
             f = run.result.filtered
             if run.result.smoothed is not None and f is not None:
                 n = f.poses.shape[0]
                 err = pose_errors(f.poses, _truth(run.log, n))
-                ax.plot(
-                    run.timestamps[:n],
-                    nees_series(err.dx, f.covs),
-                    color=_colour(run),
-                    lw=0.8,
-                    ls=":",
-                    label=f"{run.estimator} (filtered)",
+                curves.append(
+                    _nees_curve(
+                        run.estimator,
+                        " filtered",
+                        c,
+                        run.timestamps[:n],
+                        nees_series(err.dx, f.covs),
+                        window,
+                        "--",
+                    )
                 )
-        ax.axhline(CHI2_3_95, color="k", lw=1.0, ls="--", label=f"χ²(3, 0.95) = {CHI2_3_95:.3f}")
-        ax.set_yscale("log")
-        # The first pose is fixed by a prior (graph) or known exactly (EKF): its NEES is
-        # ~0 and would stretch the log axis over many decades.
-        ax.set_ylim(bottom=1e-3)
-        _finish(
-            ax, "time [s]", "NEES (3 dof) [-]", f"NEES {'with' if fusion else 'without'} fusion"
-        )
-    m = runs[0].metrics
-    fig.suptitle(f"Vehicle NEES against the 95 % bound ({m.scenario}, seed {m.seed})")
+        values += [c.y for c in curves]
+        draw_curves(ax, curves, log=True)
+        ax.set_title(_fusion_title(sel[0], fusion), fontsize=10)
+    axes[0].set_yscale("log")
+    scale_to_data(axes[0], values, log=True)
+    dt = float(np.median(np.diff(runs[0].timestamps))) if runs[0].timestamps.size > 1 else 0.0
+    for ax in axes:
+        reference_line(ax, 3.0, "3: expected NEES (3 dof)", colour="0.3", ls="-.")
+        reference_line(ax, CHI2_3_95, f"χ²(3, 0.95) = {CHI2_3_95:.3f}", colour="k", ls="--")
+        log_axis_ticks(ax)
+        ax.set_ylabel("NEES (3 dof) [-]")
+        ax.grid(alpha=0.3)
+        outside_legend(ax)
+    for ax in axes:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(
+        f"Vehicle NEES, running mean over {window} steps ({window * dt:.1f} s) from step 1 "
+        f"({_title_source(runs[0])})"
+    )
     return fig
 
 
-def timing_figure(runs: Sequence[Run]) -> Figure:
+def timing_figure(runs: Sequence[Run], *, colours: Colours | None = None) -> Figure:
     """Per-step wall time of each run (log scale); one panel per fusion setting.
 
     A smoother without per-step estimates (batch) has no per-step cost: its solve is
@@ -498,28 +638,34 @@ def timing_figure(runs: Sequence[Run]) -> Figure:
     groups = _split_by_fusion(runs)
     if not groups:
         raise ValueError("timing_figure needs at least one run")
-    fig = Figure(figsize=(10, 3.8 * len(groups)), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(len(groups), 1, sharex=True))
+    colour = _colours(runs, colours)
+    fig = Figure(figsize=(13, 1.2 + 2.9 * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
+    values: list[FloatArray] = []
     for ax, (fusion, sel) in zip(axes, groups, strict=True):
         for run in sel:
-            st = step_times(run)
-            b = run.estimator
+            st = 1e3 * step_times(run)
+            values.append(st)
             # A smoother without per-step estimates (batch) shares its solve among the steps.
-            shared = run.result.filtered is None
-            label = f"{b} (solve shared equally over steps)" if shared else b
-            label += f", total {float(np.sum(st)):.2f} s"
-            ax.plot(
-                run.timestamps[: st.shape[0]], 1e3 * st, color=_colour(run), lw=0.7, label=label
+            shared = run.result.filtered is None and run.result.smoothed is not None
+            label = (
+                f"{run.estimator} (solve shared equally over steps)" if shared else run.estimator
             )
-        ax.set_yscale("log")
-        _finish(
-            ax,
-            "time [s]",
-            "wall time per step [ms]",
-            f"run time per step {'with' if fusion else 'without'} fusion",
-        )
-    m = runs[0].metrics
-    fig.suptitle(f"Per-step run time of each backend ({m.scenario}, seed {m.seed})")
+            label += f", total {float(np.sum(st)) / 1e3:.2f} s"
+            ax.plot(
+                run.timestamps[: st.shape[0]], st, color=colour[run.estimator], lw=0.7, label=label
+            )
+        ax.set_title(f"run time per step, {_fusion_title(sel[0], fusion)}", fontsize=10)
+    axes[0].set_yscale("log")
+    scale_to_data(axes[0], values, log=True)
+    for ax in axes:
+        log_axis_ticks(ax)
+        ax.set_ylabel("wall time per step [ms]")
+        ax.grid(alpha=0.3)
+        outside_legend(ax)
+    for ax in axes:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(f"Per-step run time of each estimator ({_title_source(runs[0])})")
     return fig
 
 
@@ -551,23 +697,22 @@ def ccda_figure(
     axes = np.atleast_1d(fig.subplots(1, len(panels)))
     for ax, (title, T) in zip(axes, panels, strict=True):
         a_in_b = _in_frame(T, map_a.kinds, map_a.params)
-        plot_map_arrays(
+        draw_features(
             ax,
             map_b.kinds,
             map_b.params,
             map_b.extents,
-            color="tab:red",
-            lw=1.0,
-            ls="--",
+            role="known",
+            colour=KNOWN_MAP_COLOUR,
             label=f"map B: known map ({len(map_b)})",
         )
-        plot_map_arrays(
+        draw_features(
             ax,
             map_a.kinds,
             a_in_b,
             map_a.extents,
-            color="tab:blue",
-            lw=1.4,
+            role="estimated",
+            colour=ESTIMATOR_PALETTE[0],
             label=f"map A: SLAM map ({len(map_a)})",
         )
         for n, (i, j) in enumerate(result.pairings):
@@ -575,7 +720,7 @@ def ccda_figure(
             ax.plot(
                 [pa[0], pb[0]],
                 [pa[1], pb[1]],
-                color="tab:green",
+                color="0.2",
                 lw=2.0,
                 label=f"pairings ({len(result.pairings)})" if n == 0 else None,
             )

@@ -9,7 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapfuse.comparison import FIGURE_FILES, Comparison, compare, write_comparison
+from mapfuse.comparison import (
+    FIGURE_FILES,
+    Comparison,
+    compare,
+    report_markdown,
+    write_comparison,
+)
 from mapfuse.figures import (
     ccda_figure,
     fig6_errors_bounds,
@@ -137,8 +143,8 @@ def test_write_comparison(comparison: Comparison, tmp_path: Path) -> None:
     change_rows = [line for line in changes.splitlines() if line.startswith("| ")]
     assert change_rows[0].startswith("| run | confirmed | moved | missing")
     assert {r.split(" | ")[0][2:] for r in change_rows[2:]} == {"ekf", "batch", "isam2"}
-    # Header, six runs, two iSAM2 filtered rows, two paper rows.
-    assert len(table) == 1 + 6 + 2 + 2
+    # Header, six runs, two iSAM2 filtered rows; no paper rows: not the paper's drive.
+    assert len(table) == 1 + 6 + 2
     for col in (
         "position RMSE [m]",
         "heading RMSE [mrad]",
@@ -150,18 +156,40 @@ def test_write_comparison(comparison: Comparison, tmp_path: Path) -> None:
     for b in ("ekf", "batch", "isam2"):
         for w in ("with", "without"):
             assert any(line.startswith(f"| {b} {w} fusion") for line in table)
-    # The paper's numbers beside ours.
-    assert "*paper: EKF with fusion*" in report
-    assert "< 0.15" in report
-    assert "≈ 0.50" in report
-    assert "0.038" in report
-    assert "3.8 cm" in report
+    # The paper's numbers are for its own drive only (test_paper_rows_only_for_its_drive).
+    assert "paper" not in main.split("Notes:")[0]
+    assert "3.8 cm" not in report
     assert "synthetic-ring" in report
-    assert "only a scale reference" in report  # not loop600
     assert "no ground truth" not in report
     ekf = comparison.get("ekf", True).metrics
     assert ekf.position_error is not None
     assert f"{ekf.position_error.rmse:.3f}" in table[1]
+
+
+@pytest.mark.parametrize(
+    ("scenario", "paper", "scale_note"),
+    [("loop600", True, False), ("loop600-sparse", True, True), ("synthetic-ring", False, False)],
+)
+def test_paper_rows_only_for_its_drive(
+    comparison: Comparison, scenario: str, paper: bool, scale_note: bool
+) -> None:
+    named = dataclasses.replace(
+        comparison, log=dataclasses.replace(comparison.log, scenario=scenario)
+    )
+    report = report_markdown(named)
+    assert ("*paper: EKF with fusion*" in report) is paper
+    assert ("*paper: EKF without fusion*" in report) is paper
+    assert ("< 0.15" in report) is paper
+    assert ("≈ 0.50" in report) is paper
+    # The paper's anchor, 3.8 cm from the truth, in the notes.
+    assert ("0.038" in report) is paper
+    assert ("3.8 cm" in report) is paper
+    assert ("Rows in *italics*" in report) is paper
+    assert ("only a scale reference" in report) is scale_note
+    # Without truth (real data named like the paper's scenario), no paper rows either.
+    blind = dataclasses.replace(named, log=dataclasses.replace(named.log, true_poses=None))
+    assert "*paper:" not in report_markdown(blind)
+    assert "3.8 cm" not in report_markdown(blind)
 
 
 def test_log_without_truth_is_stated(no_truth: Comparison, tmp_path: Path) -> None:
@@ -199,12 +227,14 @@ def test_figures_have_labelled_axes_and_titles(comparison: Comparison) -> None:
     assert [ax.get_ylabel() for ax in fig.axes] == ["x error [m]", "y error [m]", "θ error [rad]"]
     assert fig.axes[0].get_legend() is not None
     fig = fig7_error_fusion(runs)
-    _check_axes(fig, 1)
-    labels = fig.axes[0].get_legend_handles_labels()[1]
-    assert "ekf with fusion" in labels
-    assert "isam2 without fusion" in labels
-    assert any("paper" in lab for lab in labels)
-    assert fig.axes[0].get_title().startswith("Fig. 7")
+    _check_axes(fig, 2)
+    assert [ax.get_title() for ax in fig.axes] == ["with map fusion", "without map fusion"]
+    for ax in fig.axes:
+        labels = ax.get_legend_handles_labels()[1]
+        assert any(lab.startswith("ekf: RMSE") for lab in labels)
+        assert any("isam2" in lab for lab in labels)
+        assert any("paper" in lab for lab in labels)
+    assert fig.get_suptitle().startswith("Fig. 7")
     fig = nees_figure(runs)
     _check_axes(fig, 2)
     assert fig.axes[0].get_yscale() == "log"
