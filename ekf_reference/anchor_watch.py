@@ -46,10 +46,9 @@ from typing import Literal
 
 import numpy as np
 
-from ekf_reference.association import Candidate, Query, stack
-from ekf_reference.known_gating import Targets, known_outcomes
-from ekf_reference.state import GaussianMap
-from mapfuse_core.matching import AssociationConfig, chi2_gate
+from ekf_reference.association import Candidate, stack
+from ekf_reference.state import GaussianMap, Role
+from mapfuse_core.matching import chi2_gate
 
 __all__ = [
     "CONTRADICTIONS",
@@ -164,28 +163,20 @@ class AnchorWatch:
     """The known map's innovations since the anchor was fused, over a window of steps,
     and the verdict of the three tests (see the module docstring)."""
 
-    def __init__(self, params: AnchorWatchParams, association: AssociationConfig) -> None:
+    def __init__(self, params: AnchorWatchParams) -> None:
         self.params = params
-        self.association = association
         self.steps: deque[_Step] = deque()
         self.singular = 0
         """Associations whose joint innovation covariance was not positive definite
         (their NIS is left out)."""
 
-    def record(
-        self,
-        step: int,
-        state: GaussianMap,
-        queries: list[Query],
-        chosen: list[Candidate | None],
-        targets: Targets,
-    ) -> None:
-        """Record one association against ``targets`` at ``step``, before its pairings
-        are applied."""
-        out = known_outcomes(state, queries, chosen, targets, self.association)
-        if not out.accepted:
+    def record(self, step: int, state: GaussianMap, chosen: list[Candidate | None]) -> None:
+        """Record the pairings ``chosen`` by one association at ``step``, before they are
+        applied (those with known features count)."""
+        known = [c for c in chosen if c is not None and state.elements[c.target].role == Role.KNOWN]
+        if not known:
             return
-        nis = joint_nis(state, [c for _, c in out.accepted])
+        nis = joint_nis(state, known)
         if nis is None:
             self.singular += 1
             return

@@ -225,7 +225,7 @@ class _Run:
         if self.gate is not None:
             self.gate.record(step, state, queries, chosen, targets)
         if self.watch is not None:
-            self.watch.record(step, state, queries, chosen, targets)
+            self.watch.record(step, state, chosen)
 
     def _gated(self, state: GaussianMap, targets: Targets) -> Targets:
         """``targets`` without the known features the gate has un-fused."""
@@ -578,7 +578,7 @@ class _Run:
         if self.gate is not None:
             self.gate.anchor_known = [kid for _, kid in pairings]
         if params is not None:
-            self.watch = AnchorWatch(params, self.config.data_association)
+            self.watch = AnchorWatch(params)
             self.fused_anchor = anchor_pose(g)
 
     # ------------------------------------------------------------------ anchor watch

@@ -28,7 +28,7 @@ from ekf_reference.result import EKFDetails
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation import anchor_truth
-from mapfuse_core.matching import AssociationConfig, chi2_gate
+from mapfuse_core.matching import chi2_gate
 from mapfuse_core.measlog import MeasurementLog
 from tests.synthetic import synthetic_log
 from tests.test_ccda_joint_test import _Swapping
@@ -202,7 +202,7 @@ def test_an_anchor_most_of_the_known_map_contradicts_is_undone_and_not_matched_a
 
 def _watch_with(nis_dof: list[tuple[int, float, int]], **params: object) -> AnchorWatch:
     """A watch whose window holds ``(step, NIS, dof)``."""
-    watch = AnchorWatch(AnchorWatchParams(**params), AssociationConfig())  # type: ignore[arg-type]
+    watch = AnchorWatch(AnchorWatchParams(**params))  # type: ignore[arg-type]
     for step, nis, dof in nis_dof:
         watch.steps.append(_Step(step, nis, dof))
     return watch
