@@ -22,9 +22,10 @@ Cases (``--case``, comma-separated, default all):
 * ``worlds`` — a generated 600 m world per seed (the generator's defaults,
   :mod:`mapfuse_core.sim.worldgen`, simulated with the seed, as ``mapfuse montecarlo
   --world-per-run ''``): late matches on a map that drifted unfused.  Besides the CCDA
-  record, every match the EKF fused is judged (the anchor it kept, and those its
+  record (whose columns judge every match CCDA accepted, those the EKF then refused
+  included), every match the EKF fused is judged (the anchor it kept, and those its
   anchor watch undid), with the matches refused by its joint tests before fusion and
-  the anchors undone after it.
+  the anchors undone after it (the second table).
 
 A call is judged against the true anchor (:func:`mapfuse_core.evaluation.anchor_truth`
 with the log's ``known_frame``): an accepted match is *wrong* when its anchor is more
