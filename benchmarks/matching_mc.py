@@ -19,6 +19,13 @@ Cases (``--case``, comma-separated, default all):
 * ``shifts`` — loop600 with its world, route and known map moved by 0, 10³, 10⁶ and
   10⁷ m along x and y: every CCDA call must decide the same and pair the same
   features, and the anchor must move with the world.
+* ``worlds`` — a generated 600 m world per seed (the generator's defaults,
+  :mod:`mapfuse_core.sim.worldgen`, simulated with the seed, as ``mapfuse montecarlo
+  --world-per-run ''``): late matches on a map that drifted unfused.  Besides the CCDA
+  record (whose columns judge every match CCDA accepted, those the EKF then refused
+  included), every match the EKF fused is judged (the anchor it kept, and those its
+  anchor watch undid), with the matches refused by its joint tests before fusion and
+  the anchors undone after it (the second table).
 
 A call is judged against the true anchor (:func:`mapfuse_core.evaluation.anchor_truth`
 with the log's ``known_frame``): an accepted match is *wrong* when its anchor is more
@@ -30,6 +37,7 @@ feature truly is (within 1 m, lines also 0.05 rad): a spurious detection on top 
 real feature is counted as *coincident* instead.
 
     python benchmarks/matching_mc.py --seeds 20 --case manhattan,trees,clutter,shifts
+    python benchmarks/matching_mc.py --seeds 40 --case worlds    # about 1 min a seed
 """
 
 from __future__ import annotations
@@ -51,6 +59,7 @@ import numpy as np
 
 import mapfuse_core.matching.ccda as ccda_pkg
 from ekf_reference import EKFConfig, run_ekf
+from mapfuse.runner import simulate as simulate_run
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation import anchor_truth
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
@@ -60,14 +69,28 @@ from mapfuse_core.sim.clutter import ClutterParams
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.world import CircleObstacle, WallSegment, World
+from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
-CASES = ("manhattan", "trees", "clutter", "shifts")
-#: Default steps per case (a seed takes a few seconds).
-STEPS = {"manhattan": 420, "trees": 400, "clutter": 160, "shifts": 200}
+CASES = ("manhattan", "trees", "clutter", "shifts", "worlds")
+#: Default steps per case (a seed takes a few seconds; a world, its whole drive).
+STEPS = {"manhattan": 420, "trees": 400, "clutter": 160, "shifts": 200, "worlds": 2401}
+#: ``matching.reasons`` keys of a match the EKF refused before fusing it.
+REFUSED_BEFORE_FUSION = ("jointly inconsistent", "a pairing inconsistent with the others")
+#: ``matching.reasons`` key of an anchor the EKF undid after fusing it.
+UNDONE_AFTER_FUSION = "anchor contradicted"
 SHIFTS_M = (0.0, 1e3, 1e6, 1e7)
 #: An accepted anchor this far from the truth is a wrong match.
 WRONG_XY_M = 1.0
 WRONG_THETA_RAD = 0.05
+#: Keys of :func:`judge_fused`, summed over the seeds of a case that has them.
+FUSED_KEYS = (
+    "fused_right",
+    "fused_right_undone",
+    "fused_wrong_kept",
+    "fused_wrong_undone",
+    "refused_before_fusion",
+    "undone_after_fusion",
+)
 CLUTTER = ClutterParams(features_per_scan=5, circle_fraction=0.5, outlier_fraction=0.1)
 
 
@@ -372,6 +395,36 @@ def judge(calls: list[Call], log: MeasurementLog, result: EstimatorResult | str)
     }
 
 
+def judge_fused(log: MeasurementLog, result: EstimatorResult | str) -> dict[str, Any]:
+    """Every match the EKF fused, judged: the anchor it kept and those its anchor watch
+    undid (``EKFDetails.anchors_undone``), each wrong when more than 1 m or 0.05 rad
+    off or when one of its pairings is (by label); and the matches its joint tests
+    refused before fusion, the anchors undone after it."""
+    out: dict[str, Any] = {"fused_right": 0, "fused_wrong_kept": 0, "fused_wrong_undone": 0}
+    out.update(fused_right_undone=0, refused_before_fusion=0, undone_after_fusion=0)
+    if isinstance(result, str):
+        return out
+    assert log.true_poses is not None
+    truth = anchor_truth(log.true_poses, log.known_frame)
+    fused: list[tuple[Any, tuple[tuple[int, int], ...], str]] = [
+        (u.x_Wknown_Wglobal, u.pairings, "undone")
+        for u in getattr(result.details, "anchors_undone", ())
+    ]
+    if result.anchor is not None:
+        fused.append((result.anchor.x_Wknown_Wglobal, result.anchor.pairings, "kept"))
+    for x, pairings, fate in fused:
+        e_xy, e_th = _anchor_error(tuple(float(v) for v in x), truth)  # type: ignore[arg-type]
+        wrong = e_xy > WRONG_XY_M or e_th > WRONG_THETA_RAD or any(t != k for t, k in pairings)
+        if wrong:
+            out["fused_wrong_kept" if fate == "kept" else "fused_wrong_undone"] += 1
+        else:
+            out["fused_right" if fate == "kept" else "fused_right_undone"] += 1
+    reasons = {} if result.matching is None else dict(result.matching.reasons)
+    out["refused_before_fusion"] = sum(int(reasons.get(k, 0)) for k in REFUSED_BEFORE_FUSION)
+    out["undone_after_fusion"] = int(reasons.get(UNDONE_AFTER_FUSION, 0))
+    return out
+
+
 def _guarded(fn: Callable[[], EstimatorResult]) -> EstimatorResult | str:
     """``fn()``, or the one-line error that ended it: a run that fails is counted."""
     try:
@@ -421,6 +474,11 @@ def run_case(case: str, seed: int, steps: int | None = None) -> dict[str, Any]:
         return row
     if case == "shifts":
         return _shift_row(seed, n)
+    if case == "worlds":
+        sc = generate_scenario(WorldParams(seed=seed), base=load_scenario("loop600"))
+        log = simulate_run(sc, seed, steps=min(n, sc.steps), workers=1)
+        calls, res = _run_ekf(log)
+        return {"seed": seed, "ekf": {**judge(calls, log, res), **judge_fused(log, res)}}
     raise ValueError(f"unknown case {case!r}; choose from {', '.join(CASES)}")
 
 
@@ -500,6 +558,7 @@ def summarise(case: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
                 for r in recs
             ),
             "errors": sum(r["error"] is not None for r in recs),
+            **{key: sum(r[key] for r in recs) for key in FUSED_KEYS if all(key in r for r in recs)},
             "wrong_seeds": [
                 r["seed"] for r, x in zip(rows, recs, strict=False) if x["wrong_pairings"]
             ],
@@ -547,6 +606,25 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{e['wrong_known_obs']} ({e.get('coincident_known_obs', 0)}) | {calls} | "
                 f"{e['max_call_s']} ({e.get('max_call_cpu_s', '–')}) | "
                 f"{e['max_call_work']:,} | {e['search_work']:,} | {e['n_hypotheses']} |"
+            )
+    fused = [
+        (case, summ)
+        for case, summ in report["cases"].items()
+        if all(k in summ.get("ekf", {}) for k in FUSED_KEYS)
+    ]
+    if fused:
+        lines += [
+            "",
+            "| case | seeds | matches fused: right kept / right undone / wrong undone / "
+            "wrong kept | refused before fusion (joint tests) | anchors undone after fusion |",
+            "|" + "---|" * 5,
+        ]
+        for case, summ in fused:
+            e = summ["ekf"]
+            lines.append(
+                f"| {case} | {summ['seeds']} | {e['fused_right']} / {e['fused_right_undone']} / "
+                f"{e['fused_wrong_undone']} / {e['fused_wrong_kept']} | "
+                f"{e['refused_before_fusion']} | {e['undone_after_fusion']} |"
             )
     return "\n".join(lines)
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Literal
 
+from ekf_reference.anchor_watch import AnchorWatchParams
 from ekf_reference.known_gating import KnownGatingParams
 from ekf_reference.loops import LoopClosureParams
 from mapfuse_core.matching import AssociationConfig
@@ -77,8 +78,19 @@ class EKFConfig:
     baseline of ``docs/changes.md``)."""
     known_gating: KnownGatingParams = field(default_factory=KnownGatingParams)
     """Level, window and counts of that gate."""
+    anchor_watch: AnchorWatchParams | None = field(default_factory=AnchorWatchParams)
+    """*(choice, beyond the paper)* After a match is fused, test the known features'
+    innovations against it and undo an anchor they contradict: filtering goes back to
+    just before the fusion and runs again without that match, which CCDA may replace at
+    a later join (:mod:`ekf_reference.anchor_watch`).  ``None`` keeps every anchor
+    fused (the paper's method)."""
 
     def __post_init__(self) -> None:
+        if self.anchor_watch is not None and not isinstance(self.anchor_watch, AnchorWatchParams):
+            raise ValueError(
+                "anchor_watch must be an AnchorWatchParams or None, got "
+                f"{type(self.anchor_watch).__name__}"
+            )
         if not isinstance(self.known_gating, KnownGatingParams):
             raise ValueError(
                 f"known_gating must be a KnownGatingParams, got {type(self.known_gating).__name__}"

@@ -40,7 +40,7 @@ from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
 
-__all__ = ["KnownGate", "KnownGatingParams"]
+__all__ = ["KnownGate", "KnownGatingParams", "KnownOutcomes", "known_outcomes"]
 
 Targets = dict[ElementKind, tuple[list[int], FloatArray]]
 
@@ -73,6 +73,55 @@ class KnownGatingParams:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"known gating {name} must be an int >= 1, got {v!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class KnownOutcomes:
+    """What one association did with the known features among its targets."""
+
+    accepted: list[tuple[int, Candidate]]
+    """``(known id, pairing)`` of every pairing with a known feature, in query order."""
+    near_unpaired: list[int]
+    """Known ids, in order of first appearance, lying inside the pre-gate of a query of
+    their kind that was not paired with a known feature (a refused pairing: the query
+    failed the χ² test with it, or was paired with an estimated landmark)."""
+
+
+def known_outcomes(
+    state: GaussianMap,
+    queries: list[Query],
+    chosen: list[Candidate | None],
+    targets: Targets,
+    association: AssociationConfig,
+) -> KnownOutcomes:
+    """The pairings with known features of one association, and the known features it
+    passed by (:class:`KnownOutcomes`), from ``state`` before the pairings are applied."""
+    els = state.elements
+    accepted = [
+        (els[c.target].true_id, c)
+        for c in chosen
+        if c is not None and els[c.target].role == Role.KNOWN
+    ]
+    near_unpaired: dict[int, None] = {}
+    for q, c in zip(queries, chosen, strict=True):
+        if c is not None and els[c.target].role == Role.KNOWN:
+            continue
+        idx, preds = targets[q.kind]
+        known_rows = [r for r, t in enumerate(idx) if els[t].role == Role.KNOWN]
+        if not known_rows:
+            continue
+        known_t = [idx[r] for r in known_rows]
+        near = pregate(
+            q.kind.feature_kind(),
+            q.params,
+            q.extent,
+            preds[known_rows],
+            lambda r, ts=known_t: els[ts[r]].extent,  # type: ignore[misc]
+            association,
+        )
+        for r in near:
+            near_unpaired.setdefault(els[known_t[r]].true_id, None)
+    return KnownOutcomes(accepted, list(near_unpaired))
 
 
 class KnownGate:
@@ -125,37 +174,18 @@ class KnownGate:
         at ``step``, before its pairings are applied, and un-fuse what fails."""
         if step != self._step:
             self._step, self._touched, self._rejected_now = step, set(), set()
-        els = state.elements
-        for c in chosen:
-            if c is not None and els[c.target].role == Role.KNOWN:
-                kid = els[c.target].true_id
-                self._dofs[kid] = c.residual.size
-                self._touched.add(kid)
-                self._push(kid, c.d2)
-                self.accepted[kid] = self.accepted.get(kid, 0) + 1
-        for q, c in zip(queries, chosen, strict=True):
-            if c is not None and els[c.target].role == Role.KNOWN:
+        out = known_outcomes(state, queries, chosen, targets, self.association)
+        for kid, c in out.accepted:
+            self._dofs[kid] = c.residual.size
+            self._touched.add(kid)
+            self._push(kid, c.d2)
+            self.accepted[kid] = self.accepted.get(kid, 0) + 1
+        for kid in out.near_unpaired:
+            if kid in self._touched or kid in self._rejected_now:
                 continue
-            idx, preds = targets[q.kind]
-            known_rows = [r for r, t in enumerate(idx) if els[t].role == Role.KNOWN]
-            if not known_rows:
-                continue
-            known_t = [idx[r] for r in known_rows]
-            near = pregate(
-                q.kind.feature_kind(),
-                q.params,
-                q.extent,
-                preds[known_rows],
-                lambda r, ts=known_t: els[ts[r]].extent,  # type: ignore[misc]
-                self.association,
-            )
-            for r in near:
-                kid = els[known_t[r]].true_id
-                if kid in self._touched or kid in self._rejected_now:
-                    continue
-                self._rejected_now.add(kid)
-                self.rejected[kid] = self.rejected.get(kid, 0) + 1
-                self._push(kid, math.nan)
+            self._rejected_now.add(kid)
+            self.rejected[kid] = self.rejected.get(kid, 0) + 1
+            self._push(kid, math.nan)
         for kid in self._touched | self._rejected_now:
             if kid not in self.unfused and self._fails(kid):
                 self.unfused[kid] = step

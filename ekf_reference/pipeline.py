@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 from collections.abc import Callable
 
 import numpy as np
 
+from ekf_reference.anchor_watch import AnchorWatch, GateState, Verdict
 from ekf_reference.anchoring import (
     JOINTLY_INCONSISTENT,
     PAIRING_INCONSISTENT,
@@ -41,7 +43,7 @@ from ekf_reference.maps import (
     shared_in_global_frame,
     vehicle_in_global,
 )
-from ekf_reference.result import EKFDetails, LoopClosure
+from ekf_reference.result import EKFDetails, LoopClosure, UndoneAnchor
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.threads import single_threaded_blas
@@ -55,12 +57,49 @@ from mapfuse_core.estimate import (
     PoseTrack,
 )
 from mapfuse_core.evaluation.labels import landmark_labels
-from mapfuse_core.geometry.se2 import FloatArray, compose_jacobians, inverse_jacobian
-from mapfuse_core.matching import chi2_gate
+from mapfuse_core.geometry.se2 import (
+    FloatArray,
+    compose_jacobians,
+    inverse_jacobian,
+    wrap_angle,
+)
+from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult, ccda_match
 from mapfuse_core.measlog import MeasurementLog
 
-__all__ = ["JOINTLY_INCONSISTENT", "PAIRING_INCONSISTENT", "run_ekf"]
+__all__ = [
+    "ANCHOR_CONTRADICTED",
+    "JOINTLY_INCONSISTENT",
+    "PAIRING_INCONSISTENT",
+    "UNDONE_BEFORE",
+    "run_ekf",
+]
+
+ANCHOR_CONTRADICTED = "anchor contradicted"
+"""Outcome of a CCDA call whose match was fused and later undone by the anchor watch
+(:mod:`ekf_reference.anchor_watch`); the call is counted here instead of
+``"accepted"``."""
+UNDONE_BEFORE = "compatible with an undone anchor"
+"""Refusal reason of a match whose anchor is compatible (χ²₃ at ``gate_prob``, the
+two covariances summed) with one the anchor watch has undone."""
+
+_STATE = (
+    "tracks",
+    "obs_track",
+    "obs_known",
+    "global_map",
+    "local",
+    "ctx",
+    "tentative",
+    "anchor_step",
+    "anchor_pairings",
+    "loop_closures",
+    "gate",
+    "step",
+)
+"""Attributes of :class:`_Run` that filtering changes: what a snapshot keeps.  The
+matching counters (attempts, reasons, refusals, undone anchors) are not among them: a
+call made before an anchor is undone was made."""
 
 
 class _Run:
@@ -86,6 +125,17 @@ class _Run:
         if self.fusion and config.known_map_gating:
             self.gate = KnownGate(config.known_gating, config.data_association)
         self.step = 0
+        self.watch: AnchorWatch | None = None
+        """The anchor watch, from the fusion of a match (with ``config.anchor_watch``)."""
+        self.before_fusion: dict[str, object] | None = None
+        """Snapshot of the state just before the watched anchor was fused."""
+        self.fused_anchor: tuple[FloatArray, FloatArray] | None = None
+        """``x^Wknown'_Wglobal`` (centred known frame) and covariance of the watched
+        anchor when fused."""
+        self.undone: list[UndoneAnchor] = []
+        self.undone_poses: list[tuple[FloatArray, FloatArray]] = []
+        """The undone anchors' :attr:`fused_anchor`: matches compatible with one are
+        refused."""
 
     # ------------------------------------------------------------------ per step
 
@@ -109,8 +159,7 @@ class _Run:
         self.step = k
         targets = self._gated(loc, predict_all_targets(loc, lambda e: e.moving))
         chosen = associate(loc, queries, targets, self.config)
-        if self.gate is not None:
-            self.gate.record(k, loc, queries, chosen, targets)
+        self._record(k, loc, queries, chosen, targets)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is None:
                 continue
@@ -164,6 +213,20 @@ class _Run:
             # Carried features are shared with the global map and stay until the join.
             self.constrain_to_known(loc, lambda e: e.in_local and e.track in seen)
 
+    def _record(
+        self,
+        step: int,
+        state: GaussianMap,
+        queries: list[Query],
+        chosen: list[Candidate | None],
+        targets: Targets,
+    ) -> None:
+        """Hand one association's outcome to the known-map gate and the anchor watch."""
+        if self.gate is not None:
+            self.gate.record(step, state, queries, chosen, targets)
+        if self.watch is not None:
+            self.watch.record(step, state, chosen)
+
     def _gated(self, state: GaussianMap, targets: Targets) -> Targets:
         """``targets`` without the known features the gate has un-fused."""
         return targets if self.gate is None else self.gate.filter(state, targets)
@@ -191,8 +254,7 @@ class _Run:
             return
         targets = self._gated(state, predict_all_targets(state, lambda e: False))
         chosen = associate(state, queries, targets, self.config)
-        if self.gate is not None:
-            self.gate.record(self.step, state, queries, chosen, targets)
+        self._record(self.step, state, queries, chosen, targets)
         pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         if not pairs:
             return
@@ -298,8 +360,7 @@ class _Run:
                 keep = [r for r, t in enumerate(idx) if t not in used]
                 targets[kind] = ([idx[r] for r in keep], preds[keep])
         chosen = associate(joint, queries, targets, self.config)
-        if self.gate is not None:
-            self.gate.record(k, joint, queries, chosen, targets)
+        self._record(k, joint, queries, chosen, targets)
         new = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         apply(joint, [c for _, c in new])
         return pairs + new
@@ -442,6 +503,9 @@ class _Run:
             # Fused on a copy first: a match a test refuses leaves the map untouched.
             rerun_left = rerun < assoc.match_exclusions
             v = vet_match(self.global_map, feats, known, res, assoc, rerun_left)
+            if v.refusal is None and self._undone_before(v.trial, assoc):
+                self._count(UNDONE_BEFORE)
+                return
             if v.refusal is None:
                 self._fuse_match(k, feats, res, v)
                 return
@@ -455,13 +519,35 @@ class _Run:
             self.ccda_excluded.append((k, int(known.ids[jb])))
             feats = feats[:ia] + feats[ia + 1 :]
 
-    def _count(self, reason: str) -> None:
-        self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + 1
+    def _count(self, reason: str, n: int = 1) -> None:
+        self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + n
+        if self.ccda_reasons[reason] == 0:
+            del self.ccda_reasons[reason]
+
+    def _undone_before(self, trial: GaussianMap, assoc: AssociationConfig) -> bool:
+        """Whether the anchor fused in ``trial`` is compatible with an undone one."""
+        if not self.undone_poses:
+            return False
+        x, P = anchor_pose(trial)
+        gate = chi2_gate(assoc.gate_prob, 3)
+        for xu, Pu in self.undone_poses:
+            d = x - xu
+            d[2] = wrap_angle(d[2])
+            try:
+                d2 = float(d @ np.linalg.solve(P + Pu, d))
+            except np.linalg.LinAlgError:
+                d2 = 0.0  # no information to tell them apart: the same hypothesis
+            if d2 <= gate:
+                return True
+        return False
 
     def _fuse_match(self, k: int, feats: list[int], res: CCDAResult, v: Vetted) -> None:
         g, known = self.global_map, self.known
         trial, known_index, upd = v.trial, v.known_index, v.update
         self._count(res.reason)
+        params = self.config.anchor_watch
+        if params is not None:
+            self.before_fusion = self._snapshot()
         if not upd.converged:
             warnings.warn(
                 f"step {k}: the update with CCDA's {len(res.pairings)} pairings did not "
@@ -491,6 +577,62 @@ class _Run:
         self.anchor_pairings = pairings
         if self.gate is not None:
             self.gate.anchor_known = [kid for _, kid in pairings]
+        if params is not None:
+            self.watch = AnchorWatch(params)
+            self.fused_anchor = anchor_pose(g)
+
+    # ------------------------------------------------------------------ anchor watch
+
+    def _snapshot(self) -> dict[str, object]:
+        """A deep copy of the filtering state (:data:`_STATE`), aliasing kept."""
+        return copy.deepcopy({name: getattr(self, name) for name in _STATE})
+
+    def check_anchor(self, k: int) -> int | None:
+        """At the end of step ``k``: when the watch finds the anchor contradicted, undo
+        it and return the step whose join fused it (filtering resumes after it);
+        else ``None``."""
+        if self.watch is None:
+            return None
+        gate = None
+        if self.gate is not None:
+            gate = GateState(
+                paired=frozenset(self.gate.accepted),
+                unfused=frozenset(self.gate.unfused),
+                match=frozenset(self.gate.anchor_known),
+            )
+        verdict = self.watch.verdict(k, gate)
+        if verdict is None:
+            return None
+        return self._undo(k, verdict)
+
+    def _undo(self, k: int, verdict: Verdict) -> int:
+        """Go back to the state before the anchor's fusion, without it, and finish that
+        join (a new local map); the call that made it is counted as contradicted."""
+        assert self.before_fusion is not None
+        assert self.fused_anchor is not None
+        fused_at = self.anchor_step
+        x, P = self.fused_anchor
+        self.undone.append(
+            UndoneAnchor(
+                fused_at_step=fused_at,
+                undone_at_step=k,
+                test=verdict.test,
+                statistic=verdict.statistic,
+                threshold=verdict.threshold,
+                dof=verdict.dof,
+                x_Wknown_Wglobal=uncentred(x, self.known_centre),
+                cov=P,
+                pairings=tuple(self.anchor_pairings),
+            )
+        )
+        self.undone_poses.append((x, P))
+        self._count("accepted", -1)
+        self._count(ANCHOR_CONTRADICTED)
+        for name, value in self.before_fusion.items():
+            setattr(self, name, value)
+        self.before_fusion, self.fused_anchor, self.watch = None, None, None
+        self.local, self.ctx = new_local_map(self.global_map, self._carried(fused_at))
+        return fused_at
 
 
 @single_threaded_blas
@@ -518,22 +660,30 @@ def run_ekf(
     times = np.zeros(n)
     poses_known = np.full((n, 3), np.nan)
     covs_known = np.full((n, 3, 3), np.nan)
-    for k in range(n):
+    k, reported = 0, -1
+    while k < n:
         t0 = time.perf_counter()
         if k > 0:
             predict(run.local, log.odometry[k], log.odometry_cov[k])
         run.observe(k)
-        poses[k], covs[k] = vehicle_in_global(run.global_map, run.local, run.ctx)
-        if run.local.has(Role.ANCHOR):
-            a = run.local.find(Role.ANCHOR)
-            x, J = inverse_jacobian(run.local.mean[a])
-            poses_known[k] = uncentred(x, run.known_centre)
-            covs_known[k] = J @ run.local.block(a) @ J.T
+        first = k > reported
+        if first:
+            # A step filtered again after an anchor is undone keeps the output the
+            # filter gave the first time: what it knew then.
+            reported = k
+            poses[k], covs[k] = vehicle_in_global(run.global_map, run.local, run.ctx)
+            if run.local.has(Role.ANCHOR):
+                a = run.local.find(Role.ANCHOR)
+                x, J = inverse_jacobian(run.local.mean[a])
+                poses_known[k] = uncentred(x, run.known_centre)
+                covs_known[k] = J @ run.local.block(a) @ J.T
         if (k + 1) % config.local_map_steps == 0 or k == n - 1:
             run.join(k)
-        times[k] = time.perf_counter() - t0
-        if progress is not None:
+        resume = run.check_anchor(k)
+        times[reported] += time.perf_counter() - t0
+        if first and progress is not None:
             progress(k + 1, n)
+        k = k + 1 if resume is None else resume + 1
     return _result(log, config, run, poses, covs, poses_known, covs_known, times)
 
 
@@ -584,15 +734,14 @@ def _result(
             ccda_refused=tuple(run.ccda_refused),
             ccda_excluded=tuple(run.ccda_excluded),
             tentative_promoted=run.tentative.promoted,
+            anchors_undone=tuple(run.undone),
         ),
     )
 
 
-def _anchor(run: _Run) -> Anchor | None:
-    """The anchor ``x^Wknown_Wglobal`` at the end of the run, from the global map."""
-    g = run.global_map
-    if not g.has(Role.ANCHOR):
-        return None
+def anchor_pose(g: GaussianMap) -> tuple[FloatArray, FloatArray]:
+    """``x^Wknown'_Wglobal`` (the centred known frame) and its covariance, from a global
+    map with an anchor."""
     a = g.find(Role.ANCHOR)
     gb = g.find(Role.BASE)
     # x^Wknown_Wglobal = ⊖x^Wlocal_Wknown ⊕ x^Wlocal_Wglobal
@@ -600,9 +749,18 @@ def _anchor(run: _Run) -> Anchor | None:
     est, J1, J2 = compose_jacobians(inv, g.mean[gb])
     Jfull = np.hstack([J1 @ Ji, J2])
     P = g.marginal([a, gb])
+    return est, Jfull @ P @ Jfull.T
+
+
+def _anchor(run: _Run) -> Anchor | None:
+    """The anchor ``x^Wknown_Wglobal`` at the end of the run, from the global map."""
+    g = run.global_map
+    if not g.has(Role.ANCHOR):
+        return None
+    est, cov = anchor_pose(g)
     return Anchor(
         x_Wknown_Wglobal=uncentred(est, run.known_centre),
-        cov=Jfull @ P @ Jfull.T,
+        cov=cov,
         accepted_at_step=int(run.anchor_step),
         pairings=tuple(run.anchor_pairings),
     )

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ekf_reference.anchor_watch import Contradiction
 from ekf_reference.config import EKFConfig
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["EKFDetails", "LoopClosure"]
+__all__ = ["EKFDetails", "LoopClosure", "UndoneAnchor"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,6 +31,31 @@ class LoopClosure:
     """(3,) ``(dx, dy, dθ)``: how the registration moves the global map onto the local
     one, in the join's frame, about the centroid of the global inliers (m, m, rad).
     ``dθ`` of one sign on every closure means a systematic drift (e.g. a sensor's yaw)."""
+
+
+@dataclass(frozen=True, eq=False)
+class UndoneAnchor:
+    """An anchor the anchor watch found contradicted after its fusion, and undid
+    (:mod:`ekf_reference.anchor_watch`)."""
+
+    fused_at_step: int
+    """Step whose join fused the match; filtering went back to just before it."""
+    undone_at_step: int
+    """Step at whose end the watch found it contradicted."""
+    test: Contradiction
+    """The test that contradicted it."""
+    statistic: float
+    """That test's value (summed NIS, known features passed by, or pairings un-fused)."""
+    threshold: float
+    """What the statistic exceeded."""
+    dof: int
+    """Degrees of freedom of the summed NIS (0 for the counting tests)."""
+    x_Wknown_Wglobal: FloatArray
+    """(3,) the anchor as fused."""
+    cov: FloatArray
+    """(3, 3) its covariance as fused."""
+    pairings: tuple[tuple[int, int], ...]
+    """The match's pairings, as :attr:`mapfuse_core.estimate.Anchor.pairings`."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,3 +87,7 @@ class EKFDetails:
     tentative_promoted: int = 0
     """Tentative features promoted to the map (``config.tentative_min_sightings`` > 1);
     those dropped are the result's ``tentative_dropped``."""
+    anchors_undone: tuple[UndoneAnchor, ...] = ()
+    """Anchors the watch undid, in order (``config.anchor_watch``); each one's CCDA call
+    is counted in ``matching.reasons`` as ``"anchor contradicted"``, and later matches
+    compatible with it as ``"compatible with an undone anchor"``."""

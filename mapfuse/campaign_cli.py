@@ -215,6 +215,10 @@ def _cmd_world_generate(args: argparse.Namespace) -> int:
             shape=args.shape,
             known_fraction=args.known_fraction,
             changes=args.changes,
+            tree_radius_min_m=args.tree_radius[0],
+            tree_radius_max_m=args.tree_radius[1],
+            tree_clearance_min_m=args.tree_clearance[0],
+            tree_clearance_max_m=args.tree_clearance[1],
         )
         base = load_scenario(args.base)
     out = check_out_file(args)
@@ -294,6 +298,23 @@ def add_world(sub: Any) -> None:
         default=d.changes,
         help="fraction of the known map changed since it was made: half moved, a "
         "quarter removed, a quarter added (seeded by --seed)",
+    )
+    gen.add_argument(
+        "--tree-radius",
+        type=float,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        default=(d.tree_radius_min_m, d.tree_radius_max_m),
+        help="range of the trunk radii, m",
+    )
+    gen.add_argument(
+        "--tree-clearance",
+        type=float,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        default=(d.tree_clearance_min_m, d.tree_clearance_max_m),
+        help="no trunk nearer the drive than MIN; the gap to where it is placed is drawn "
+        "in [MIN + 0.5, MAX], m",
     )
     gen.add_argument(
         "--base",

@@ -176,7 +176,9 @@ def test_ekf_refuses_a_jointly_inconsistent_match_counts_it_and_anchors_without_
     # in the match: only its exclusion gives a correct anchor at the refusal's step.
     swap = _Swapping(persistent=exclusions > 0 and joint_test)
     monkeypatch.setattr(pipeline, "ccda_match", swap)
-    cfg = EKFConfig()
+    # The joint test alone: the anchor watch would undo the wrong match fused without
+    # it later in the run (tests/test_anchor_watch.py).
+    cfg = EKFConfig(anchor_watch=None)
     assoc = dataclasses.replace(
         cfg.data_association, match_joint_test=joint_test, match_exclusions=exclusions
     )

@@ -50,14 +50,22 @@ def _moved(ids: tuple[int, ...], dx: float) -> MeasurementLog:
     return _with_params(log, p)
 
 
-@functools.lru_cache(maxsize=4)
-def _run(name: str, gating: bool = True) -> EstimatorResult:
+def scenario_log(name: str) -> MeasurementLog:
+    """The log of one of the gate's scenarios: the map unchanged, the circles met after
+    the anchor moved 0.4 m, or CCDA's matched features shifted 0.5 m."""
     logs = {
         "unchanged": _log,
         "later_moved": lambda: _moved(LATER, 0.4),
         "matched_shifted": lambda: _moved(MATCHED, 0.5),
     }
-    return run_ekf(logs[name](), EKFConfig(known_map_gating=gating))
+    return logs[name]()
+
+
+@functools.lru_cache(maxsize=4)
+def _run(name: str, gating: bool = True) -> EstimatorResult:
+    # Without the anchor watch: these tests are about the gate alone
+    # (tests/test_anchor_watch.py runs the same scenarios with it).
+    return run_ekf(scenario_log(name), EKFConfig(known_map_gating=gating, anchor_watch=None))
 
 
 def _decisions(res: EstimatorResult) -> AssociationDecisions:

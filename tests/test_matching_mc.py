@@ -82,3 +82,31 @@ def test_recording_restores_the_estimators_ccda(mc: ModuleType) -> None:
     with mc.recording(calls):
         assert getattr(ekf_reference.pipeline, "ccda_match") is not ccda.ccda_match  # noqa: B009
     assert getattr(ekf_reference.pipeline, "ccda_match") is ccda.ccda_match  # noqa: B009
+
+
+def test_every_fused_match_is_judged_and_the_checks_counted(mc: ModuleType) -> None:
+    # The constructed runs of tests/test_anchor_watch.py: a wrong match refused by the
+    # joint test before fusion, and one fused without it and undone by the watch.
+    from tests.test_anchor_watch import _log, _run
+
+    refused = mc.judge_fused(_log(), _run(joint_test=True, watch=True))
+    assert refused == {
+        "fused_right": 1,
+        "fused_right_undone": 0,
+        "fused_wrong_kept": 0,
+        "fused_wrong_undone": 0,
+        "refused_before_fusion": 1,
+        "undone_after_fusion": 0,
+    }
+    undone = mc.judge_fused(_log(), _run(joint_test=False, watch=True))
+    assert undone == {
+        "fused_right": 1,
+        "fused_right_undone": 0,
+        "fused_wrong_kept": 0,
+        "fused_wrong_undone": 1,
+        "refused_before_fusion": 0,
+        "undone_after_fusion": 1,
+    }
+    kept = mc.judge_fused(_log(), _run(joint_test=False, watch=False))
+    assert (kept["fused_wrong_kept"], kept["fused_right"]) == (1, 0)
+    assert mc.judge_fused(_log(), "RuntimeError: boom")["fused_right"] == 0

@@ -48,6 +48,33 @@ def test_features_keep_their_clearance_from_the_path() -> None:
         assert worldgen._dist_to(worldgen._segment_points(p1, p2), path).min() >= 4.0
 
 
+def test_trees_take_the_asked_radii_and_clearances() -> None:
+    # Large trunks close to the drive: every radius and every gap to the path within
+    # the asked ranges (the gap to the nearest path point: another stretch of the path
+    # may be nearer than where the tree was placed, never nearer than the minimum).
+    params = WorldParams(
+        seed=1,
+        walls=4,
+        trees=30,
+        loop_length_m=300.0,
+        tree_radius_min_m=0.6,
+        tree_radius_max_m=1.2,
+        tree_clearance_min_m=1.5,
+        tree_clearance_max_m=4.0,
+    )
+    rng = np.random.default_rng(2)
+    path = worldgen._path(params, rng)
+    _, trees = worldgen._place(params, rng, path)
+    radii = np.array([r for _, r in trees])
+    gaps = np.array([worldgen._dist_to(c[None], path)[0] - r for c, r in trees])
+    assert np.all((radii >= 0.6) & (radii <= 1.2))
+    assert np.all((gaps >= 1.5) & (gaps <= 4.0 + 0.05))
+    # The defaults are loop600's trees, drawn as before the ranges were arguments.
+    d = WorldParams(seed=0)
+    assert (d.tree_radius_min_m, d.tree_radius_max_m) == (0.3, 0.8)
+    assert (d.tree_clearance_min_m, d.tree_clearance_max_m) == (3.6, 14.6)
+
+
 def test_known_fraction_holds_features_near_the_start_and_about_the_asked_share() -> None:
     sc = generate_scenario(WorldParams(seed=3, loop_length_m=600.0, known_fraction=0.5))
     assert len(sc.known_map.world_ids) >= round(0.5 * 57)
@@ -61,6 +88,11 @@ def test_known_fraction_holds_features_near_the_start_and_about_the_asked_share(
         ({"known_fraction": 1.5}, "known_fraction"),
         ({"loop_length_m": 30.0}, "loop_length_m must be"),
         ({"walls": 0, "trees": 0}, "at least one"),
+        ({"tree_radius_min_m": 0.0}, "tree_radius_min_m must be"),
+        ({"tree_radius_min_m": 1.0, "tree_radius_max_m": 0.9}, "tree_radius_max_m"),
+        ({"tree_clearance_min_m": 0.5}, "tree_clearance_min_m must be"),
+        ({"tree_clearance_min_m": 4.0, "tree_clearance_max_m": 4.2}, r"\+ 0.5"),
+        ({"tree_clearance_max_m": math.inf}, "tree_clearance_max_m must be"),
     ],
 )
 def test_bad_generator_arguments_are_named(kwargs: dict[str, object], message: str) -> None:
@@ -83,6 +115,17 @@ def test_cli_world_generate_writes_a_file_the_loader_reads(tmp_path: Path) -> No
     sc = load_scenario(out)
     assert sc.name == "world-corridor-4"
     assert len(sc.world.circles) == 10
+
+
+def test_cli_world_generate_takes_the_tree_ranges(tmp_path: Path) -> None:
+    out = tmp_path / "w.toml"
+    args = ["world", "generate", "--seed", "2", "--walls", "3", "--trees", "10"]
+    args += ["--tree-radius", "1.0", "1.5", "--tree-clearance", "2", "3", "--out", str(out)]
+    assert main(args) == 0
+    radii = [c.radius for c in load_scenario(out).world.circles]
+    assert len(radii) == 10
+    assert min(radii) >= 1.0
+    assert max(radii) <= 1.5
 
 
 def test_every_shape_is_listed() -> None:

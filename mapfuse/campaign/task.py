@@ -141,6 +141,9 @@ def _row_and_arrays(run: Run) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         "accepted_at_step": None if a is None else a.accepted_at_step,
         "pairings": None if a is None else a.pairings,
         "wrong_pairings": None if a is None else a.pairings - a.correct_pairings,
+        "ccda_reasons": None
+        if metrics.matching.ccda_reasons is None
+        else dict(metrics.matching.ccda_reasons),
         "map_features": metrics.map.features,
         "matched_known": metrics.map.matched_known,
         "runtime_s": metrics.runtime.total,
@@ -164,9 +167,10 @@ def run_seed(
     ``heading_rmse_rad``, ``nees_mean``, ``nees_within`` (fraction of steps with NEES ≤
     χ²(3, 0.95)), ``anchor`` (whether one was accepted), ``anchor_m``, ``anchor_rad``,
     ``anchor_nees``, ``accepted_at_step``, ``pairings``, ``wrong_pairings``,
-    ``map_features``, ``matched_known``, ``runtime_s`` (the estimator's summed step
-    times), ``scenario`` (the log's).  Every value but ``runtime_s`` depends on the
-    spec and the seed alone.
+    ``ccda_reasons`` (the map matchings behind the anchor, calls per outcome, as in
+    ``metrics.json``; ``None`` without), ``map_features``, ``matched_known``,
+    ``runtime_s`` (the estimator's summed step times), ``scenario`` (the log's).  Every
+    value but ``runtime_s`` depends on the spec and the seed alone.
     """
     t0 = clock()
     with plugins_registered(spec.plugins):

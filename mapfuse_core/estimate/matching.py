@@ -16,8 +16,12 @@ class MatchAttempts:
     """CCDA calls."""
     reasons: Mapping[str, int]
     """Calls per outcome: a :data:`mapfuse_core.matching.ccda.REASONS` entry
-    (``"accepted"``, ``"ambiguous"``, ``"search_limit"``, ...), or ``"anchor refused"``
-    for an accepted match the estimator's own anchor check turned down."""
+    (``"accepted"``, ``"ambiguous"``, ``"search_limit"``, ...), or the estimator's own
+    verdict on a match CCDA accepted: refused before fusion (the EKF's
+    ``"jointly inconsistent"``, ``"a pairing inconsistent with the others"``,
+    ``"compatible with an undone anchor"``; the graph's ``"anchor refused"``), or fused
+    and undone later (the EKF's ``"anchor contradicted"``).  Each call has one
+    outcome."""
 
     @property
     def search_limit(self) -> int:

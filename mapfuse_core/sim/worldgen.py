@@ -14,10 +14,14 @@ Shapes (the path before scaling to ``loop_length_m``):
   its width (the drive crosses itself once);
 * ``corridor`` — a long, thin stadium: two straights joined by half circles of 12 m.
 
-Placement: every tree is at least ``3.6 m + its radius`` from the path and 1.5 m from
-other trees; every wall at least 4 m from the path and 1 m from other walls and
-trees.  The known map holds every feature within 40 m of the start (so a match can
-be made early), then random others up to ``known_fraction`` of all features.
+Placement: a tree's radius is drawn from ``[tree_radius_min_m, tree_radius_max_m]``
+and the gap between its trunk and the path point it is placed beside from
+``[tree_clearance_min_m + 0.5, tree_clearance_max_m]``, both uniformly; no trunk is
+nearer any point of the path than ``tree_clearance_min_m``, nor 1.5 m from another
+trunk (by default radii 0.3–0.8 m and gaps 4.1–14.6 m with a clearance of 3.6 m:
+loop600's trees).  Every wall is at least 4 m from the path and 1 m from other walls
+and trees.  The known map holds every feature within 40 m of the start (so a match
+can be made early), then random others up to ``known_fraction`` of all features.
 
 Changes (``changes``, a fraction of the known map, drawn from a stream of its own so
 the layout does not depend on it): half of them moved by 0.3–5 m in a random
@@ -43,7 +47,8 @@ __all__ = ["SHAPES", "WorldParams", "generate_scenario", "world_toml"]
 #: Path shapes the generator draws.
 SHAPES = ("loop", "figure8", "corridor")
 
-_TREE_CLEARANCE_M = 3.6
+_MIN_TREE_CLEARANCE_M = 1.0
+_TREE_GAP_MARGIN_M = 0.5
 _WALL_CLEARANCE_M = 4.0
 _KNOWN_RADIUS_M = 40.0
 _MIN_TURN_RADIUS_M = 8.0
@@ -70,6 +75,16 @@ class WorldParams:
     """Fraction of the features in the known map (at least those near the start)."""
     changes: float = 0.0
     """Fraction of the known map changed since it was made (moved, removed, added)."""
+    tree_radius_min_m: float = 0.3
+    """Smallest trunk radius (m)."""
+    tree_radius_max_m: float = 0.8
+    """Largest trunk radius (m)."""
+    tree_clearance_min_m: float = 3.6
+    """No trunk is nearer the path than this (m), at least 1 m: the vehicle drives
+    beside the trees, not through them."""
+    tree_clearance_max_m: float = 14.6
+    """Largest gap between a trunk and the path point it is placed beside (m), at least
+    0.5 m more than :attr:`tree_clearance_min_m`."""
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
@@ -90,11 +105,25 @@ class WorldParams:
             raise ValueError(f"known_fraction must be in [0, 1], got {self.known_fraction}")
         if not (math.isfinite(self.changes) and 0.0 <= self.changes <= 1.0):
             raise ValueError(f"changes must be in [0, 1], got {self.changes}")
+        self._check_range("tree_radius", 0.0, False, 0.0)
+        self._check_range("tree_clearance", _MIN_TREE_CLEARANCE_M, True, _TREE_GAP_MARGIN_M)
         if self.shape == "corridor" and self.loop_length_m <= 2 * math.pi * _CORRIDOR_RADIUS_M:
             raise ValueError(
                 f"a corridor needs loop_length_m > {2 * math.pi * _CORRIDOR_RADIUS_M:.0f} m "
                 f"(its two {_CORRIDOR_RADIUS_M:.0f} m turns), got {self.loop_length_m}"
             )
+
+    def _check_range(self, name: str, floor: float, floor_allowed: bool, margin: float) -> None:
+        """``{name}_min_m + margin ≤ {name}_max_m``, both finite and above ``floor``."""
+        lo, hi = getattr(self, f"{name}_min_m"), getattr(self, f"{name}_max_m")
+        for key, v in ((f"{name}_min_m", lo), (f"{name}_max_m", hi)):
+            ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            if not ok or v < floor or (v == floor and not floor_allowed):
+                bound = ">=" if floor_allowed else ">"
+                raise ValueError(f"{key} must be a finite number {bound} {floor:g}, got {v!r}")
+        if lo + margin > hi:
+            more = f" + {margin:g}" if margin else ""
+            raise ValueError(f"{name}_max_m ({hi}) must be >= {name}_min_m ({lo}){more}")
 
 
 def _unit_curve(params: WorldParams, rng: np.random.Generator, n: int) -> FloatArray:
@@ -218,10 +247,12 @@ def _place(
     for _ in range(params.trees):
         for _attempt in range(400):
             i = int(rng.integers(path.shape[0]))
-            r = float(rng.uniform(0.3, 0.8))
-            d = _TREE_CLEARANCE_M + r + float(rng.uniform(0.5, 11.0))
+            r = float(rng.uniform(params.tree_radius_min_m, params.tree_radius_max_m))
+            lo, hi = params.tree_clearance_min_m, params.tree_clearance_max_m
+            d = lo + r + float(rng.uniform(_TREE_GAP_MARGIN_M, hi - lo))
             c = path[i] + rng.choice([-1.0, 1.0]) * d * normal[i]
-            if _dist_to(c[None], path)[0] < _TREE_CLEARANCE_M + r:
+            # Nearer another stretch of the path than the clearance: draw again.
+            if _dist_to(c[None], path)[0] < lo + r:
                 continue
             if any(np.hypot(*(c - q)) < r + rq + 1.5 for q, rq in trees):
                 continue
