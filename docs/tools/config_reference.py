@@ -347,7 +347,14 @@ def _markdown(rst: str) -> str:
     text = _ROLE.sub(_role, rst)
     text = text.replace("``", "`")
     text = " ".join(text.split())
-    return text.replace("|", "\\|")
+    return _escape_pipes(text)
+
+
+def _escape_pipes(text: str) -> str:
+    """``|`` escaped outside code spans (a table cell ends there); inside them the table
+    reader leaves it alone, and an escape would show."""
+    parts = text.split("`")
+    return "`".join(p if i % 2 else p.replace("|", "\\|") for i, p in enumerate(parts))
 
 
 _SENTENCE_END = re.compile(r"(?<=[.!?])\s+(?=[A-Z0-9*`(\"“])")
@@ -404,7 +411,7 @@ def _value(value: Any, name: str) -> str:
         return f"`{_number(value, name)}`"
     if isinstance(value, tuple) and all(isinstance(v, float) for v in value):
         return "`(" + ", ".join(_number(v, "") for v in value) + ")`"
-    return f"`{value!r}`".replace("|", "\\|")
+    return f"`{value!r}`"
 
 
 def section(sec: Section) -> str:
