@@ -6,7 +6,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 DATA   ?= ../shared/data
 OUT    ?= out/loop600
-# Small dense matrices: multi-threaded BLAS only adds contention (docs/performance.md),
+# Small dense matrices: multi-threaded BLAS only adds contention (docs/results/performance.md),
 # so every target runs single-threaded BLAS.
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1

@@ -2,7 +2,7 @@
 EKF's loop closures (prints JSON).
 
 Not a speed benchmark: the study behind ``VICTORIA_PARK_ODOMETRY_NOISE`` and
-``VictoriaParkOptions.bearing_offset_rad`` (``docs/victoria-park-calibration.md``).  For
+``VictoriaParkOptions.bearing_offset_rad`` (``docs/results/victoria-park-calibration.md``).  For
 each setting the whole run goes through the EKF as ``mapfuse run victoria-park`` runs it
 (``mapfuse.runner.run``; without fusion, which is the same on a log with no known map), and the
 rotations of its loop closures (``EKFDetails.loop_closures``) are summarised.  Anything

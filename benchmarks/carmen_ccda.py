@@ -7,7 +7,7 @@ the accepted match's pairings judged against the reference labels (``same_wall``
 a collinear piece of the labelled wall counts as right), the anchor's error, position
 RMSE / max against the reference, mean pose NEES and CPU time.  A summary line per
 log follows.  ``--line-gap M`` replaces the association's ``line_gap_m``
-(``docs/carmen.md`` gives the sweep).
+(``docs/results/carmen.md`` gives the sweep).
 
     PYTHONPATH=. python benchmarks/carmen_ccda.py --seeds 0 8
 """

@@ -1,5 +1,5 @@
 """Change detection on a real CARMEN log, with its floor plan as built and with known
-changes made to the plan (``docs/carmen.md``).
+changes made to the plan (``docs/results/carmen.md``).
 
 The plan is built from the log's own scans along the reference trajectory, so every
 wall in it stands.  Three EKF runs with fusion, each classified with the log's own

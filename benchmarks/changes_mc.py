@@ -1,4 +1,4 @@
-"""Change detection and fused accuracy over seeds (``docs/changes.md``).
+"""Change detection and fused accuracy over seeds (``docs/results/changes.md``).
 
 For every seed: loop600 cut to ``--steps`` steps, once with its known map and once
 with ``--moved``/``--removed``/``--added`` of it changed (moves 0.3–5 m, lines turned
@@ -11,7 +11,7 @@ its un-fuse step).  ``--map-sigma`` replaces the known map's σ (a better survey
 change smaller than the map's own noise cannot be told from it).  The ungated run is
 made only when the gate un-fused something: until then the two runs are the same.
 ``--assoc`` changes the EKF's association settings (the match's tests and re-runs,
-``docs/changes-worlds.md``).  ``--oracle`` also runs the changed map's
+``docs/results/changes-worlds.md``).  ``--oracle`` also runs the changed map's
 log with its changed features struck from the known map: the RMSE a fusion that knew
 which entries are wrong would reach.  ``--graph NAME`` also runs that graph backend
 (``batch``, ``isam2``, ``fixedlag``) on each gated EKF run's decisions and records its

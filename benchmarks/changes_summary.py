@@ -1,4 +1,4 @@
-"""Summarise ``benchmarks/changes_mc.py`` output (``docs/changes.md``).
+"""Summarise ``benchmarks/changes_mc.py`` output (``docs/results/changes.md``).
 
 Move significance is re-derived from the regenerated changes (lines: across the
 line or turned), so it matches :meth:`ChangeTruth.significant_move`.

@@ -12,7 +12,7 @@ estimator then runs, with and without fusion, on two versions of the same log:
   drawn again).
 
 The difference between the two is the part of the estimators' NEES that the circle
-extraction's bias causes (``docs/known-gaps.md``: trunks are measured slightly too
+extraction's bias causes (``docs/results/known-gaps.md``: trunks are measured slightly too
 close and too thin).  Output: one JSON line per seed, estimator, fusion and version
 (``--out``), then a JSON summary on stdout with the ANEES over the runs, the fraction of
 steps inside its two-sided 95 % bounds, and the anchor ANEES with its bounds.

@@ -17,7 +17,7 @@ Groups of logs (``--groups``):
   to act;
 * ``survey``: the generator's default worlds (a 600 m loop, 12 walls, 45 trees, an
   80 m laser) with ``--changes`` of the known map out of date, one per seed of
-  ``--survey-seeds``: the conditions of ``docs/changes-worlds.md`` (its world seeds,
+  ``--survey-seeds``: the conditions of ``docs/results/changes-worlds.md`` (its world seeds,
   simulated here with the world's seed).
 
 Per run: position RMSE and maximum, the NEES of every step, the anchor's error, NEES

@@ -141,7 +141,7 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     target's reference point along its line never enters.  A measurement's noise is
     the model's (:func:`mapfuse_core.models.dispatch.pairing_cov`: its covariance with the
     along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
-    covariance is in the map, so its pairing has none.  docs/models.md says why the
+    covariance is in the map, so its pairing has none.  docs/method.md says why the
     segment form.
     """
     pred, tidx, tJ = _target_jacobian(state, t)

@@ -35,7 +35,7 @@ class EKFConfig:
     joined are dropped (marginalised out) instead of joining the global map, and their
     observations become unassociated (−1).  1 keeps every feature; 2 drops the trunks
     seen in a single scan, which keeps the global map (and every join's O(F²) cost) to
-    the trees that were tracked (``docs/configuration.md``)."""
+    the trees that were tracked (``docs/results/ekf-options.md``)."""
     tentative_min_sightings: int = 1
     """*(choice, beyond the paper)* A new feature joins the map only once seen on this
     many distinct steps within :attr:`tentative_window_steps` of its birth; until then
@@ -57,7 +57,7 @@ class EKFConfig:
     carried (new local features are, at every step); an estimated duplicate of a known
     feature then keeps its observations.  With fusion it bounds the maximum error more
     often at about the same consistency; without fusion it makes the EKF less
-    consistent, towards one local map for the whole run (``docs/configuration.md``,
+    consistent, towards one local map for the whole run (``docs/results/ekf-options.md``,
     ``benchmarks/mc_loop600.py``).  Not combinable with :attr:`loop_closure`."""
 
     loop_closure: LoopClosureParams | None = None
@@ -75,7 +75,7 @@ class EKFConfig:
     """*(choice, beyond the paper)* Watch every known feature's pairings and stop fusing
     one that keeps failing its χ² tests (:mod:`ekf_reference.known_gating`); ``False``
     fuses every pairing the association's gate lets through (the paper's fusion, the
-    baseline of ``docs/changes.md``)."""
+    baseline of ``docs/results/changes.md``)."""
     known_gating: KnownGatingParams = field(default_factory=KnownGatingParams)
     """Level, window and counts of that gate."""
     anchor_watch: AnchorWatchParams | None = field(default_factory=AnchorWatchParams)

@@ -5,7 +5,7 @@ join, with the feature seen through the anchor) already passes the association's
 individual χ² gate (``AssociationConfig.gate_prob``).  A feature moved by less than
 the gate width passes it too, and is then fused as if right.  The gate here watches
 each known feature over time and takes it out of the fusion once it is found
-inconsistent (``docs/changes.md`` says why this mechanism):
+inconsistent (``docs/change-detection.md`` says why this mechanism):
 
 * **Running test of the accepted pairings.**  Under the hypothesis "the feature is
   where the map says", the Mahalanobis distances ``d²`` of its accepted pairings are

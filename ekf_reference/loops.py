@@ -8,7 +8,7 @@ believes their relative heading to a fraction of a degree, so only a few of its 
 are paired and the rest become a second copy of trees already mapped, which the run
 then follows.  A drift that the filter's white-noise models cannot represent shows up
 as closures that all turn the same way; that sign is what calibrates Victoria Park's
-sideways slip (``VICTORIA_PARK_ODOMETRY_NOISE``).  ``docs/victoria-park-calibration.md``
+sideways slip (``VICTORIA_PARK_ODOMETRY_NOISE``).  ``docs/results/victoria-park-calibration.md``
 gives the measured cases.  The closures are in ``EKFResult.loop_closures``.
 
 The registration here finds the rigid motion that puts the most local circle centres

@@ -2,7 +2,7 @@
 
 The filter works on small dense matrices, where more BLAS threads only contend for
 the cores: six times the CPU time on loop600 on a 2-core machine
-(docs/performance.md).  The limit is set around each run and the caller's setting
+(docs/results/performance.md).  The limit is set around each run and the caller's setting
 comes back after it, so a notebook or a script runs as fast as the ``mapfuse``
 command without setting anything.  (:mod:`mapfuse_graph` has its own copy: the two
 packages share only :mod:`mapfuse_core`, which depends on numpy and scipy alone.)

@@ -1,4 +1,4 @@
-"""CARMEN logs as run inputs: ``carmen:PATH.log[.gz]`` and its known map (``docs/carmen.md``).
+"""CARMEN logs as run inputs: ``carmen:PATH.log[.gz]`` and its known map (``docs/real-data.md``).
 
 The same steps for every CARMEN log, with no per-file setting: the log is read with
 :func:`~mapfuse_core.data.datasets.load_carmen`'s defaults (the ``indoor_sick``

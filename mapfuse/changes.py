@@ -8,7 +8,7 @@ the pose estimated from the whole log, so the evidence of a feature seen early i
 as good as that of one seen late, and the pose covariance entering the test is the
 smaller smoothed one: the graph's tests are sharper, and the pull of the tested
 known feature on the trajectory it is tested with acts over the whole run
-(``docs/changes.md``).
+(``docs/change-detection.md``).
 """
 
 from __future__ import annotations
@@ -148,7 +148,7 @@ def change_report_lines(
         "",
         "## Known-map changes",
         "",
-        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/changes.md`).",
+        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/change-detection.md`).",
         "",
         "| " + " | ".join(head) + " |",
         "| " + " | ".join(["---"] * len(head)) + " |",

@@ -4,7 +4,7 @@ A log whose scenario name has a profile runs each estimator with the profile's
 overrides of the estimator's defaults (``options_type()``); any other log runs with
 the defaults.  A key ending in ``:`` names a family of logs by prefix (``carmen:``, every
 CARMEN log, whatever its file).  Why each Victoria Park setting is what it is:
-``docs/victoria-park.md``; the CARMEN one: ``docs/carmen.md``.
+``docs/results/victoria-park.md``; the CARMEN one: ``docs/real-data.md``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""GTSAM factors of the mapfuse measurement models (docs/method.md §7, docs/models.md).
+"""GTSAM factors of the mapfuse measurement models (docs/method.md §7, docs/method.md).
 
 Every residual is a model of :mod:`mapfuse_core.models` (the EKF's own); this module
 only chooses the landmark variables, chains the Jacobians and converts them to GTSAM's
@@ -53,7 +53,7 @@ Python callback for each of them on every linearisation.  Going through the mode
 (``line_from_normal``, ``line_observation``, ``to_body``: about 20 small numpy arrays
 and several matrix products per call) costs several times more per call than the same
 numbers computed from the five scalars ``(x, y, θ, ρ, α)`` (``benchmarks/bench_graph.py``,
-docs/models.md).  So :func:`line_factor` and :func:`circle_factor` hand GTSAM the
+docs/method.md).  So :func:`line_factor` and :func:`circle_factor` hand GTSAM the
 closed forms of :func:`line_observation_error` and :func:`circle_observation_error`
 with the pose Jacobian already in the body tangent.  They are not a second model: the
 tests (``test_*_factor_is_the_shared_model``) check on hypothesis-generated inputs,

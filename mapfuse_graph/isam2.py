@@ -45,7 +45,7 @@ _DIMS = {"x": 3, "l": 2, "c": 3, "k": 2, "q": 3, "a": 3}
 # only through position × angle cross terms: 25 cm × 10 mrad = 2.5 mm, and the angle-only
 # term is ½ (10 mrad)² × a 50 m lever arm = 2.5 mm, both a fraction of the observation
 # noise.  The lag they leave in the final estimate is removed by the final Gauss–Newton
-# step (``ISAM2Options.final_gauss_newton``); ``docs/performance.md`` gives the measured
+# step (``ISAM2Options.final_gauss_newton``); ``docs/results/performance.md`` gives the measured
 # cost and accuracy of these values against tighter ones.
 _POS_M = 0.25
 _ANG_RAD = 0.01
@@ -71,7 +71,7 @@ class ISAM2Options:
     ``k``/``q`` known lines/circles, ``a`` the anchor) a tuple of the variable's
     dimension.  The defaults (25 cm for positions, line distances and radii, 10 mrad for
     angles) keep the filtered estimates within a few hundredths of a σ of much tighter
-    thresholds while relinearising far fewer variables (``docs/performance.md``): a line
+    thresholds while relinearising far fewer variables (``docs/results/performance.md``): a line
     landmark seen
     from hundreds of poses costs hundreds of Python callbacks each time it is
     relinearised, and a long, sparsely observed trajectory that a loop closure shifts
@@ -100,11 +100,11 @@ class ISAM2Options:
       landmark) sits at the top of the tree, and the final Gauss–Newton step
       (:attr:`final_gauss_newton`) relinearises everything.  The filtered estimates stay
       close to the full check's, for a shorter ``ISAM2.update`` (measured in
-      ``docs/performance.md``).
+      ``docs/results/performance.md``).
     * Fixed-lag smoother: marginalising a variable freezes the linearisation of every
       factor it leaves behind, so a pose should not leave the window with a stale
       linearisation point; the full check costs the smoother no measurable time and
-      keeps its NEES lower (measured in ``docs/fixedlag.md``)."""
+      keeps its NEES lower (measured in ``docs/results/fixedlag.md``)."""
 
     factorization: str = "CHOLESKY"
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
@@ -118,7 +118,7 @@ class ISAM2Options:
     iSAM2's estimate.  iSAM2 keeps each variable's linearisation point until its delta
     passes the relinearisation threshold, so its estimate stops short of the optimum
     (further with the partial check, for a variable deep in the tree:
-    ``docs/performance.md``); one step from there, where the problem is nearly linear,
+    ``docs/results/performance.md``); one step from there, where the problem is nearly linear,
     lands on the batch optimum.  With
     ``final_marginals="relinearized"`` the step reuses the marginals' elimination, so it
     costs one back-substitution.  The filtered (per-step) estimates are iSAM2's alone

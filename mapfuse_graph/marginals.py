@@ -56,7 +56,7 @@ def tree_marginals(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict
     every variable's ``marginalCovariance`` re-eliminates the clique's conditional with
     its separator marginal for each variable, which costs an order of magnitude more
     where separators reach a few hundred dimensions (Victoria Park;
-    ``docs/performance.md``).
+    ``docs/results/performance.md``).
     """
     return bayes_tree_marginals(lin.eliminateMultifrontal(), dims)
 

@@ -62,7 +62,7 @@ class GraphOptions:
     and the zero centre–radius covariance, are those of the 3-vector form), no robust
     kernel (it would weigh the two parts apart), a fixed association and no known
     circles.  iSAM2 then eliminates 2- instead of 3-dimensional landmark blocks, for less
-    CPU (``docs/victoria-park.md``)."""
+    CPU (``docs/results/victoria-park.md``)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.data_association, AssociationConfig):

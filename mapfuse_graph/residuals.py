@@ -170,7 +170,7 @@ def known_line_prior_error(ra: FloatArray, known: FloatArray) -> tuple[FloatArra
     the residual is the offset of the surveyed point from the line ``(ρ, α)`` and the
     angle between them, the line model the EKF pairs a known wall with.  A Gaussian
     directly on ``(ρ, α)`` would linearise ``ρ`` about the foot of the origin, which
-    for a wall far from it bends the prior (docs/models.md).  Returns
+    for a wall far from it bends the prior (docs/method.md).  Returns
     ``(r (2,), ∂r/∂(ρ, α) (2×2))``.
     """
     f, JF = line_from_normal(float(ra[0]), float(ra[1]), 0.0)

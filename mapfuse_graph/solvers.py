@@ -2,7 +2,7 @@
 
 Both are driven so that no Python factor callback ever receives a ``Values`` that
 Python does not own (GTSAM's own optimizers deep-copy the ``Values`` on every
-callback; costs in ``docs/performance.md``):
+callback; costs in ``docs/results/performance.md``):
 
 * **batch** — Levenberg–Marquardt written here: ``graph.linearize(values)``, add
   ``√λ·I`` damping rows per variable, eliminate (multifrontal, COLAMD),

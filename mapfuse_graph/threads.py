@@ -2,7 +2,7 @@
 
 GTSAM's own algebra is Eigen's; the numpy algebra around it (marginals, covariances)
 works on small dense blocks, where more BLAS threads only contend for the cores
-(docs/performance.md).  The limit is set around each run
+(docs/results/performance.md).  The limit is set around each run
 and the caller's setting comes back after it, so a notebook or a script runs as fast
 as the ``mapfuse`` command without setting anything.  (:mod:`ekf_reference` has its
 own copy: the two packages share only :mod:`mapfuse_core`, which depends on numpy and

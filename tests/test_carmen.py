@@ -298,12 +298,12 @@ def _carmen_file(data_dir: Path, name: str) -> Path:
 
 _MIN_LINES_PER_SCAN = {"intel": 3.5, "csail": 3.0}
 """Lower bounds on lines per scan, about 10 % under the measured values in
-``docs/carmen.md`` (a margin for platform round-off in split decisions)."""
+``docs/results/carmen.md`` (a margin for platform round-off in split decisions)."""
 
 _NEES_RANGE = (0.6, 1.25)
 """Accepted mean line NEES per dof against the plan without its survey σ: the
 profile's model-error terms are set on Intel (mean near 1); CSAIL's smoother walls come
-out lower (``docs/carmen.md``)."""
+out lower (``docs/results/carmen.md``)."""
 
 
 @pytest.mark.realdata
@@ -359,7 +359,7 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
         err = relative(anchor_truth(raw.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
         anchor_m.append(math.hypot(err[0], err[1]))
         anchor_rad.append(abs(err[2]))
-    # Seeds 0-3 (docs/carmen.md): CCDA accepts on 4 (Intel) and 3 (CSAIL, seed 1
+    # Seeds 0-3 (docs/results/carmen.md): CCDA accepts on 4 (Intel) and 3 (CSAIL, seed 1
     # refuses every attempt) with every judged pairing correct; anchor errors
     # 0.17-0.37 m but CSAIL seed 0 (1.28 m, 2.5°, a match made late, at step 319, on a
     # map 3 m adrift); the median RMSE with the plan is 0.31 against 2.12 m (Intel) and

@@ -255,7 +255,7 @@ def test_real_csail_log_runs_end_to_end(
     )["metrics"]
     assert isinstance(m, dict)
     assert m["steps"] == 406
-    # docs/carmen.md: 3.61 m RMSE, 8.25 m max without the plan (seed 0); the bound is
+    # docs/results/carmen.md: 3.61 m RMSE, 8.25 m max without the plan (seed 0); the bound is
     # loose against round-off changing a split decision.
     assert m["position_error_m"]["rmse"] < 6.0
     assert m["nees"]["mean"] > 0.0

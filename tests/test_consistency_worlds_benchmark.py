@@ -41,7 +41,7 @@ def test_unbiased_circles_redraws_tree_observations_only_and_without_bias() -> N
     assert np.all(new.feat_params[trees] != log.feat_params[trees])
     before, after = _whitened(log, trees), _whitened(new, trees)
     n = trees.sum()
-    # As simulated, the radius errs by about -0.25 σ on average (docs/known-gaps.md);
+    # As simulated, the radius errs by about -0.25 σ on average (docs/results/known-gaps.md);
     # the standard error of a mean of n unit errors is 1/sqrt(n), about 0.06 here.
     assert before[:, 2].mean() < -3.0 / np.sqrt(n)
     assert np.all(np.abs(after.mean(axis=0)) < 3.5 / np.sqrt(n))

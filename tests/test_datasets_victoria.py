@@ -125,7 +125,7 @@ def test_victoria_calibration_keeps_trees_stiller(victoria: MeasurementLog, data
     """The tracking fit's steering zero, speed scale and latency (kept by default) bring
     the detections of a trunk two seconds apart closer together than the raw data; its
     laser yaw would bring them closer still, which is the sideways motion the default
-    odometry takes as slip instead (``docs/victoria-park-calibration.md``)."""
+    odometry takes as slip instead (``docs/results/victoria-park-calibration.md``)."""
     raw = load_victoria_park(
         data_dir,
         options=VictoriaParkOptions(

@@ -61,7 +61,7 @@ def test_infinite_lag_equals_batch_on_loop600() -> None:
     """Lag ∞ marginalises nothing: the final estimate is iSAM2's, which its final
     Gauss–Newton step puts at the batch optimum: bounds 0.01 mm, 1 µrad, 0.1 % of every
     pose's σ, variances within 0.1 % (measured values, 25–40× smaller, in
-    ``docs/fixedlag.md``)."""
+    ``docs/results/fixedlag.md``)."""
     log = loop600_log(0)
     fl = _fixedlag(log, INF, steps=300)
     bat = run_graph(log, "batch", fusion=True, association="truth", steps=300)
@@ -81,7 +81,7 @@ def test_zero_lag_filter_equals_isam2_filter_on_loop600() -> None:
     """Lag 0 keeps the newest pose and the map: its filtered estimate is iSAM2's except
     that past poses are never relinearised (the EKF's linearisation, where iSAM2 moves
     old poses' linearisation points): bounds 0.25 σ of iSAM2's filtered covariance at
-    any step, 0.05 σ on average, covariances within 5 % (``docs/fixedlag.md``).  Each
+    any step, 0.05 σ on average, covariances within 5 % (``docs/results/fixedlag.md``).  Each
     pose is final as soon as it is filtered."""
     log = loop600_log(0)
     fl = _fixedlag(log, 0.0, steps=300)
@@ -118,7 +118,7 @@ def test_infinite_lag_equals_isam2_on_a_synthetic_loop(partial: bool) -> None:
 
 def test_the_partial_relinearisation_check_is_isam2s_default_and_not_the_smoothers() -> None:
     """A pose leaves the smoother's window with the linearisation it has; the partial
-    check would let it leave stale (``docs/fixedlag.md``)."""
+    check would let it leave stale (``docs/results/fixedlag.md``)."""
     default = ISAM2Options()
     assert isam2_params(default, False).enablePartialRelinearizationCheck
     assert not isam2_params(default, False, smoother=True).enablePartialRelinearizationCheck

@@ -1,7 +1,7 @@
 """Fuzzing of the two inputs, scenario TOML and measurement logs: every mutated input
 either loads and runs (a valid result) or is refused with a one-line
 :class:`ScenarioError` / :class:`MeasurementLogError` naming the file (and the key);
-never another exception, never a hang (docs/input-validation.md).
+never another exception, never a hang (docs/results/input-validation.md).
 
 Each case is bounded in time twice: hypothesis's ``deadline`` and a ``SIGALRM`` timer
 that interrupts a case that does not return at all.  A case is a parse (milliseconds),

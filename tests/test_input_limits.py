@@ -1,6 +1,6 @@
 """Documented limits and load-time checks: seeds, steps and beams bounded before any
 allocation; logs with wrong dtypes, shapes or non-PSD covariances refused, naming the
-file, the array and the index (docs/input-validation.md)."""
+file, the array and the index (docs/conventions.md)."""
 
 from __future__ import annotations
 

@@ -120,7 +120,7 @@ def test_features_moved_after_the_anchor_are_unfused_and_never_fused_again():
 def test_rigid_shift_of_the_matched_part_moves_the_anchor_and_unfuses_the_rest():
     """CCDA's match made only of features moved by one offset is a shifted anchor: the
     anchor takes the offset, and the unmoved features seen later are the inconsistent
-    ones.  Without GPS nothing tells the two apart (docs/changes.md)."""
+    ones.  Without GPS nothing tells the two apart (docs/change-detection.md)."""
     res = _run("matched_shifted")
     assert res.anchor is not None
     kg = _gating(res)

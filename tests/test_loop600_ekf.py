@@ -9,7 +9,7 @@ odometry is white with its stated covariance.  ``tests/test_loop600_graph.py`` c
 the EKF with iSAM2's filtered estimates on the same inputs and the EKF's final
 association decisions.  Where the remaining gaps come from (the paper's local maps, the
 known-map draw, the autocorrelation of one run's NEES), with the per-seed and 40-seed
-figures, is in ``docs/known-gaps.md``.
+figures, is in ``docs/results/known-gaps.md``.
 """
 
 from __future__ import annotations

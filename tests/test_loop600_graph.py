@@ -109,7 +109,7 @@ def test_smoothing_is_more_accurate_than_filtering_pooled() -> None:
     # The target ratio is 0.7; the smoother's own covariance predicts about 0.85 on
     # this scenario (about 15 features in view per step leave the filter little to
     # gain from the future), so 0.7 is not expected; the bound guards against a
-    # regression (measured figures: docs/known-gaps.md).
+    # regression (measured figures: docs/results/known-gaps.md).
     assert pooled <= 0.9
 
 
@@ -224,7 +224,7 @@ def test_ekf_anchor_covariance_is_consistent_pooled() -> None:
     print(f"\nEKF anchor NEES per seed {[round(v, 1) for v in values]}")
     # Measured 2.5, 6.6, 0.7, 4.8, 4.1 (mean 3.7; the batch's 3.8).  A known wall's
     # residual measured at the wall's reference point instead of the observed segment
-    # gives 1.1, 11.8, 1.1, 2.9, 16.8 (mean 6.7; docs/models.md).
+    # gives 1.1, 11.8, 1.1, 2.9, 16.8 (mean 6.7; docs/results/models.md).
     assert float(np.mean(values)) <= ANCHOR_NEES_MEAN_BOUND
 
 
@@ -233,7 +233,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     """Each known wall is observed thousands of times.  A pairing residual that depends
     on where the wall's reference point lies along it (the anchor's translation along
     the wall is uncertain) piles up information no wall holds; the line model measures
-    the observed segment's offset from the wall instead (docs/models.md)."""
+    the observed segment's offset from the wall instead (docs/method.md)."""
     log = loop600_log(seed)
     walls = np.flatnonzero(log.known_map.kinds == int(FeatureKind.LINE)).tolist()
     log = with_known(log, walls)
@@ -246,7 +246,7 @@ def test_ekf_anchor_agrees_with_the_batch_on_a_known_map_of_walls_only(seed: int
     print(f"\nseed {seed}, walls only: EKF/batch anchor σ {np.round(ratio, 3)}, NEES {nees:.1f}")
     # Measured σ ratios 0.956–0.978 and 0.948–0.969, NEES 4.7 and 1.2 (seeds 4, 12).
     # The bounds sit between those and the wall-reference-point residual's 0.70–0.77
-    # and 34–74 (docs/models.md); the runs are deterministic per seed, so the margins
+    # and 34–74 (docs/results/models.md); the runs are deterministic per seed, so the margins
     # only absorb library round-off.
     assert np.all((ratio > 0.9) & (ratio < 1.1))
     assert nees <= CHI2_3_95

@@ -4,7 +4,7 @@ Each case simulates its world, runs the estimators with fusion and judges every 
 call they make against the true anchor and the true ids.  Refusing is always
 allowed; accepting a wrong match, or merging an observation with a known feature of
 another id, never is.  The benchmark runs the same cases over 20 seeds
-(``docs/ccda.md``, "Measured: hostile worlds").
+(``docs/results/ccda.md``, "Measured: hostile worlds").
 """
 
 from __future__ import annotations

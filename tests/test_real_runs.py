@@ -150,7 +150,7 @@ def test_saturated_steering_widens_the_heading_variance() -> None:
 def victoria_head(data_dir: Path) -> MeasurementLog:
     # The first 2,100 scans (450 s): past t ≈ 300 s, where a run with the laser's raw
     # bearings and no sideways slip in the odometry diverges
-    # (docs/victoria-park-calibration.md).
+    # (docs/results/victoria-park-calibration.md).
     return load_victoria_park(data_dir).head(2100)
 
 
@@ -160,7 +160,7 @@ def test_victoria_ekf_follows_gps_past_t_300s(victoria_head: MeasurementLog) -> 
     assert m is not None
     assert m.alignment == "best_fit"
     # GPS itself jumps by metres; without the calibration the run is metres off from
-    # t = 300 s on (docs/victoria-park-calibration.md).
+    # t = 300 s on (docs/results/victoria-park-calibration.md).
     assert m.median < 1.2
     t, e = gps_errors(result)
     late = (t >= 300.0) & (t <= 450.0)
@@ -172,7 +172,7 @@ def test_victoria_ekf_follows_gps_past_t_300s(victoria_head: MeasurementLog) -> 
 def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir: Path) -> None:
     """With the odometry's sideways slip chosen by the loop closures
     (VICTORIA_PARK_ODOMETRY_NOISE) the closures turn both ways and the park's north-west
-    arm follows GPS (figures without the slip: docs/victoria-park-calibration.md)."""
+    arm follows GPS (figures without the slip: docs/results/victoria-park-calibration.md)."""
     result = run(load_victoria_park(data_dir), "ekf", fusion=False)
     closures = result.result.details.loop_closures
     rot = np.degrees([lc.correction[2] for lc in closures])

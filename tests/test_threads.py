@@ -1,5 +1,5 @@
 """The estimators run BLAS on one thread, whatever the environment says, and give the
-caller's setting back when they return or raise (docs/performance.md)."""
+caller's setting back when they return or raise (docs/results/performance.md)."""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@
 * :mod:`~mapfuse.campaign.plots` and :mod:`~mapfuse.campaign.report` — figures and
   ``report.md``.
 
-``docs/montecarlo.md`` describes the directory layout and running on a real cluster.
+``docs/campaigns.md`` describes the directory layout and running on a real cluster.
 """
 
 from mapfuse.campaign.engine import CampaignSummary, run_campaign

@@ -3,7 +3,7 @@
 By default a ``LocalCluster`` of ``workers`` processes (default: the cores) with one
 thread each and single-threaded BLAS: a run is pure Python and small dense algebra,
 so processes, not threads, use the cores.  ``scheduler`` connects to an existing
-cluster instead (``dask scheduler`` / ``dask worker``, ``docs/montecarlo.md``).
+cluster instead (``dask scheduler`` / ``dask worker``, ``docs/campaigns.md``).
 ``serial=True`` runs every seed in this process, without dask (the reference the
 engine's overhead is measured against).  Results are stored as each run completes,
 in completion order; finished runs are skipped.

@@ -1,5 +1,5 @@
 """Known-map change detection: which known features a run confirms, finds moved or
-missing, and which mapped features are new (``docs/changes.md``).
+missing, and which mapped features are new (``docs/change-detection.md``).
 
 It reads a run's decisions, trajectory and anchor and the log; it predicts the view
 with the simulator's ray caster (:mod:`mapfuse_core.sim.laser`) and the extractor.

@@ -16,7 +16,7 @@ when the map is fused; the anchor's own covariance is left out there because the
 track's already carries it.  A filter's poses from before its map match do not: for
 those steps the anchor's covariance is added (:func:`poses_in_known`).  The
 trajectory has itself been corrected with the known feature under test, which pulls
-the evidence towards it: the test is conservative (``docs/changes.md``).  When the
+the evidence towards it: the test is conservative (``docs/change-detection.md``).  When the
 observations scatter about their fused value more than their measurement noise
 allows, the fused covariance is scaled up by the excess (:func:`spread_factor`), so
 that an inconsistent set cannot make a move on its own.

@@ -100,7 +100,7 @@ class ChangeParams:
     scans of its absence; a
     link has the landmark as evidence besides, so it asks for fewer: two of the view's
     sampled poses at the default stride.  A tree moved out of the scanner's reach often
-    had its surveyed place in view only briefly (docs/changes.md)."""
+    had its surveyed place in view only briefly (docs/results/changes.md)."""
     link_unviewed_circles: bool = False
     """Look for a moved circle even when its surveyed place was in view or seen empty for
     fewer than :attr:`link_min_scans` scans: the nearest unassociated circle within
@@ -132,7 +132,7 @@ class ChangeParams:
     (``classify_changes(..., landmark_estimates=)``), its covariance scaled by the
     observations' spread factor.  ``False``: through its observations, as any other.
     The estimate is as trustworthy as the run is consistent: on a run metres off with
-    NEES far above its dimension it adds false moves (``docs/changes.md``)."""
+    NEES far above its dimension it adds false moves (``docs/results/carmen.md``)."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.level < 1.0:

@@ -1,7 +1,7 @@
 """The rules of :func:`~mapfuse_core.changes.classify.classify_changes`, one decision each.
 
 :func:`~mapfuse_core.changes.classify.classify_changes` applies them in this order
-(``docs/changes.md``):
+(``docs/change-detection.md``):
 
 Evidence
   1. :func:`strongest_associated_landmarks`: a known feature is tested against the

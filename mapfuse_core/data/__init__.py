@@ -1,3 +1,3 @@
-"""Measurement logs and the real datasets (``docs/log-format.md``,
-``docs/datasets.md``).
+"""Measurement logs and the real datasets (``docs/conventions.md``,
+``docs/real-data.md``).
 """

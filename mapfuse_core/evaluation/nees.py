@@ -3,7 +3,7 @@ and draws of consistent errors from a joint covariance.
 
 Errors of one run are correlated in time (and, with fusion, share the anchor's and
 the known map's), so the mean NEES needs more than a per-step χ² bound
-(``docs/known-gaps.md``)."""
+(``docs/results/known-gaps.md``)."""
 
 from __future__ import annotations
 

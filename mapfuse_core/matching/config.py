@@ -67,11 +67,11 @@ class AssociationConfig:
     tree gives two segments in one scan, each a genuine, independent observation of
     one line; keeping only the best-fitting one both makes the other a duplicate
     landmark and biases the update towards the prediction (see
-    ``docs/association.md``)."""
+    ``docs/results/association.md``)."""
     ccda: CCDAParams = field(default_factory=_default_ccda)
     """CCDA parameters of the match with the known map.  *(choice)* At least 8
     pairings (the paper asks for more than three): with fewer, wrong matches made of a
-    few collinear walls pass every other test (``docs/association.md``)."""
+    few collinear walls pass every other test (``docs/results/association.md``)."""
     min_obs_for_matching: int = 2
     """Map features observed fewer times than this are left out of the CCDA match and
     of the known-map pairing (most spurious features are seen once)."""
@@ -86,14 +86,14 @@ class AssociationConfig:
     their χ² (dimension less the anchor's 3) exceeds the :attr:`gate_prob` quantile.
     CCDA tests each pairing with marginal covariances and so cannot see that features
     drifted together: after metres of unfused drift its gates are loose enough for a
-    wrong pairing among correct ones (``docs/ccda.md``).  Used by the EKF; its
+    wrong pairing among correct ones (``docs/results/ccda.md``).  Used by the EKF; its
     decisions carry the outcome to the factor graph."""
     match_pairing_test: bool = True
     """With :attr:`match_joint_test`, also test each pairing of the match against the
     others: the χ² it adds to the joint update of the rest, against the
     :attr:`gate_prob` quantile of its own dimension; refuse the match when one fails.
     One wrong pairing among many right ones can pass the joint test, its excess spread
-    over the whole dimension (a wall moved since the survey, ``docs/changes.md``)."""
+    over the whole dimension (a wall moved since the survey, ``docs/results/changes-worlds.md``)."""
     match_exclusions: int = 4
     """When a test refuses a match and one pairing fails its own test, CCDA runs again
     at once without that pairing's map feature, up to this many times per attempt

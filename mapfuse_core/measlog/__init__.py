@@ -1,5 +1,5 @@
 """The measurement log, the single input every estimator consumes, and the known map
-it carries (``docs/log-format.md``).  Bottom-layer types: simulation, datasets,
+it carries (``docs/conventions.md``).  Bottom-layer types: simulation, datasets,
 matching and evaluation all read or build them."""
 
 from mapfuse_core.measlog.known_map import KnownMapArrays

@@ -98,7 +98,7 @@ class MeasurementLog:
     """(N, B) float32 range each beam of step ``k``'s scan measured (m), ``inf`` where it
     returned nothing; given with :attr:`scan_bearings`.  The features are extracted from
     these; change detection reads them for where the laser saw through a mapped feature
-    (``docs/changes.md``)."""
+    (``docs/change-detection.md``)."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""Measurement models, one per feature type (numpy only; docs/models.md).
+"""Measurement models, one per feature type (numpy only; docs/method.md).
 
 Each model is the residual of an observed feature ``Z`` against a target ``T`` of the
 same type, estimated or known, with its Jacobians and its noise, plus the observation

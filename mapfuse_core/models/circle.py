@@ -1,4 +1,4 @@
-"""Circle measurement model: an observed circle against a target circle (docs/models.md).
+"""Circle measurement model: an observed circle against a target circle (docs/method.md).
 
 A circle is ``(x, y, r)``: centre and radius.  The residual of an observed circle
 ``Z`` against a target ``T`` (estimated or known, the same function) is

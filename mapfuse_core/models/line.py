@@ -1,4 +1,4 @@
-"""Line measurement model: an observed segment against a line (docs/models.md).
+"""Line measurement model: an observed segment against a line (docs/method.md).
 
 A line is an SPmap frame ``(x, y, θ)`` on it with its x axis along it; an observed
 segment is the SPmap frame of its fitted line placed at the segment's midpoint.  The

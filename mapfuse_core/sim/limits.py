@@ -1,5 +1,5 @@
 """Documented maxima of a simulation, checked before anything is allocated
-(``docs/input-validation.md`` lists them with their messages).
+(``docs/conventions.md`` lists them with their messages).
 
 The bounds come from memory use: a simulated run keeps per-step arrays (true pose,
 controls, odometry and its 3×3 covariance: 17 floats, 136 bytes a step) and every

@@ -1,7 +1,7 @@
 """Real datasets as measurement logs: the ACFR car park, Victoria Park, CARMEN logs.
 
 The files are read from a directory the caller gives (the project never ships them);
-``docs/datasets.md`` describes both datasets, their provenance and their conventions.
+``docs/real-data.md`` describes both datasets, their provenance and their conventions.
 
 Frames of a log built here (checked against the data in
 ``tests/test_datasets_carpark.py`` and ``tests/test_datasets_victoria.py``):
@@ -18,7 +18,7 @@ odometry integration and its noise), :mod:`~mapfuse_core.data.datasets.poles` (t
 park's pole detector), :mod:`~mapfuse_core.data.datasets.gps` (GPS reference labels),
 :mod:`~mapfuse_core.data.datasets.carpark` and :mod:`~mapfuse_core.data.datasets.victoria_park`
 (the two loaders and their options), :mod:`~mapfuse_core.data.datasets.carmen_format` and
-:mod:`~mapfuse_core.data.datasets.carmen` (CARMEN indoor laser logs, ``docs/carmen.md``),
+:mod:`~mapfuse_core.data.datasets.carmen` (CARMEN indoor laser logs, ``docs/real-data.md``),
 :mod:`~mapfuse_core.data.datasets.floorplan` (a wall map from scans at reference poses),
 :mod:`~mapfuse_core.data.datasets.files` (checked file reading) and
 :mod:`~mapfuse_core.data.datasets.common` (error type, log builder).

@@ -1,4 +1,4 @@
-"""A CARMEN laser log as a measurement log of wall lines (``docs/carmen.md``).
+"""A CARMEN laser log as a measurement log of wall lines (``docs/real-data.md``).
 
 One step per laser scan (``FLASER``, ``ROBOTLASER1``, or the rear laser's ``RLASER``,
 ``ROBOTLASER2`` in a log without front laser messages).  The log's frame ``R`` of a
@@ -71,7 +71,7 @@ class IncrementNoise:
     Independent errors with ``σx = σy = trans_frac · d + trans_floor_m`` and
     ``σθ = rot_frac · |dθ| + rot_per_m · d + rot_floor_rad`` (``d`` the distance
     travelled).  The defaults (5 % of the distance, 5 % of the turn, 0.6°/m of drift)
-    are those of a differential-drive base on office floors (``docs/carmen.md``).
+    are those of a differential-drive base on office floors (``docs/real-data.md``).
     """
 
     trans_frac: float = 0.05
@@ -376,7 +376,7 @@ def load_carmen(
 def carmen_association() -> AssociationConfig:
     """Association settings for runs of a CARMEN log against its floor plan.
 
-    The defaults but for three settings (``docs/carmen.md``):
+    The defaults but for three settings (``docs/real-data.md``):
 
     * CCDA's ``min_pairings``: 12 instead of 8.  Office walls come in parallel families
       a door width or a corridor apart, and a match of 8 walls seen in the first local

@@ -1,4 +1,4 @@
-"""Reading CARMEN log files (plain or gzipped) into checked records (``docs/carmen.md``).
+"""Reading CARMEN log files (plain or gzipped) into checked records (``docs/real-data.md``).
 
 One message a line, fields separated by white space; blank lines and lines starting
 with ``#`` are skipped.  Read messages:

@@ -1,5 +1,5 @@
 """Whether a CARMEN log's poses are corrected ones or raw odometry, from what the log
-holds (``docs/carmen.md``, "Odometry").
+holds (``docs/real-data.md``, "Odometry").
 
 A corrected log (a SLAM benchmark's) has every pose rewritten by a SLAM or scan-matching
 run: its poses are a reference trajectory.  A raw log has the robot's own odometry.  The

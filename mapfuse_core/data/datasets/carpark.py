@@ -1,4 +1,4 @@
-"""The ACFR car-park run as a measurement log (``docs/datasets.md``).
+"""The ACFR car-park run as a measurement log (``docs/real-data.md``).
 
 One step per laser scan; features are the reflective beacon poles of each scan
 (:func:`~mapfuse_core.data.datasets.poles.detect_reflector_poles`); the known map is the

@@ -19,7 +19,7 @@ CARPARK_ODOMETRY_NOISE = OdometryNoise(
 
 The car-park steering readings pile up at 0.597–0.624 rad while the car drives tighter
 circles than they imply: the sensor is at its stop, and a step holding such a reading
-gets a wider steering error.  ``docs/datasets.md`` gives the effect of the value.
+gets a wider steering error.  ``docs/results/carpark.md`` gives the effect of the value.
 """
 
 
@@ -28,11 +28,11 @@ class CarparkOptions:
     """How :func:`load_carpark` turns the raw car-park data into a measurement log."""
 
     geometry: CarGeometry = field(default_factory=CarGeometry)
-    """Car geometry (``docs/datasets.md``)."""
+    """Car geometry (``docs/real-data.md``)."""
     odometry_noise: OdometryNoise = field(default_factory=lambda: CARPARK_ODOMETRY_NOISE)
     """Errors of the dead-reckoning sensors (:data:`CARPARK_ODOMETRY_NOISE`)."""
     pole_radius_m: float = 0.03
-    """Radius of a beacon pole (about 6 cm diameter, ``docs/datasets.md``).  With 1 to 6
+    """Radius of a beacon pole (about 6 cm diameter, ``docs/real-data.md``).  With 1 to 6
     returns on a pole the radius cannot be fitted, so every pole, observed or surveyed,
     gets this."""
     pole_radius_sigma_m: float = 0.005
@@ -40,11 +40,11 @@ class CarparkOptions:
     sigma_range_m: float = 0.02
     """σρ of a SICK LMS range (m): the sensor's ±15 mm systematic error at the car park's
     1–16 m (1 cm resolution in this file); slightly conservative against the scatter of
-    poses fitted to the surveyed beacons alone (``docs/datasets.md``)."""
+    poses fitted to the surveyed beacons alone (``docs/results/carpark.md``)."""
     sigma_bearing_rad: float = math.radians(0.35)
     """σβ of the direction to a pole's centre (rad), beside the beam quantisation (added
     separately, ``Δβ²/24``): pointing and beam-footprint asymmetry.  Slightly
-    conservative against the same pose fits (``docs/datasets.md``), which the single
+    conservative against the same pose fits (``docs/results/carpark.md``), which the single
     poles seen at 1–2 returns deserve."""
     max_range_m: float = 30.0
     """Reflective returns farther than this are ignored and counted per return as

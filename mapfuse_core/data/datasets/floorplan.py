@@ -1,4 +1,4 @@
-"""A floor plan (wall map) built from every scan at the reference poses (``docs/carmen.md``).
+"""A floor plan (wall map) built from every scan at the reference poses (``docs/real-data.md``).
 
 Each line observation of a log with a reference trajectory is put in the reference
 frame ``W`` at its step's reference pose, in normal form ``(ρ, α)`` with its world

@@ -32,7 +32,7 @@ def gps_reference_labels(
     the fit of the nearest step that has one), the pole ``feat_xy`` (laser frame) is
     mapped through it, and it is labelled with the nearest beacon if that is within
     ``gate_m`` and no other beacon is within ``2·gate_m`` (beacons are metres apart;
-    ``docs/datasets.md`` gives how close the poles land).
+    ``docs/real-data.md`` gives how close the poles land).
     """
     dr = dead_reckoning(odometry)
     gps = np.column_stack([np.interp(timestamps, gps_times, gps_xy[:, i]) for i in range(2)])

@@ -11,7 +11,7 @@ ahead of the rear axle.
 * The laser sits at ``(a, b) = (3.78, +0.5)`` m in ``V`` with the vehicle's heading.
   ``b`` is to the left: the ACFR model propagates the laser point with
   ``ẋ = vc cos φ − (vc/L) tan α (a sin φ + b cos φ)``, which is the velocity of the
-  point ``(a, +b)``; ``docs/datasets.md`` gives the check against the car-park GPS.
+  point ``(a, +b)``; ``docs/results/carpark.md`` gives the check against the car-park GPS.
 * Odometry increments are those of the laser frame: it is the point the usual motion
   model propagates, the one compared with GPS, and the frame the features are given in.
 
@@ -38,7 +38,7 @@ from mapfuse_core.sim.vehicle import car_increment
 
 @dataclass(frozen=True)
 class CarGeometry:
-    """Geometry of the ACFR utility car (same for both datasets, ``docs/datasets.md``)."""
+    """Geometry of the ACFR utility car (same for both datasets, ``docs/real-data.md``)."""
 
     wheelbase_m: float = 2.83
     """``L``: distance between the rear and the front axle (m)."""

@@ -1,9 +1,9 @@
-"""The Victoria Park run as a measurement log (``docs/datasets.md``).
+"""The Victoria Park run as a measurement log (``docs/real-data.md``).
 
 One step per scan with at least one tree detection; features are the trunks as
 circles; the known map is empty; GPS is a rough reference.  The calibration of
 :class:`VictoriaParkOptions` and :data:`VICTORIA_PARK_ODOMETRY_NOISE` is explained in
-``docs/victoria-park-calibration.md``.
+``docs/results/victoria-park-calibration.md``.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ VICTORIA_PARK_ODOMETRY_NOISE = OdometryNoise(sigma_slip_m_per_sqrt_m=0.04)
 Without slip the kinematic model holds the laser's lateral motion within millimetres
 per scan, and the EKF can then meet a lateral disagreement with the trees only by
 turning.  The value is the one at which the EKF's loop closures stop turning one way
-(no GPS used); ``docs/victoria-park-calibration.md`` gives the sweep.  The car park
+(no GPS used); ``docs/results/victoria-park-calibration.md`` gives the sweep.  The car park
 needs none: its odometry against the surveyed-beacon pose fits is consistent across the
 direction of travel without it (``tests/test_datasets_victoria.py``)."""
 
@@ -72,18 +72,18 @@ class VictoriaParkOptions:
     default (the file's smallest is 1.7 cm)."""
     gps_clock_offset_s: float = 20.967
     """``aa3_gpsx.mat`` times are ``(t + offset)·1000`` ms for a detections-clock time ``t``
-    (``docs/datasets.md``); used to put the GPS on the clock of the log."""
+    (``docs/real-data.md``); used to put the GPS on the clock of the log."""
     bearing_offset_rad: float = 0.0
     """Added to every detection's bearing: a yaw misalignment of the laser.  0, the
     file's bearings: with the odometry's sideways slip the EKF's loop closures do not
     turn one way at 0, and a negative yaw makes them turn clockwise
-    (``docs/victoria-park-calibration.md``)."""
+    (``docs/results/victoria-park-calibration.md``)."""
     steering_offset_rad: float = 0.0039
     """Added to every steering reading: the steering sensor's zero (+0.22°, fitted)."""
     speed_scale: float = 1.0216
     """Multiplies every encoder speed (wheel radius; +2.2 %, fitted on the trees).  GPS
     and 2 s windows registered on tracked trees disagree; the value is kept pending a
-    fit of all parameters together (``docs/victoria-park-calibration.md``)."""
+    fit of all parameters together (``docs/results/victoria-park-calibration.md``)."""
     detection_time_offset_s: float = -0.028
     """Added to the detections' times: the scanner's latency relative to the dead
     reckoning (−28 ms, fitted; the car park's beacons suggest −30 ms on the same car)."""
@@ -126,7 +126,7 @@ def load_victoria_park(
 
     The data are corrected by the calibration of :class:`VictoriaParkOptions` (steering
     and time offsets and speed scale; a bearing offset, 0 by default; see
-    ``docs/victoria-park-calibration.md``): ``timestamps`` are the detections' times
+    ``docs/results/victoria-park-calibration.md``): ``timestamps`` are the detections' times
     plus ``detection_time_offset_s``, on the clock of the dead reckoning and the GPS.
     Setting the four to 0, 0, 1 and 0 gives the raw data.  The odometry covariance holds
     the sideways slip of :data:`VICTORIA_PARK_ODOMETRY_NOISE` unless ``odometry_noise``

@@ -128,7 +128,7 @@ Choices the paper leaves open (all configurable in :class:`CCDAParams`):
   rotational symmetry) from the rival's clique; the search stops as soon as the
   match is proven ambiguous.  What no rule can detect: a local map that lies
   mostly outside the known map, where a wrong placement explains more than half
-  of it and the truth less (``docs/ccda.md``).
+  of it and the truth less (``docs/results/ccda.md``).
 * *(choice)* The exact clique search spends a deterministic budget,
   ``max_clique_work`` work units (one per branch-and-bound node plus one per
   candidate vertex it colours or prunes) over all searches of one call, so the

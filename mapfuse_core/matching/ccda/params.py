@@ -65,7 +65,7 @@ class CCDAParams:
     max_clique_work: int = 2_000_000
     """Budget of the exact clique search over all searches of one call, in work units:
     one per branch-and-bound node plus one per candidate vertex it colours or prunes
-    (so units follow time; rates in ``docs/ccda.md``).  Exhausting it returns
+    (so units follow time; rates in ``docs/results/ccda.md``).  Exhausting it returns
     ``"search_limit"``, never a guess.  It counts work, not seconds, so the outcome
     is the same on every machine."""
     max_edges: int = 5_000_000

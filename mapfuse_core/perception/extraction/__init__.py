@@ -37,7 +37,7 @@ Why the refinement in range space: the Jacobian of a point-space residual
 point itself, and range noise moves a point along and across the curve at once; the
 correlation between Jacobian and residual biases the estimate (errors in variables).
 On a trunk, whose radius is known only to about a tenth, the bias is a large fraction
-of σ on the radius (``docs/extraction.md``).  In range space the Jacobian depends only
+of σ on the radius (``docs/results/extraction.md``).  In range space the Jacobian depends only
 on the beam and the parameters, and the bias is gone.
 
 What else keeps the covariances honest (checked by
@@ -53,7 +53,7 @@ does not describe, with rules computable without the truth:
   returns, too short for the split, and a ray cast near the hidden corner can cross
   it, so its range comes from the other wall.  Line fits drop the returns within
   ``corner_margin_sigma · σβ`` of such an end (``occluded_end_margin``; its effect
-  on loop600 is in ``docs/extraction.md``);
+  on loop600 is in ``docs/results/extraction.md``);
 * the outermost return of a cluster is there *because* its perturbed ray still hits
   the feature, which conditions its bearing error (``end_trim``);
 * grazing returns are dropped (incidence above ``max_line_incidence_rad`` /
@@ -62,7 +62,7 @@ does not describe, with rules computable without the truth:
 * which clusters may be circles, and which of their beams are fitted, is decided from
   the bearings of the cluster, never from the fitted radius: selecting on the fitted
   radius or its σ keeps the noise realisations that look most curved, which biases
-  the radius of small trunks by σ's (``docs/extraction.md``);
+  the radius of small trunks by σ's (``docs/results/extraction.md``);
 * a circle whose silhouette a beam beside the cluster crosses is not a trunk, but only
   a crossing deeper than 3 σ of the fit counts
   (:func:`~mapfuse_core.perception.extraction.circles._crosses_silhouette`): testing the fitted
@@ -83,7 +83,7 @@ Modules: :mod:`~mapfuse_core.perception.extraction.params` (thresholds, features
 :mod:`~mapfuse_core.perception.extraction.circles` (circle candidates and fits),
 :mod:`~mapfuse_core.perception.extraction.labels` (world-id labels) and
 :mod:`~mapfuse_core.perception.extraction.extract` (:func:`extract_features`).  Measured effects of
-the rules above are in ``docs/extraction.md``.
+the rules above are in ``docs/results/extraction.md``.
 """
 
 from mapfuse_core.perception.extraction.circles import _beam_cos_inc as _beam_cos_inc

@@ -114,7 +114,7 @@ def _levenberg_marquardt(
     solver, its settings and therefore its iterates are the same, but ``least_squares``
     wraps every call in bookkeeping that is a sizeable part of the cost of these
     3-parameter problems, and these calls are a large share of the extraction time
-    (``docs/extraction.md``).
+    (``docs/results/extraction.md``).
     """
     out = leastsq(
         fun,
@@ -216,7 +216,7 @@ def _refine_circle(
     point both along the normal and (off normal incidence) along the arc, so the
     Jacobian is correlated with the residual.  On a trunk, whose radius is known only to
     about a tenth, that errors-in-variables bias is a large fraction of σ on the radius
-    (``docs/extraction.md``).  Predicting the
+    (``docs/results/extraction.md``).  Predicting the
     measured range of each nominal beam (:func:`_circle_system`) removes it, and also
     accounts for the second-order effect of the bearing noise on the mean range.
     """
@@ -317,7 +317,7 @@ def _crosses_silhouette(
     the beam ``u`` inside the silhouette, has the variance of the fit (``cov``) and of
     the beam's own bearing error.  Testing the fitted circle itself (``g > 0``) would
     reject the fits whose radius comes out too large and keep those too small, which
-    biases the radius and pulls the centre towards the laser (``docs/extraction.md``).
+    biases the radius and pulls the centre towards the laser (``docs/results/extraction.md``).
     """
     ranges, bearings = outside
     cb, sb = np.cos(bearings), np.sin(bearings)

@@ -75,7 +75,7 @@ class ExtractionParams:
     would have ``r / σ_r`` at least this large, predicted from the beam geometry alone
     (see :func:`~mapfuse_core.perception.extraction.circles._circle_beams`).  At 4 the radius is
     known to 25 %; at lower ratios the estimate is visibly non-Gaussian (heavier NEES
-    tails, ``docs/extraction.md``)."""
+    tails, ``docs/results/extraction.md``)."""
     max_circle_radius_rel_sigma: float = 0.5
     """Sanity bound: circles whose fitted σ_r exceeds this fraction of the radius are
     rejected (``ill_conditioned``); not reached after ``min_circle_snr`` unless the fit
@@ -141,7 +141,7 @@ class ExtractionParams:
 
     @classmethod
     def indoor_sick(cls) -> ExtractionParams:
-        """Thresholds for a 1° or 0.5° SICK scanner indoors (``docs/carmen.md``).
+        """Thresholds for a 1° or 0.5° SICK scanner indoors (``docs/real-data.md``).
 
         Rooms a few metres across: walls of 0.5–1 m between doors and furniture,
         returns 1–10 cm apart, no trunks (circles off), and plaster walls that are not
