@@ -55,6 +55,11 @@ SECTIONS: tuple[tuple[str, tuple[Section, ...]], ...] = (
                 "([change detection](change-detection.md#the-known-map-gate)).",
             ),
             Section(
+                "ekf_reference.anchor_watch:AnchorWatchParams",
+                "`EKFConfig.anchor_watch`: the checks that undo an anchor its known features "
+                "contradict ([Method §5.2](method.md#52-the-anchor)).",
+            ),
+            Section(
                 "ekf_reference.loops:LoopClosureParams",
                 "`EKFConfig.loop_closure` (`None` by default; Victoria Park's profile sets "
                 "`LoopClosureParams()`).",
