@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from mapfuse.campaign.api import montecarlo
-from mapfuse.campaign.cli import parse_world_args
+from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds
 from mapfuse.campaign.summary import GroupSummary
 

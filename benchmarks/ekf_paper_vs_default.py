@@ -1,11 +1,13 @@
 """The EKF with the paper's method (``EKFConfig.paper()``) against its default.
 
-The default goes beyond the paper in the settings ``EKFConfig.extensions()`` lists,
-all of them about the fusion with the known map; without fusion the two are the same
-filter (``tests/test_ekf_paper_preset.py``), so each log is run three times: fused
-with ``paper``, fused with ``default``, and once without fusion (``plain``).  With
-``--ablation`` it is also run with the default less one extension at a time
-(``default-no-<name>``, :data:`ABLATIONS`: that extension at the paper's value).
+The default goes beyond the paper in the settings ``EKFConfig.extensions()`` lists.
+All but one are about the fusion with the known map; ``line_tie_residual_at`` also
+measures the join's line ties (eq. 5), so without fusion the two differ there
+(``tests/test_ekf_paper_preset.py``).  Each log is run four times: fused with
+``paper`` and with ``default``, and without fusion with each (``paper-plain``,
+``plain``).  With ``--ablation`` it is also run with the default less one extension
+at a time (``default-no-<name>``, :data:`ABLATIONS`: that extension at the paper's
+value); ``--ablation a,b`` runs only those.
 
 Groups of logs (``--groups``):
 
@@ -70,7 +72,7 @@ from mapfuse_core.sim.simulate import simulate
 from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
 GROUPS = ("loop600", "worlds", "changed", "survey")
-CONFIGS = ("paper", "default", "plain")
+CONFIGS = ("paper", "default", "plain", "paper-plain")
 
 ABLATIONS: dict[str, tuple[str, ...]] = {
     "min_pairings": ("data_association.ccda.min_pairings",),
@@ -85,6 +87,9 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
         "data_association.match_exclusions",
     ),
     "known_map_gating": ("known_map_gating",),
+    "anchor_entry": ("anchor_entry",),
+    "known_map_in_local_maps": ("known_map_in_local_maps",),
+    "line_tie_residual_at": ("line_tie_residual_at",),
 }
 """The extensions, grouped where one needs another (the pairing test runs with the
 joint test, the re-runs after a failed pairing test), for ``--ablation``."""
@@ -122,7 +127,7 @@ def _run(log: MeasurementLog, name: str, changed: set[int]) -> dict[str, Any]:
     """The figures of one EKF run, configuration ``name`` (see the module docstring)."""
     assert log.true_poses is not None
     t0 = time.perf_counter()
-    res = run_ekf(log, config_of(name), fusion=name != "plain")
+    res = run_ekf(log, config_of(name), fusion=not name.endswith("plain"))
     wall = time.perf_counter() - t0
     assert res.decisions is not None
     e = pose_errors(res.poses, truth_in_global(log.true_poses))
@@ -155,6 +160,7 @@ def _run(log: MeasurementLog, name: str, changed: set[int]) -> dict[str, Any]:
             "error_m": float(e.position[0]),
             "error_rad": float(e.heading[0]),
             "nees": float(nees_series(e.dx, a.cov[None])[0]),
+            "sd_m": float(np.sqrt(np.trace(a.cov[:2, :2]) / 2)),
         }
     return row
 
@@ -170,8 +176,8 @@ def _with_paper(config: Any, paper: Any, path: str) -> Any:
 
 def config_of(name: str) -> EKFConfig:
     """The configuration a run name stands for (``plain``: the default, run without
-    fusion)."""
-    if name == "paper":
+    fusion; ``paper-plain``: the paper's, without fusion)."""
+    if name in ("paper", "paper-plain"):
         return EKFConfig.paper()
     if name in ("default", "plain"):
         return EKFConfig()
@@ -254,6 +260,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "anchor_error_m": _interval([x["error_m"] for x in anchors]),
             "anchor_error_rad": _interval([x["error_rad"] for x in anchors], 5),
             "anchor_anees": round(float(np.mean(nees)), 3),
+            "anchor_sd_m": _interval([x["sd_m"] for x in anchors if "sd_m" in x]),
             "anchor_anees_bounds": bounds,
             "wrong_pairings": sum(x["wrong_pairings"] for x in anchors),
             "runs_with_wrong_pairing": _count(
@@ -269,11 +276,13 @@ def _nees_matrix(runs: list[dict[str, Any]]) -> np.ndarray:
     return stack_runs([np.array([np.nan if v is None else v for v in r["nees"]]) for r in runs])
 
 
-def _inside_difference(rows: list[dict[str, Any]], name: str, draws: int = 2000) -> list[float]:
-    """``name`` − default of the fraction of steps whose ANEES is inside its bounds, with
-    a 95 % interval from a paired bootstrap over the logs (seeded: the same rows give the
-    same interval)."""
-    x, d = (_nees_matrix([r[c] for r in rows]) for c in (name, "default"))
+def _inside_difference(
+    rows: list[dict[str, Any]], name: str, base: str = "default", draws: int = 2000
+) -> list[float]:
+    """``name`` − ``base`` of the fraction of steps whose ANEES is inside its bounds,
+    with a 95 % interval from a paired bootstrap over the logs (seeded: the same rows
+    give the same interval)."""
+    x, d = (_nees_matrix([r[c] for r in rows]) for c in (name, base))
     # A resample keeps the number of runs at every step, so the bounds stay as they are.
     a = anees_series(d)
     lo, hi = a.lower, a.upper
@@ -292,10 +301,10 @@ def _inside_difference(rows: list[dict[str, Any]], name: str, draws: int = 2000)
     return [round(float(v), 3) for v in (diff, *q)]
 
 
-def _paired(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
-    """``name`` − default, per log, with Student-t 95 % intervals (a bootstrap one for
+def _paired(rows: list[dict[str, Any]], name: str, base: str = "default") -> dict[str, Any]:
+    """``name`` − ``base``, per log, with Student-t 95 % intervals (a bootstrap one for
     the steps inside the ANEES bounds)."""
-    x, d = [r[name] for r in rows], [r["default"] for r in rows]
+    x, d = [r[name] for r in rows], [r[base] for r in rows]
     rmse = [a["rmse_m"] - b["rmse_m"] for a, b in zip(x, d, strict=True)]
     ratio = [math.log(a["rmse_m"] / b["rmse_m"]) for a, b in zip(x, d, strict=True)]
     within = [
@@ -309,7 +318,7 @@ def _paired(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
         "rmse_m": _interval(rmse),
         "rmse_ratio_geomean": [round(math.exp(v), 3) for v in (iv.value, iv.low, iv.high)],
         "run_nees_within_chi2_95": _interval(within, 3),
-        "anees_steps_inside": _inside_difference(rows, name),
+        "anees_steps_inside": _inside_difference(rows, name, base),
         "anchor_nees": _interval([a["nees"] - b["nees"] for a, b in both], 3),
         "anchor_error_m": _interval([a["error_m"] - b["error_m"] for a, b in both]),
         "anchor_step": _interval([a["step"] - b["step"] for a, b in both], 1),
@@ -344,7 +353,7 @@ def summarise(lines: list[dict[str, Any]]) -> dict[str, Any]:
             "seeds": [r["seed"] for r in sel],
             **{c: _summary([r[c] for r in sel]) for c in configs},
             **{
-                f"{c}_minus_default": _paired(sel, c)
+                f"{c}_minus_{_base_of(c)}": _paired(sel, c, _base_of(c))
                 for c in configs
                 if c not in ("default", "plain")
             },
@@ -352,8 +361,24 @@ def summarise(lines: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _base_of(name: str) -> str:
+    """The run a configuration is compared with: the default, fused or not."""
+    return "plain" if name == "paper-plain" else "default"
+
+
 def _all_configs() -> list[str]:
     return [*CONFIGS, *(f"default-no-{a}" for a in ABLATIONS)]
+
+
+def _ablations(text: str) -> list[str]:
+    """``--ablation``'s value: ``all`` or comma-separated names of :data:`ABLATIONS`."""
+    names = list(ABLATIONS) if text == "all" else [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in ABLATIONS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"--ablation: choose from {', '.join(ABLATIONS)} (got {text!r})"
+        )
+    return names
 
 
 def _read(path: Path) -> list[dict[str, Any]]:
@@ -376,7 +401,14 @@ def main() -> None:
     ap.add_argument("--survey-seeds", type=_seeds, default=_seeds("101-110"))
     ap.add_argument("--world", type=_world, default=_world(DEFAULT_WORLD))
     ap.add_argument("--changes", type=float, default=0.2, help="fraction for 'changed'")
-    ap.add_argument("--ablation", action="store_true", help="also the default less each extension")
+    ap.add_argument(
+        "--ablation",
+        type=_ablations,
+        nargs="?",
+        const="all",
+        default=[],
+        help="also the default less each extension (or only those named, comma-separated)",
+    )
     ap.add_argument("--out", type=Path, help="JSON lines, one per log (appended, resumed)")
     ap.add_argument("--summarise", type=Path, metavar="FILE", help="only summarise FILE")
     args = ap.parse_args()
@@ -389,7 +421,7 @@ def main() -> None:
     if not 0.0 < args.changes <= 1.0:
         raise SystemExit(f"--changes must be in (0, 1], got {args.changes}")
     _check_ablations()
-    configs = _all_configs() if args.ablation else list(CONFIGS)
+    configs = [*CONFIGS, *(f"default-no-{a}" for a in args.ablation)]
     lines = _read(args.out) if args.out else []
     done = {(r["group"], r["seed"], r["config"]) for r in lines}
     seeds = {"loop600": args.loop600_seeds, "survey": args.survey_seeds}

@@ -59,6 +59,7 @@ import numpy as np
 
 import mapfuse_core.matching.ccda as ccda_pkg
 from ekf_reference import EKFConfig, run_ekf
+from ekf_reference.anchor_watch import AnchorWatchParams
 from mapfuse.runner import simulate as simulate_run
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation import anchor_truth
@@ -433,10 +434,14 @@ def _guarded(fn: Callable[[], EstimatorResult]) -> EstimatorResult | str:
         return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"[:200]
 
 
+_WATCHED = EKFConfig(anchor_watch=AnchorWatchParams())
+"""The EKF with its joint tests before fusion and the anchor watch after it."""
+
+
 def _run_ekf(log: MeasurementLog) -> tuple[list[Call], EstimatorResult | str]:
     calls: list[Call] = []
     with recording(calls):
-        res = _guarded(lambda: run_ekf(log, EKFConfig(), fusion=True))
+        res = _guarded(lambda: run_ekf(log, _WATCHED, fusion=True))
     return calls, res
 
 

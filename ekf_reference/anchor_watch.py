@@ -15,8 +15,11 @@ applies three tests, in this order, at the end of every step:
   before the update and the stacked dimension as degrees of freedom.  Under the
   hypothesis "the anchor and the known map are right" the innovations of a consistent
   filter are white, so their sum over the last :attr:`AnchorWatchParams.window_steps`
-  steps is χ² with the summed degrees of freedom; the anchor is contradicted when it
-  exceeds the :attr:`AnchorWatchParams.level` quantile.  (The pairings passed the
+  steps is χ² with the summed degrees of freedom.  Model error inflates it on real
+  scans whatever the anchor, so the test divides it by the NIS rate of the pairings
+  with features that are not known (at least one): the anchor is contradicted when
+  the ratio exceeds the :attr:`AnchorWatchParams.level` quantile of its F
+  distribution (:meth:`AnchorWatch.innovation_threshold`).  (The pairings passed the
   individual gate, which truncates each NIS: the test is conservative.)
 * **The match's own pairings** (with the known-map gate,
   :mod:`ekf_reference.known_gating`): more than half of the match's known features
@@ -45,6 +48,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from scipy.stats import f as f_dist
 
 from ekf_reference.association import Candidate, stack
 from ekf_reference.state import GaussianMap, Role
@@ -169,11 +173,22 @@ class AnchorWatch:
         self.singular = 0
         """Associations whose joint innovation covariance was not positive definite
         (their NIS is left out)."""
+        self.local_nis = 0.0
+        """Summed NIS of the pairings with features that are not known, since the
+        fusion: the reference rate of the innovation test."""
+        self.local_dof = 0
+        """Their degrees of freedom."""
 
     def record(self, step: int, state: GaussianMap, chosen: list[Candidate | None]) -> None:
         """Record the pairings ``chosen`` by one association at ``step``, before they are
-        applied (those with known features count)."""
-        known = [c for c in chosen if c is not None and state.elements[c.target].role == Role.KNOWN]
+        applied: those with known features in the window, the others in the reference
+        rate."""
+        paired = [c for c in chosen if c is not None]
+        known = [c for c in paired if state.elements[c.target].role == Role.KNOWN]
+        local = joint_nis(state, [c for c in paired if state.elements[c.target].role != Role.KNOWN])
+        if local is not None:
+            self.local_nis += local[0]
+            self.local_dof += local[1]
         if not known:
             return
         nis = joint_nis(state, known)
@@ -191,12 +206,28 @@ class AnchorWatch:
             self.steps.popleft()
         return sum(s.nis for s in self.steps), sum(s.dof for s in self.steps)
 
+    def innovation_threshold(self, dof: int) -> float:
+        """What the window's summed NIS of ``dof`` degrees of freedom may reach.
+
+        The sensor's model error (walls not straight, trunks not round) inflates every
+        innovation, the known pairings' too, whatever the anchor; a wrong anchor
+        inflates the known pairings' only.  The test therefore compares the window's
+        NIS per degree of freedom with that of the pairings with features that are not
+        known, since the fusion, taken as at least one: their ratio is F-distributed
+        with ``(dof, local dof)`` degrees of freedom, and the threshold is its
+        :attr:`AnchorWatchParams.level` quantile.  Before any such pairing, the χ²
+        quantile (the limit of many local degrees of freedom at a rate of one)."""
+        if self.local_dof == 0:
+            return chi2_gate(self.params.level, dof)
+        rate = max(1.0, self.local_nis / self.local_dof)
+        return float(dof * rate * f_dist.ppf(self.params.level, dof, self.local_dof))
+
     def verdict(self, step: int, gate: GateState | None) -> Verdict | None:
         """The first test that contradicts the anchor at the end of ``step`` (the last
         two only with the known-map gate's ``gate``), or ``None``."""
         nis, dof = self.innovations(step)
         if dof > 0:
-            threshold = chi2_gate(self.params.level, dof)
+            threshold = self.innovation_threshold(dof)
             if nis > threshold:
                 return Verdict("innovations", nis, threshold, dof)
         if gate is None:

@@ -1,5 +1,7 @@
 """Fusing a CCDA match into a copy of the global map: the anchor and the known map
-enter, and the pairings fix the anchor by an iterated update.
+enter, and the pairings fix the anchor by an iterated update (:func:`fuse_match`), or
+the anchor enters as CCDA estimated it (:func:`insert_ccda_estimate`, the paper's eq.
+15; ``EKFConfig.anchor_entry``).
 
 The pipeline fuses on a copy so that a match the joint test refuses
 (:attr:`~mapfuse_core.matching.AssociationConfig.match_joint_test`) leaves its map as
@@ -11,22 +13,31 @@ which one: the pipeline can then match again without that feature.
 from __future__ import annotations
 
 import dataclasses
-import math
+from typing import Literal
 
 import numpy as np
 
 from ekf_reference.association import IteratedUpdate, apply_iterated, element_pairings
-from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
+from ekf_reference.final_map import feature_in_global
+from ekf_reference.known_frame import known_element
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role
+from mapfuse_core.geometry.se2 import compose_jacobians
 from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.matching.ccda import CCDAResult
 from mapfuse_core.measlog import KnownMapArrays
+
+TieAt = Literal["observed", "target"]
+"""Where a tie of two lines measures its lateral residual
+(``EKFConfig.line_tie_residual_at``)."""
 
 __all__ = [
     "JOINTLY_INCONSISTENT",
     "PAIRING_INCONSISTENT",
     "Vetted",
     "fuse_match",
+    "insert_ccda_estimate",
     "match_arrays",
+    "match_arrays_in_global",
     "vet_match",
     "worst_pairing",
 ]
@@ -50,16 +61,38 @@ def match_arrays(g: GaussianMap, feats: list[int]) -> KnownMapArrays:
     )
 
 
+def match_arrays_in_global(g: GaussianMap, feats: list[int]) -> KnownMapArrays:
+    """:func:`match_arrays` with the features in ``Wglobal`` (``⊖x^Wlocal_Wglobal ⊕
+    x^Wlocal_F``, each with its covariance there): CCDA's transform is then the paper's
+    ``x^Wglobal_Wknown`` (§3.2, eq. 12)."""
+    out = match_arrays(g, feats)
+    for r, i in enumerate(feats):
+        out.params[r], out.covs[r] = feature_in_global(g, i)
+    return out
+
+
+def _add_known_map(trial: GaussianMap, known: KnownMapArrays) -> dict[int, int]:
+    """Append every known feature to ``trial`` (track −1, uncorrelated); returns the
+    index of each in it."""
+    known_index: dict[int, int] = {}
+    for j in range(len(known)):
+        element, mean, cov = known_element(known, j, -1)
+        known_index[j] = trial.add(element, mean, cov)
+    return known_index
+
+
 def fuse_match(
     g: GaussianMap,
     feats: list[int],
     known: KnownMapArrays,
     res: CCDAResult,
     assoc: AssociationConfig,
+    tie_at: TieAt = "observed",
 ) -> tuple[GaussianMap, dict[int, int], IteratedUpdate]:
     """A copy of ``g`` with the anchor at CCDA's value under the loose prior
     ``assoc.anchor_prior_sigma``, every known feature (track −1), and the pairings of
-    ``res`` (indices into ``feats`` and ``known``) applied by :func:`apply_iterated`.
+    ``res`` (indices into ``feats`` and ``known``) applied by :func:`apply_iterated`
+    (a line pairing's lateral residual measured ``tie_at``).
 
     Returns the copy, the index of each known feature in it, and the update's outcome.
     """
@@ -70,24 +103,37 @@ def fuse_match(
         res.x_A_B,
         np.diag(sig**2),
     )
-    known_index: dict[int, int] = {}
-    for j in range(len(known)):
-        kind = ElementKind.of_feature(int(known.kinds[j]))
-        cov = known.covs[j]
-        if kind == ElementKind.LINE:
-            cov = bind_line_cov(known.params[j], cov)
-        extent = (math.nan, math.nan)
-        if known.extents is not None and kind == ElementKind.LINE:
-            extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
-        element = Element(
-            kind, Role.KNOWN, moving=False, track=-1, extent=extent, true_id=int(known.ids[j])
-        )
-        known_index[j] = trial.add(element, known.params[j], cov)
+    known_index = _add_known_map(trial, known)
     pairs = [(feats[ia], known_index[jb]) for ia, jb in res.pairings]
     # The anchor's prior is flat: iterate, or the anchor depends on where the pairings
     # happened to be linearised (CCDA's estimate).
-    upd = apply_iterated(trial, lambda state: element_pairings(state, pairs))
+    upd = apply_iterated(trial, lambda state: element_pairings(state, pairs, tie_at))
     return trial, known_index, upd
+
+
+def insert_ccda_estimate(
+    g: GaussianMap, res: CCDAResult, known: KnownMapArrays | None
+) -> tuple[GaussianMap, dict[int, int]]:
+    """A copy of ``g`` with the anchor inserted as the paper does (§3.3.1, eqs. 13–16),
+    and ``known``'s features when given (track −1, uncorrelated).
+
+    ``res`` is CCDA's match of the map in ``Wglobal`` (:func:`match_arrays_in_global`):
+    ``x^Wglobal_Wknown`` with covariance ``C``.  The anchor is
+    ``x^Wlocal_Wknown = x^Wlocal_Wglobal ⊕ x^Wglobal_Wknown`` (eq. 13), with covariance
+    ``G diag(C, P) Gᵀ`` with the map (eqs. 15–16: ``G = [[J_g, J_X], [0, I]]``, ``J_g``
+    and ``J_X`` the Jacobians of eq. 13 w.r.t. CCDA's estimate and the map ``P``, which
+    it reads through the base only): CCDA's estimate is taken as independent of the
+    map.  The anchor's ``x^Wknown_Wglobal`` is then CCDA's, with CCDA's covariance.
+    Returns the copy and the index of each known feature in it.
+    """
+    trial = g.copy()
+    b = trial.find(Role.BASE)
+    x, J_X, J_g = compose_jacobians(trial.mean[b], res.x_A_B)
+    rows = trial.cov[3 * b : 3 * b + 3, :]
+    cov = J_X @ rows[:, 3 * b : 3 * b + 3] @ J_X.T + J_g @ res.cov @ J_g.T
+    anchor = Element(ElementKind.POSE, Role.ANCHOR, moving=False, track=-1)
+    trial.add(anchor, x, cov, J_X @ rows)
+    return trial, {} if known is None else _add_known_map(trial, known)
 
 
 def worst_pairing(
@@ -97,6 +143,7 @@ def worst_pairing(
     res: CCDAResult,
     assoc: AssociationConfig,
     upd: IteratedUpdate,
+    tie_at: TieAt = "observed",
 ) -> tuple[int, float, int] | None:
     """The pairing of ``res`` that fails its own test against the others, if any.
 
@@ -113,7 +160,7 @@ def worst_pairing(
         if not rest:
             continue
         trimmed = dataclasses.replace(res, pairings=rest)
-        _, _, without = fuse_match(g, feats, known, trimmed, assoc)
+        _, _, without = fuse_match(g, feats, known, trimmed, assoc, tie_at)
         dof = upd.dims - without.dims
         delta = upd.nis - without.nis
         ratio = delta / chi2_gate(assoc.gate_prob, dof)
@@ -153,20 +200,21 @@ def vet_match(
     res: CCDAResult,
     assoc: AssociationConfig,
     culprit_if_joint_fails: bool = True,
+    tie_at: TieAt = "observed",
 ) -> Vetted:
     """Fuse ``res`` on a copy of ``g`` and test it: jointly (χ² of every pairing, the
     anchor's 3 dimensions less) and, with ``assoc.match_pairing_test``, each pairing
     against the others (:func:`worst_pairing`).  ``culprit_if_joint_fails=False``
     skips the per-pairing fuses when the joint test already refuses the match and no
-    culprit is wanted."""
-    trial, known_index, upd = fuse_match(g, feats, known, res, assoc)
+    culprit is wanted.  ``tie_at``: where a line pairing measures its lateral residual."""
+    trial, known_index, upd = fuse_match(g, feats, known, res, assoc, tie_at)
     dof = upd.dims - 3
     if not assoc.match_joint_test:
         return Vetted(trial, known_index, upd, None, upd.nis, dof, None)
     joint_fails = dof > 0 and upd.nis > chi2_gate(assoc.gate_prob, dof)
     bad = None
     if assoc.match_pairing_test and (culprit_if_joint_fails or not joint_fails):
-        bad = worst_pairing(g, feats, known, res, assoc, upd)
+        bad = worst_pairing(g, feats, known, res, assoc, upd, tie_at)
     culprit = None if bad is None else bad[0]
     if joint_fails:
         return Vetted(trial, known_index, upd, JOINTLY_INCONSISTENT, upd.nis, dof, culprit)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -60,6 +61,11 @@ class Query:
     """Along-line extent of a line (NaN for circles)."""
     element: int = -1
     """Index of the map element this query is, or −1 for a measurement."""
+    residual_at: Literal["observed", "target"] = "observed"
+    """Where a line's lateral residual is measured
+    (:func:`mapfuse_core.models.line.line_residual`'s ``at``): at this query's reference
+    point, or at the target's (a map element tied to another:
+    ``EKFConfig.line_tie_residual_at``; a measurement's is always its own)."""
 
 
 @dataclass(frozen=True)
@@ -142,11 +148,14 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     the model's (:func:`mapfuse_core.models.dispatch.pairing_cov`: its covariance with the
     along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
     covariance is in the map, so its pairing has none.  docs/method.md says why the
-    segment form.
+    segment form.  A map element's query can ask for the offset at the target's
+    reference point instead (:attr:`Query.residual_at`: the paper's ties).
     """
+    if q.element < 0 and q.residual_at != "observed":
+        raise ValueError("a measurement's residual is measured at the measured segment")
     pred, tidx, tJ = _target_jacobian(state, t)
     fk = q.kind.feature_kind()
-    r, Jp, Jq = pairing_residual(fk, pred, q.params)
+    r, Jp, Jq = pairing_residual(fk, pred, q.params, q.residual_at)
     if q.element >= 0:
         indices = [q.element, *tidx]
         blocks = [Jq] + [Jp @ J for J in tJ]
@@ -161,12 +170,19 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2)
 
 
-def element_pairings(state: GaussianMap, pairs: list[tuple[int, int]]) -> list[Candidate]:
-    """Hard pairings ``(map element, target)`` evaluated at the current ``state.mean``."""
+def element_pairings(
+    state: GaussianMap,
+    pairs: list[tuple[int, int]],
+    residual_at: Literal["observed", "target"] = "observed",
+) -> list[Candidate]:
+    """Hard pairings ``(map element, target)`` evaluated at the current ``state.mean``
+    (a line's lateral residual measured ``residual_at``, :attr:`Query.residual_at`)."""
     out = []
     for i, t in pairs:
         e = state.elements[i]
-        q = Query(e.kind, state.mean[i], np.zeros((3, 3)), e.extent, element=i)
+        q = Query(
+            e.kind, state.mean[i], np.zeros((3, 3)), e.extent, element=i, residual_at=residual_at
+        )
         out.append(evaluate(state, q, t))
     return out
 

@@ -78,14 +78,84 @@ class EKFConfig:
     baseline of ``docs/results/changes.md``)."""
     known_gating: KnownGatingParams = field(default_factory=KnownGatingParams)
     """Level, window and counts of that gate."""
-    anchor_watch: AnchorWatchParams | None = field(default_factory=AnchorWatchParams)
+    anchor_watch: AnchorWatchParams | None = None
     """*(choice, beyond the paper)* After a match is fused, test the known features'
     innovations against it and undo an anchor they contradict: filtering goes back to
     just before the fusion and runs again without that match, which CCDA may replace at
-    a later join (:mod:`ekf_reference.anchor_watch`).  ``None`` keeps every anchor
-    fused (the paper's method)."""
+    a later join (:mod:`ekf_reference.anchor_watch`).  ``None`` (default) keeps every
+    anchor fused, as the paper's Algorithm 1.  Off by default: on the generated worlds
+    the joint test (``data_association.match_joint_test``) already refuses the wrong
+    matches and the watch redid none, while on real logs (Intel, seeds 0–1) it undid
+    right anchors, 0.2–0.3 m off, whose known walls the floor plan states more tightly
+    than the anchor holds them (``docs/gaps.md``)."""
+
+    anchor_entry: Literal["pairings", "ccda_estimate"] = "pairings"
+    """*(choice, beyond the paper)* How an accepted CCDA match enters the global map.
+    ``"pairings"`` (default): the anchor ``x^Wlocal_Wknown`` enters at CCDA's value under
+    the flat prior ``data_association.anchor_prior_sigma``, with the known map, and the
+    match's pairings tie the matched features to their known features by an iterated
+    update (:func:`ekf_reference.anchoring.fuse_match`): what the matched features know
+    of the transform enters once, with the EKF's correlations between them.
+    ``"ccda_estimate"``: the paper's insertion (§3.2–3.3.1, eqs. 12–16).  CCDA matches
+    the global map expressed in ``Wglobal``, and its estimate ``x^Wglobal_Wknown`` enters
+    as ``x^Wlocal_Wknown = x^Wlocal_Wglobal ⊕ x^Wglobal_Wknown`` with covariance
+    ``G diag(C_CCDA, C_global) Gᵀ`` (eq. 15), independent of the map's features; no
+    pairing is fused, and the matched features stay in the map (their tracks join the
+    known features').  CCDA's covariance comes from the same features, which keep
+    their information, and ignores their correlations: the transform's information
+    is counted twice.  ``docs/results/ekf-paper-preset.md`` measures the two."""
+    known_map_in_local_maps: Literal["shared", "copied"] = "shared"
+    """*(choice, beyond the paper)* How the anchor and the known map reach the local
+    maps once the map is matched.  ``"shared"`` (default): they are shared between the
+    global map and the local map started from it (conditionally independent local
+    maps, Piniés and Tardós 2008; :func:`ekf_reference.maps.new_local_map`): a local map
+    starts with their global marginal and the join corrects the global-only elements
+    through their correlation with them, so their information is counted once.
+    ``"copied"``: the paper's (§3.3.1–3.3.3, eqs. 14, 17–24).  The global map holds the
+    anchor and no known feature (eq. 14); every local map starts with a copy of the
+    anchor (its global mean and marginal covariance, uncorrelated with the vehicle,
+    eqs. 17–18) and of the known map (its surveyed covariance, uncorrelated, eq. 19),
+    :func:`ekf_reference.maps.copied_local_map`.  Observations update the local
+    features only; a local feature is then tied to a known feature (eq. 20) and kept.
+    At the join the copies of the known features are dropped, the local features join
+    the global ones (eq. 5) and the local anchor is tied to the global one (eqs.
+    22–24).  The copies are treated as independent of what they were copied from, so
+    the anchor's and the known features' information is counted again at every join,
+    and during a local map the vehicle's pose in ``Wglobal`` is the global map's base
+    (as of the last join) with the local map's motion, uncorrected by what the local
+    map learns of the anchor.  Not combinable with :attr:`carry_seen_steps` (a carried
+    feature is shared)."""
+    line_tie_residual_at: Literal["observed", "target"] = "observed"
+    """*(choice, beyond the paper)* Where the lateral residual of a hard tie between two
+    map lines is measured (:func:`mapfuse_core.models.line.line_residual`'s ``at``): a
+    local line with a global one at a join, a local line with a known wall, a matched
+    line with its known wall.  ``"observed"`` (default): at the reference point of the
+    line being tied (near the segments it was observed at), from the line it is tied
+    to, as every measurement is (``docs/method.md``): the residual does not depend on
+    where the target's reference point lies along its line.  ``"target"``: the paper's
+    ``B · x^F_G`` (eqs. 5 and 20): at the reference point of the line it is tied to.
+    A known wall's reference point reaches the working frame through the anchor, whose
+    translation along the wall is uncertain; measured there, the lateral residual
+    depends on it through the sine of the (noisy) angle between the lines, and the
+    ties pile up anchor information along the wall that no wall holds.  A
+    measurement's residual is always measured at the measured segment."""
 
     def __post_init__(self) -> None:
+        for name, allowed in (
+            ("anchor_entry", ("pairings", "ccda_estimate")),
+            ("known_map_in_local_maps", ("shared", "copied")),
+            ("line_tie_residual_at", ("observed", "target")),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(map(repr, allowed))}; "
+                    f"got {getattr(self, name)!r}"
+                )
+        if self.known_map_in_local_maps == "copied" and self.carry_seen_steps:
+            raise ValueError(
+                "carry_seen_steps shares features between the global and the local map; "
+                "known_map_in_local_maps='copied' shares none (use 'shared')"
+            )
         if self.anchor_watch is not None and not isinstance(self.anchor_watch, AnchorWatchParams):
             raise ValueError(
                 "anchor_watch must be an AnchorWatchParams or None, got "
@@ -128,14 +198,42 @@ class EKFConfig:
 
     @classmethod
     def paper(cls) -> EKFConfig:
-        """The paper's method: every extension beyond it off, the paper's values where
-        it gives them.  :data:`PAPER_FIELDS` classifies every setting;
-        :meth:`extensions` lists where the default differs, and why.  With
+        """The paper's method exactly: every extension beyond it off, the paper's forms
+        and values where it gives them, and the default wherever it is silent, each such
+        setting or detail marked *(choice)* below.  :data:`PAPER_FIELDS` classifies every
+        setting; :meth:`extensions` lists where the default differs, and why.  With
         :func:`~ekf_reference.run_ekf`'s ``fusion=True`` (its default) it is the paper's
         Algorithm 1 (§3); with ``fusion=False`` the paper's SLAM without the known map.
 
         From the paper (Chanier et al.; § are the paper's sections):
 
+        * ``anchor_entry``: ``"ccda_estimate"``.  CCDA matches the global map in
+          ``Wglobal`` and estimates ``x^Wglobal_Wknown`` and its covariance (§3.2, eq.
+          12); the anchor enters as ``x^Wlocal_Wglobal ⊕ x^Wglobal_Wknown`` (eq. 13) with
+          the covariance of eqs. 15–16, CCDA's estimate independent of the map; no
+          pairing is fused.  *(choice)* The matched features' tracks join the known
+          features' (bookkeeping: the labels of the decisions and the map).
+        * ``known_map_in_local_maps``: ``"copied"``.  The global map holds the anchor and
+          no known feature (eq. 14).  Every local map starts with a copy of the anchor
+          (the global mean and marginal covariance, uncorrelated with the vehicle, eqs.
+          17–18) and of the known map with its surveyed covariance (eqs. 11, 19).
+          Observations update the local features; then each local feature paired with a
+          known feature is tied to it by a hard constraint (§3.3.2, eqs. 20–21).  The
+          join pairs the local features with the global ones (eq. 5) and then ties the
+          local anchor to the global one (§3.3.3, eqs. 22–24; Algorithm 1's order).
+          During a local map the vehicle's pose in ``Wglobal`` is the global map's base
+          with the local map's motion (§2.1).  *(choice)* The known map is joined once,
+          when the local map starts (eq. 19 joins it "to update the local map"; joined
+          afresh at every step it would count its covariance at every step).
+          *(choice)* A local feature tied to a known one is kept and tied once (the
+          paper does not say whether a tie is repeated; repeated, a hard constraint
+          already met is singular).  *(choice)* At the join the copies of the known
+          features are dropped (the global map has none, eq. 14).  *(choice)* The noise
+          ``w_known`` of eq. 22 is the local anchor's own uncertainty (a state of the
+          stacked system, eq. 24), with nothing added.
+        * ``line_tie_residual_at``: ``"target"``: a tie of two lines (eqs. 5 and 20,
+          ``B · x^F_G``) measures the lateral offset at the reference point of the line
+          the local feature is tied to.
         * ``data_association.ccda.min_pairings``: 4, "more than three" pairings (§3.2).
         * ``data_association.ccda.redundant_pairings``: off, and
           ``data_association.ccda.ambiguity_margin``: 0: the match is accepted on the
@@ -145,7 +243,8 @@ class EKFConfig:
         * ``data_association.min_obs_for_matching``: 1, the whole global map is matched
           (§3.2, Algorithm 1).
         * ``data_association.match_joint_test``, ``match_pairing_test``: off and
-          ``match_exclusions``: 0: CCDA's accepted match is fused as it is (§3.2–3.3).
+          ``match_exclusions``: 0: CCDA's accepted match is used as it is (§3.2–3.3).
+        * ``anchor_watch``: ``None``: an accepted anchor stays (Algorithm 1).
         * ``known_map_gating``: off: every pairing the association accepts is fused at
           every step (§3.3.2).
         * ``tentative_min_sightings``: 1, no condition on a new feature (§2.1.1);
@@ -163,7 +262,9 @@ class EKFConfig:
           ``jcbb_max_nodes``, ``one_observation_per_circle``,
           ``one_observation_per_line`` *(choice)*: the association within the filter is
           not described (the paper defers to its reference [5]): individual χ² at 0.999,
-          nearest neighbour, one observation per trunk and scan.
+          nearest neighbour, one observation per trunk and scan.  *(choice)* So is the
+          observation model of a local feature ([5]): a measured segment's lateral
+          residual is taken at the segment (``docs/method.md``).
         * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``
           *(choice)*: the paper uses a line's along-line coordinate to disambiguate
           association (§2.2.1) and gives no threshold.
@@ -179,21 +280,10 @@ class EKFConfig:
           *(choice)*: bounds on the search's work; the paper gives none.
         * ``data_association.ccda.rival_fraction`` *(choice)*: unused with
           ``ambiguity_margin`` set.
-        * ``data_association.anchor_prior_sigma`` *(choice)*: flat.  The paper inserts
-          CCDA's covariance as the anchor's (eq. 15); the EKF fuses the match's pairings
-          instead (below), and CCDA's covariance on top would count them twice.
+        * ``data_association.anchor_prior_sigma`` *(choice)*: unused with
+          ``anchor_entry`` ``"ccda_estimate"``, whose anchor has CCDA's covariance.
         * ``tentative_window_steps`` *(choice)*: unused with ``tentative_min_sightings``
           1; ``known_gating`` *(choice)*: unused with ``known_map_gating`` off.
-
-        Not configurable, so the same in every preset (``docs/method.md`` §5.2–5.3 gives
-        the reasons): the accepted match's pairings fix the anchor by an iterated update
-        under the flat prior, where the paper inserts CCDA's estimate (eq. 15); the
-        anchor and the known features are shared between the global map and the local
-        map started from it (conditionally independent local maps), where the paper
-        copies them into every local map (eqs. 17–19) and fuses the copy back at the join
-        (eqs. 22–24), which counts their information again at every join; a known wall's
-        lateral residual is measured at the observed segment, not at the wall's
-        reference point, whose along-wall place the anchor knows poorly.
         """
         d = cls()
         assoc = d.data_association
@@ -202,6 +292,10 @@ class EKFConfig:
         )
         return dataclasses.replace(
             d,
+            anchor_entry="ccda_estimate",
+            known_map_in_local_maps="copied",
+            line_tie_residual_at="target",
+            anchor_watch=None,
             known_map_gating=False,
             tentative_min_sightings=1,
             min_obs_to_join=1,
@@ -271,7 +365,7 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
             "matches the whole global map (1)."
         ),
         _DA + "anchor_prior_sigma": _c(
-            "flat: the pairings fix the anchor; CCDA's covariance (eq. 15) would count them twice."
+            "flat; unused with anchor_entry 'ccda_estimate' (eq. 15: CCDA's covariance)."
         ),
         _DA + "match_joint_test": _x(
             "on: an accepted match's pairings must pass a joint χ² test with the EKF's "
@@ -321,6 +415,19 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
             "fused (a map out of date); §3.3.2 fuses every accepted pairing (off)."
         ),
         "known_gating": _c("unused with known_map_gating off."),
+        "anchor_watch": _p("Algorithm 1 keeps the first anchor (None, the default too)."),
+        "anchor_entry": _x(
+            "pairings: the match's pairings fix the anchor, counted once with the EKF's "
+            "correlations; eqs. 12–16 insert CCDA's estimate and covariance (ccda_estimate)."
+        ),
+        "known_map_in_local_maps": _x(
+            "shared: each local map shares the anchor and known map, counted once; eqs. "
+            "17–24 copy them into every local map and fuse the anchor back (copied)."
+        ),
+        "line_tie_residual_at": _x(
+            "observed: a tie of two lines measures the offset at the tied line's reference "
+            "point, blind to the anchor along a wall; eqs. 5 and 20 at the target's (target)."
+        ),
     }
 )
 """Every setting of :class:`EKFConfig` (a dotted name; a nested settings object named

@@ -20,7 +20,7 @@ from mapfuse_core.estimate import MapEstimate
 from mapfuse_core.geometry.features import express_in, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, inverse_jacobian
 
-__all__ = ["final_map"]
+__all__ = ["feature_in_global", "final_map"]
 
 
 def final_map(
@@ -32,7 +32,8 @@ def final_map(
     A known feature's ``n_obs`` is the number of logged observations associated with
     it (``obs_known_id``, the known id of every observation's landmark), as the graph's
     landmarks count theirs: the filter's own count misses those absorbed into it by a
-    hard constraint.
+    hard constraint.  An estimated feature tied to a known one and kept
+    (``EKFConfig.known_map_in_local_maps="copied"``) has that known id and its own count.
     """
     feats = [i for i, e in enumerate(g.elements) if e.role in (Role.FEATURE, Role.KNOWN)]
     gb = g.find(Role.BASE)
@@ -55,9 +56,7 @@ def final_map(
             J = np.hstack([J1 @ Jinv, J2 @ Ja, J2 @ Je])
             P = g.marginal([gb, a, i])
         else:
-            val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
-            J = np.hstack([J1 @ Jinv, J2])
-            P = g.marginal([gb, i])
+            val, J, P = _feature_in_global(g, gb, i, inv_b, Jinv)
             if a is not None:
                 # x^Wknown'_F = ⊖x^Wlocal_Wknown' ⊕ x^Wlocal_F, then uncentred.
                 fk_val, Ka, Kf = express_in(fk, g.mean[a], g.mean[i])
@@ -67,7 +66,14 @@ def final_map(
         params[r] = val
         covs[r] = J @ P @ J.T
     known_ids = np.array(
-        [g.elements[i].true_id if g.elements[i].role == Role.KNOWN else -1 for i in feats],
+        [
+            g.elements[i].true_id
+            if g.elements[i].role == Role.KNOWN
+            else tracks.known.get(tracks.root(g.elements[i].track), -1)
+            if g.elements[i].track >= 0
+            else -1
+            for i in feats
+        ],
         dtype=np.int64,
     )
     return MapEstimate(
@@ -77,7 +83,9 @@ def final_map(
         known_ids=known_ids,
         true_ids=np.array([g.elements[i].true_id for i in feats], dtype=np.int64),
         n_obs=_n_obs(
-            np.array([g.elements[i].n_obs for i in feats], dtype=np.int64), known_ids, obs_known_id
+            np.array([g.elements[i].n_obs for i in feats], dtype=np.int64),
+            np.where([g.elements[i].role == Role.KNOWN for i in feats], known_ids, -1),
+            obs_known_id,
         ),
         tracks=np.array(
             [
@@ -91,8 +99,28 @@ def final_map(
     )
 
 
+def feature_in_global(g: GaussianMap, i: int) -> tuple[FloatArray, FloatArray]:
+    """Estimated feature ``i`` of global map ``g`` in ``Wglobal``, ``⊖x^Wlocal_Wglobal ⊕
+    x^Wlocal_F``, and its covariance (from its joint marginal with the base)."""
+    gb = g.find(Role.BASE)
+    inv_b, Jinv = inverse_jacobian(g.mean[gb])
+    val, J, P = _feature_in_global(g, gb, i, inv_b, Jinv)
+    return val, J @ P @ J.T
+
+
+def _feature_in_global(
+    g: GaussianMap, gb: int, i: int, inv_b: FloatArray, Jinv: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Feature ``i`` through the inverted base ``inv_b`` (``Jinv``: its Jacobian), the
+    Jacobian w.r.t. ``[base, feature]`` and their joint marginal."""
+    fk = g.elements[i].kind.feature_kind()
+    val, J1, J2 = transform_feature(fk, inv_b, g.mean[i])
+    return val, np.hstack([J1 @ Jinv, J2]), g.marginal([gb, i])
+
+
 def _n_obs(n_obs: np.ndarray, known_ids: np.ndarray, obs_known_id: np.ndarray) -> np.ndarray:
-    """``n_obs`` with each known feature's count taken from the observations' known ids."""
+    """``n_obs`` with each known feature's count taken from the observations' known ids
+    (``known_ids``: −1 for every entry that keeps its own count)."""
     out = np.array(n_obs, dtype=np.int64, copy=True)
     known = known_ids >= 0
     if np.any(known):

@@ -1,11 +1,14 @@
-"""The known map in a frame centred on its features, and poses taken back to its own."""
+"""The known map in a frame centred on its features, poses taken back to its own, and
+its features as EKF map elements."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 
+from ekf_reference.state import Element, ElementKind, Role, bind_line_cov
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import KnownMapArrays
 
@@ -36,3 +39,22 @@ def uncentred(x_known_centred: FloatArray, c: FloatArray) -> FloatArray:
     out = np.array(x_known_centred, dtype=np.float64, copy=True)
     out[:2] += c
     return out
+
+
+def known_element(
+    known: KnownMapArrays, j: int, track: int
+) -> tuple[Element, FloatArray, FloatArray]:
+    """Known feature ``j`` as a static map element in the known frame (track ``track``),
+    its mean and its surveyed covariance (a line's with the along-line part projected
+    out)."""
+    kind = ElementKind.of_feature(int(known.kinds[j]))
+    cov = known.covs[j]
+    if kind == ElementKind.LINE:
+        cov = bind_line_cov(known.params[j], cov)
+    extent = (math.nan, math.nan)
+    if known.extents is not None and kind == ElementKind.LINE:
+        extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
+    element = Element(
+        kind, Role.KNOWN, moving=False, track=track, extent=extent, true_id=int(known.ids[j])
+    )
+    return element, known.params[j], cov

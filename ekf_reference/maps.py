@@ -8,25 +8,29 @@ map, ``Wglobal`` the vehicle at step 0, ``Wknown`` the known map.
   ``Wknown``.
 * Global map (eq. 2, 14): ``[x^Wlocal_Wglobal, (x^Wlocal_Wknown, x^Wknown_E…), x^Wlocal_G…]``.
 
-*(choice)* Known-map information is counted once.  The paper stacks the known map
-and the translation vector into every local map as if independent of the global
-map, then fuses them back (eq. 22); that counts the same information again at every
-join.  Here the anchor and the known features are *shared* between the global map
-and the local map started from it (conditionally independent local maps, Piniés and
-Tardós 2008): a local map starts with the global marginal of the shared elements,
-and at the join the global-only elements are corrected through their correlation
-with the shared ones.  The structure of Algorithm 1 (translation vector in every
-local map, constrained local update at every step, translation-vector update at
-every join) is unchanged; only the bookkeeping is exact.
+How the anchor and the known map reach a local map is
+``EKFConfig.known_map_in_local_maps``.  By default (``"shared"``) known-map
+information is counted once: the anchor and the known features are *shared* between
+the global map and the local map started from it (conditionally independent local
+maps, Piniés and Tardós 2008; :func:`new_local_map`): a local map starts with the
+global marginal of the shared elements, and at the join the global-only elements are
+corrected through their correlation with the shared ones.  The structure of
+Algorithm 1 (translation vector in every local map, constrained local update at every
+step, translation-vector update at every join) is the paper's.  ``"copied"`` is the
+paper's bookkeeping (:func:`copied_local_map`): every local map gets a copy of the
+anchor and of the known map, independent of the global map, and the join fuses the
+anchor's copy back (eqs. 22–24); that counts the same information again at every
+join.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 
 from ekf_reference.association import (
     Candidate,
@@ -36,6 +40,7 @@ from ekf_reference.association import (
     nearest_neighbour,
 )
 from ekf_reference.config import EKFConfig
+from ekf_reference.known_frame import known_element
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.geometry.features import express_in, transform_feature
 from mapfuse_core.geometry.se2 import (
@@ -45,13 +50,16 @@ from mapfuse_core.geometry.se2 import (
     relative,
     wrap_angle,
 )
+from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = [
     "CIContext",
     "bind_line_cov",
+    "copied_local_map",
     "new_global_map",
     "new_local_map",
     "predict",
+    "tie_anchor_copy",
     "vehicle_in_global",
 ]
 
@@ -152,6 +160,40 @@ def new_local_map(
         base_cond_cov=global_map.block(gb) - A[3 * gb : 3 * gb + 3] @ P_sb,
     )
     return loc, ctx
+
+
+def copied_local_map(
+    global_map: GaussianMap, known: KnownMapArrays, known_tracks: Mapping[int, int]
+) -> GaussianMap:
+    """A local map based at the current vehicle pose with its own copy of the anchor
+    and of the known map (the paper, §3.3.1–3.3.2, eqs. 17–19).
+
+    ``[x^R_Wlocal, x^R_Wknown, x^Wknown_E…]``: the base at zero with zero covariance;
+    the anchor at the global map's ``x^Wlocal_Wknown`` (the local map starts at
+    ``Wlocal``) with its global marginal covariance, uncorrelated with the base (eqs.
+    17–18); every known feature static in ``Wknown`` with its surveyed covariance,
+    uncorrelated with both (eq. 19), on track ``known_tracks[j]``.  Nothing is
+    correlated with the global map: the local map counts this information as if it
+    were new.
+    """
+    loc = GaussianMap()
+    a = global_map.find(Role.ANCHOR)
+    loc.elements = [
+        Element(ElementKind.POSE, Role.BASE, moving=True, track=-1),
+        Element(ElementKind.POSE, Role.ANCHOR, moving=True, track=-1),
+    ]
+    means = [np.zeros(3), global_map.mean[a]]
+    blocks = [np.zeros((3, 3)), global_map.block(a)]
+    for j in range(len(known)):
+        element, mean, cov = known_element(known, j, known_tracks[j])
+        loc.elements.append(element)
+        means.append(mean)
+        blocks.append(cov)
+    # Filled in one go: GaussianMap.add reallocates the covariance per element.
+    loc.mean = np.array(means, dtype=np.float64).reshape(-1, 3)
+    loc.cov = block_diag(*blocks)
+    loc.symmetrise()
+    return loc
 
 
 def psd_pinv(P: FloatArray, rcond: float = 1e-10) -> FloatArray:
@@ -352,6 +394,24 @@ def merge_extent(
     if not all(math.isfinite(v) for v in t_extent):
         return (min(s), max(s))
     return (min(t_extent[0], *s), max(t_extent[1], *s))
+
+
+def tie_anchor_copy(joint: GaussianMap) -> None:
+    """At a join with a copied known map (the paper's eqs. 22–24): tie the local map's
+    anchor ``x^R_Wknown`` (the second anchor of ``joint``) to the global map's
+    ``x^R_Wlocal ⊕ x^Wlocal_Wknown`` (the first, already composed into the new frame)
+    by a hard constraint, then drop it.
+
+    The local anchor is a state of the stacked system (eq. 24's ``H^local = I``), so
+    the observation noise ``w_known`` of eq. 22 is its own uncertainty and the tie adds
+    none.
+    """
+    a_g, a_l = joint.indices(Role.ANCHOR)
+    r = joint.mean[a_l] - joint.mean[a_g]
+    r[2] = wrap_angle(r[2])
+    H = np.hstack([-np.eye(3), np.eye(3)])
+    joint.update([a_g, a_l], r, H, np.zeros((3, 3)))
+    joint.remove([a_l])
 
 
 def compose_into(state: GaussianMap, base: int, frame_elements: list[int]) -> None:

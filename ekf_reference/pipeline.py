@@ -6,6 +6,7 @@ import copy
 import time
 import warnings
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -13,12 +14,14 @@ from ekf_reference.anchor_watch import AnchorWatch, GateState, Verdict
 from ekf_reference.anchoring import (
     JOINTLY_INCONSISTENT,
     PAIRING_INCONSISTENT,
-    Vetted,
+    insert_ccda_estimate,
     match_arrays,
+    match_arrays_in_global,
     vet_match,
 )
 from ekf_reference.association import (
     Candidate,
+    IteratedUpdate,
     Query,
     apply,
     evaluate,
@@ -36,11 +39,13 @@ from ekf_reference.maps import (
     associate,
     bind_line_cov,
     compose_into,
+    copied_local_map,
     merge_extent,
     new_global_map,
     new_local_map,
     predict,
     shared_in_global_frame,
+    tie_anchor_copy,
     vehicle_in_global,
 )
 from ekf_reference.result import EKFDetails, LoopClosure, UndoneAnchor
@@ -59,6 +64,7 @@ from mapfuse_core.estimate import (
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.se2 import (
     FloatArray,
+    compose,
     compose_jacobians,
     inverse_jacobian,
     wrap_angle,
@@ -93,6 +99,7 @@ _STATE = (
     "tentative",
     "anchor_step",
     "anchor_pairings",
+    "known_tracks",
     "loop_closures",
     "gate",
     "step",
@@ -111,14 +118,16 @@ class _Run:
         self.obs_track = np.full(log.n_features, -1, dtype=np.int64)
         self.obs_known = np.full(log.n_features, -1, dtype=np.int64)
         self.global_map = new_global_map()
-        self.local, self.ctx = new_local_map(self.global_map)
+        self.known, self.known_centre = centred_known_map(log.known_map)
+        self.known_tracks: dict[int, int] = {}
+        """Track of each known feature (index into :attr:`known`), from the match on."""
+        self.local, self.ctx = self._start_local_map([])
         self.ccda_attempts = 0
         self.ccda_reasons: dict[str, int] = {}
         self.ccda_refused: list[tuple[int, float, int]] = []
         self.ccda_excluded: list[tuple[int, int]] = []
         self.tentative = Tentatives(config.tentative_min_sightings, config.tentative_window_steps)
         self.anchor_step = -1
-        self.known, self.known_centre = centred_known_map(log.known_map)
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
         self.gate: KnownGate | None = None
@@ -157,7 +166,11 @@ class _Run:
                 )
             )
         self.step = k
-        targets = self._gated(loc, predict_all_targets(loc, lambda e: e.moving))
+        # With copied known maps (the paper) observations update the local features
+        # only; the known map enters through its ties with them (constrain_to_known).
+        targets = self._gated(
+            loc, predict_all_targets(loc, lambda e: e.moving, known=not self._copied())
+        )
         chosen = associate(loc, queries, targets, self.config)
         self._record(k, loc, queries, chosen, targets)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
@@ -243,12 +256,43 @@ class _Run:
         cands = individual_candidates(loc, q, same, loc.mean[same], self.config.data_association)
         return cands[0] if cands else None
 
+    def _copied(self) -> bool:
+        """Whether every local map holds its own copy of the known map (the paper's)."""
+        return self.config.known_map_in_local_maps == "copied"
+
+    def _tie_query(self, state: GaussianMap, i: int) -> Query:
+        """Map feature ``i`` as the query of a hard tie (``line_tie_residual_at``)."""
+        e = state.elements[i]
+        return Query(
+            e.kind,
+            state.mean[i],
+            np.zeros((3, 3)),
+            e.extent,
+            element=i,
+            residual_at=self.config.line_tie_residual_at,
+        )
+
+    def _start_local_map(self, carry: list[int]) -> tuple[GaussianMap, CIContext | None]:
+        """The next local map: with the known map shared (and the ``carry`` features),
+        or, matched with ``known_map_in_local_maps="copied"``, with its own copies."""
+        if self._copied() and self.global_map.has(Role.ANCHOR):
+            return copied_local_map(self.global_map, self.known, self.known_tracks), None
+        return new_local_map(self.global_map, carry)
+
     def constrain_to_known(self, state: GaussianMap, which: Callable[[Element], bool]) -> None:
-        """Pair map features with known features (hard constraints) and absorb them."""
+        """Tie map features to known features (hard constraints, the paper's eq. 20).
+
+        A tied feature is absorbed (removed: the known feature stands for it) when the
+        known map is shared, and kept when the local map holds a copy of it (which the
+        join drops, eq. 14), so that it carries the tie into the global map; it is then
+        not tied again."""
+        copied = self._copied()
         queries = [
-            Query(e.kind, state.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            self._tie_query(state, i)
             for i, e in enumerate(state.elements)
-            if e.role == Role.FEATURE and which(e)
+            if e.role == Role.FEATURE
+            and which(e)
+            and not (copied and self.tracks.root(e.track) in self.tracks.known)
         ]
         if not queries:
             return
@@ -261,7 +305,8 @@ class _Run:
         apply(state, [c for _, c in pairs])
         for q, c in pairs:
             self.tracks.merge(state.elements[q.element].track, state.elements[c.target].track)
-        state.remove([q.element for q, _ in pairs])
+        if not copied:
+            state.remove([q.element for q, _ in pairs])
 
     # ------------------------------------------------------------------ join
 
@@ -302,6 +347,11 @@ class _Run:
         for e in joint.elements:
             e.moving = False
         joint.bind_lines()
+        copies = ctx is None and loc.has(Role.ANCHOR)
+        if copies:
+            # The paper's global map holds no known feature (eq. 14): the local map's
+            # copies go; the local features tied to them carry what they taught.
+            joint.remove(joint.indices(Role.KNOWN))
         # Pair the local map's features with the global ones (and the known ones).
         pairs = self._pair_at_join(joint, k)
         for q, c in pairs:
@@ -315,12 +365,14 @@ class _Run:
         joint.remove([q.element for q, _ in pairs])
         for e in joint.elements:
             e.in_local = False
+        if copies:
+            tie_anchor_copy(joint)
         joint.bind_lines()
         self.tentative.settle(joint, self.obs_track, self.tracks.root, joined)
         self.global_map = joint
         if self.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
-        self.local, self.ctx = new_local_map(self.global_map, self._carried(k))
+        self.local, self.ctx = self._start_local_map(self._carried(k))
 
     def _carried(self, k: int) -> list[int]:
         """Global features the next local map holds from its start: those seen in steps
@@ -350,7 +402,7 @@ class _Run:
         paired = {q.element for q, _ in pairs}
         used = {c.target for _, c in pairs}
         queries = [
-            Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            self._tie_query(joint, i)
             for i, e in enumerate(joint.elements)
             if e.role == Role.FEATURE and e.in_local and i not in paired
         ]
@@ -410,8 +462,7 @@ class _Run:
         gate = chi2_gate(self.config.data_association.gate_prob, 3)
         pairs = []
         for i, g in zip(li.tolist(), gi.tolist(), strict=True):
-            e = joint.elements[i]
-            q = Query(e.kind, joint.mean[i], np.zeros((3, 3)), e.extent, element=i)
+            q = self._tie_query(joint, i)
             cand = evaluate(joint, q, g)
             if cand.d2 <= gate:
                 pairs.append((q, cand))
@@ -494,20 +545,35 @@ class _Run:
         if not feats or len(known) == 0:
             return
         assoc = self.config.data_association
+        estimate = self.config.anchor_entry == "ccda_estimate"
+        tie_at = self.config.line_tie_residual_at
         for rerun in range(assoc.match_exclusions + 1):
-            res = ccda_match(match_arrays(self.global_map, feats), known, assoc.ccda)
+            # The paper's CCDA estimates x^Wglobal_Wknown (eq. 12): the map in Wglobal.
+            arrays = (match_arrays_in_global if estimate else match_arrays)(self.global_map, feats)
+            res = ccda_match(arrays, known, assoc.ccda)
             self.ccda_attempts += 1
             if not res.accepted:
                 self._count(res.reason)
                 return
             # Fused on a copy first: a match a test refuses leaves the map untouched.
             rerun_left = rerun < assoc.match_exclusions
-            v = vet_match(self.global_map, feats, known, res, assoc, rerun_left)
-            if v.refusal is None and self._undone_before(v.trial, assoc):
-                self._count(UNDONE_BEFORE)
-                return
-            if v.refusal is None:
-                self._fuse_match(k, feats, res, v)
+            v = None
+            if not estimate or assoc.match_joint_test:
+                v = vet_match(
+                    self.global_map, feats, known, self._in_local(res), assoc, rerun_left, tie_at
+                )
+            if v is None or v.refusal is None:
+                if estimate:
+                    shared = None if self._copied() else known
+                    trial, known_index = insert_ccda_estimate(self.global_map, res, shared)
+                    upd = None
+                else:
+                    assert v is not None
+                    trial, known_index, upd = v.trial, v.known_index, v.update
+                if self._undone_before(trial, assoc):
+                    self._count(UNDONE_BEFORE)
+                    return
+                self._fuse_match(k, feats, res, trial, known_index, upd)
                 return
             self._count(v.refusal)
             self.ccda_refused.append((k, v.chi2, v.dof))
@@ -518,6 +584,16 @@ class _Run:
             ia, jb = res.pairings[v.culprit]
             self.ccda_excluded.append((k, int(known.ids[jb])))
             feats = feats[:ia] + feats[ia + 1 :]
+
+    def _in_local(self, res: CCDAResult) -> CCDAResult:
+        """``res`` with its transform in the frame the global map holds its features in,
+        ``x^Wlocal_Wknown``: with ``anchor_entry="ccda_estimate"`` CCDA matched the map
+        in ``Wglobal``, and its ``x^Wglobal_Wknown`` is composed with the base (eq. 13);
+        otherwise ``res`` is that already."""
+        if self.config.anchor_entry != "ccda_estimate":
+            return res
+        base = self.global_map.mean[self.global_map.find(Role.BASE)]
+        return replace(res, x_A_B=compose(base, res.x_A_B))
 
     def _count(self, reason: str, n: int = 1) -> None:
         self.ccda_reasons[reason] = self.ccda_reasons.get(reason, 0) + n
@@ -541,24 +617,37 @@ class _Run:
                 return True
         return False
 
-    def _fuse_match(self, k: int, feats: list[int], res: CCDAResult, v: Vetted) -> None:
+    def _fuse_match(
+        self,
+        k: int,
+        feats: list[int],
+        res: CCDAResult,
+        trial: GaussianMap,
+        known_index: dict[int, int],
+        upd: IteratedUpdate | None,
+    ) -> None:
+        """Make ``trial`` (the global map with the match fused, ``known_index`` its known
+        features, ``upd`` the pairings' update if they were fused) the global map, and
+        join the matched features' tracks to the known features'."""
         g, known = self.global_map, self.known
-        trial, known_index, upd = v.trial, v.known_index, v.update
         self._count(res.reason)
         params = self.config.anchor_watch
         if params is not None:
             self.before_fusion = self._snapshot()
-        if not upd.converged:
+        if upd is not None and not upd.converged:
             warnings.warn(
                 f"step {k}: the update with CCDA's {len(res.pairings)} pairings did not "
                 f"converge in {upd.iterations} iterations; the anchor is its last iterate",
                 RuntimeWarning,
                 stacklevel=3,
             )
-        for j, i in known_index.items():
+        self.known_tracks = {}
+        for j in range(len(known)):
             track = self.tracks.new()
             self.tracks.mark_known(track, int(known.ids[j]))
-            trial.elements[i].track = track
+            self.known_tracks[j] = track
+            if j in known_index:
+                trial.elements[known_index[j]].track = track
         g.mean, g.cov, g.elements = trial.mean, trial.cov, trial.elements
         seen = self.log.feature_slice(k).stop
         labels = landmark_labels(
@@ -570,8 +659,14 @@ class _Run:
         for (ia, jb), label in zip(res.pairings, labels, strict=True):
             e = g.elements[feats[ia]]
             pairings.append((label, int(known.ids[jb])))
-            self.tracks.merge(e.track, g.elements[known_index[jb]].track)
-        g.remove([feats[ia] for ia, _ in res.pairings])
+            self.tracks.merge(e.track, self.known_tracks[jb])
+        if self._copied():
+            # The paper's global map holds no known feature (eq. 14): the matched
+            # features keep what the ties taught them.
+            g.remove(list(known_index.values()))
+        elif self.config.anchor_entry == "pairings":
+            # The known features stand for the matched features they are tied to.
+            g.remove([feats[ia] for ia, _ in res.pairings])
         g.bind_lines()
         self.anchor_step = k
         self.anchor_pairings = pairings
@@ -631,7 +726,7 @@ class _Run:
         for name, value in self.before_fusion.items():
             setattr(self, name, value)
         self.before_fusion, self.fused_anchor, self.watch = None, None, None
-        self.local, self.ctx = new_local_map(self.global_map, self._carried(fused_at))
+        self.local, self.ctx = self._start_local_map(self._carried(fused_at))
         return fused_at
 
 

@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy.stats import f as f_dist
 
 import ekf_reference.pipeline as pipeline
 from ekf_reference import EKFConfig, run_ekf
@@ -45,7 +46,7 @@ def _log() -> MeasurementLog:
 
 
 def _config(joint_test: bool, watch: bool) -> EKFConfig:
-    cfg = EKFConfig() if watch else EKFConfig(anchor_watch=None)
+    cfg = EKFConfig(anchor_watch=AnchorWatchParams() if watch else None)
     assoc = dataclasses.replace(cfg.data_association, match_joint_test=joint_test)
     return dataclasses.replace(cfg, data_association=assoc)
 
@@ -170,7 +171,7 @@ def test_known_features_moved_after_the_anchor_stay_a_minority_and_it_is_kept() 
     # after the anchor: the gate un-fuses them, and the features confirming the anchor
     # (its own match's included) stay more than half as many.
     log = scenario_log("later_moved")
-    res = run_ekf(log, EKFConfig())
+    res = run_ekf(log, EKFConfig(anchor_watch=AnchorWatchParams()))
     assert _details(res).anchors_undone == ()
     assert res.anchor is not None
     off = run_ekf(log, EKFConfig(anchor_watch=None))
@@ -184,7 +185,7 @@ def test_an_anchor_most_of_the_known_map_contradicts_is_undone_and_not_matched_a
     # the run ends without an anchor: the same match is refused as compatible with
     # the undone one, the others as ambiguous.
     log = scenario_log("matched_shifted")
-    res = run_ekf(log, EKFConfig())
+    res = run_ekf(log, EKFConfig(anchor_watch=AnchorWatchParams()))
     (undone,) = _details(res).anchors_undone
     assert (undone.fused_at_step, undone.undone_at_step) == (119, 214)
     assert undone.test == "known features un-fused"
@@ -277,3 +278,24 @@ def test_watch_params_reject_bad_values(kwargs: dict[str, object], match: str) -
         AnchorWatchParams(**kwargs)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="anchor_watch must be"):
         EKFConfig(anchor_watch=0.99)  # type: ignore[arg-type]
+
+
+def test_the_innovation_test_scales_with_the_local_pairings_rate_above_one() -> None:
+    # Model error common to every pairing (local NIS 2 per dof over 10,000 dof)
+    # doubles what the known pairings may reach, up to the F quantile's widening;
+    # a local rate below one leaves the test no stricter than with no reference.
+    watch = _watch_with([(10, 300.0, 200)])
+    chi2 = chi2_gate(0.99999, 200)
+    assert watch.innovation_threshold(200) == pytest.approx(chi2)
+    watch.local_nis, watch.local_dof = 20_000.0, 10_000
+    assert watch.innovation_threshold(200) == pytest.approx(
+        200 * 2.0 * f_dist.ppf(0.99999, 200, 10_000)
+    )
+    # Many local degrees of freedom: F·dof tends to the χ² quantile (within 1 %).
+    assert watch.innovation_threshold(200) == pytest.approx(2.0 * chi2, rel=0.01)
+    assert watch.verdict(10, None) is None
+    watch.local_nis = 5_000.0
+    assert watch.innovation_threshold(200) == pytest.approx(200 * f_dist.ppf(0.99999, 200, 10_000))
+    # Few local degrees of freedom: the threshold widens, never narrows.
+    watch.local_nis, watch.local_dof = 40.0, 20
+    assert watch.innovation_threshold(200) > 2.0 * chi2

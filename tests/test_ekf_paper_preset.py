@@ -31,6 +31,13 @@ def _leaves(obj: object, prefix: str = "") -> dict[str, object]:
     return out
 
 
+def _at(obj: object, path: str) -> object:
+    """The setting at dotted ``path`` of ``obj`` (a whole settings object, or None)."""
+    for name in path.split("."):
+        obj = getattr(obj, name)
+    return obj
+
+
 def _covering(leaf: str) -> list[str]:
     """The names in PAPER_FIELDS that classify ``leaf``: itself or a settings object
     holding it."""
@@ -47,9 +54,9 @@ def test_every_setting_is_classified_once() -> None:
 
 
 def test_default_differs_from_paper_exactly_in_the_extensions() -> None:
-    default, paper = _leaves(EKFConfig()), _leaves(EKFConfig.paper())
-    assert default.keys() == paper.keys()
-    differ = {k for leaf in default if default[leaf] != paper[leaf] for k in _covering(leaf)}
+    default, paper = EKFConfig(), EKFConfig.paper()
+    # Compared at the classified names: a settings object the paper turns off is None.
+    differ = {k for k in PAPER_FIELDS if _at(default, k) != _at(paper, k)}
     assert differ == set(EKFConfig.extensions())
     assert set(EKFConfig.extensions()) == {
         k for k, f in PAPER_FIELDS.items() if f.role == "extension"
@@ -69,6 +76,17 @@ def test_paper_values() -> None:
     assert (p.tentative_min_sightings, p.min_obs_to_join, p.carry_seen_steps) == (1, 1, 0)
     assert p.loop_closure is None
     assert p.join_circle_sigma_m == 0.0
+    assert p.anchor_watch is None
+    # The paper's three forms (eqs. 12–16, 14 and 17–24, 5 and 20).
+    assert p.anchor_entry == "ccda_estimate"
+    assert p.known_map_in_local_maps == "copied"
+    assert p.line_tie_residual_at == "target"
+    d0 = EKFConfig()
+    assert (d0.anchor_entry, d0.known_map_in_local_maps, d0.line_tie_residual_at) == (
+        "pairings",
+        "shared",
+        "observed",
+    )
     # Choices stay the default.
     d = EKFConfig()
     assert (p.local_map_steps, a.gate_prob, a.method) == (
@@ -129,10 +147,16 @@ def test_paper_preset_runs_and_fuses_on_loop600() -> None:
     assert np.array_equal(known[fused], log.feat_true_id[fused])
 
 
-def test_without_fusion_the_preset_is_the_default_filter() -> None:
-    """Every extension acts on the fusion: without it the two filters are one."""
+def test_without_fusion_the_preset_is_the_default_filter_but_for_the_join_ties() -> None:
+    """Every extension but ``line_tie_residual_at`` acts on the fusion only: without
+    it the two filters are one when they measure the join's line ties alike (eq. 5),
+    and differ when they do not."""
     log = _loop600_start()
     paper = run_ekf(log, EKFConfig.paper(), fusion=False)
+    assert not np.array_equal(paper.poses, run_ekf(log, EKFConfig(), fusion=False).poses)
+    paper = run_ekf(
+        log, dataclasses.replace(EKFConfig.paper(), line_tie_residual_at="observed"), fusion=False
+    )
     default = run_ekf(log, EKFConfig(), fusion=False)
     np.testing.assert_array_equal(paper.poses, default.poses)
     np.testing.assert_array_equal(paper.covs, default.covs)
@@ -165,8 +189,8 @@ def test_benchmark_ablations_cover_the_extensions_one_group_each() -> None:
     the default with exactly its group of extensions at the paper's values."""
     bench = load_benchmark("ekf_paper_vs_default")
     bench._check_ablations()
-    default, paper = _leaves(EKFConfig()), _leaves(EKFConfig.paper())
+    default, paper = EKFConfig(), EKFConfig.paper()
     for name, paths in bench.ABLATIONS.items():
-        cfg = _leaves(bench.config_of(f"default-no-{name}"))
-        assert {k for k in cfg if cfg[k] != default[k]} == set(paths)
-        assert all(cfg[p] == paper[p] for p in paths)
+        cfg = bench.config_of(f"default-no-{name}")
+        assert {k for k in PAPER_FIELDS if _at(cfg, k) != _at(default, k)} == set(paths)
+        assert all(_at(cfg, p) == _at(paper, p) for p in paths)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
@@ -95,6 +96,72 @@ def test_line_noise_does_not_depend_on_the_targets_direction(
     np.testing.assert_allclose(
         line_residual_cov(T, Z, cov), line_residual_cov(Z, Z, cov), atol=1e-15
     )
+
+
+@given(T=poses(), Z=poses())
+def test_line_residual_at_the_target_jacobians(T: np.ndarray, Z: np.ndarray) -> None:
+    r, JT, JZ = line_residual(T, Z, "target")
+    _not_perpendicular(r)
+    assert -math.pi / 2 < r[1] <= math.pi / 2
+
+    def f(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return line_residual(x, y, "target")[0]
+
+    np.testing.assert_allclose(
+        JT, numerical_jacobian(lambda x: f(x, Z), T, (1,)), atol=ATOL, rtol=RTOL
+    )
+    np.testing.assert_allclose(
+        JZ, numerical_jacobian(lambda x: f(T, x), Z, (1,)), atol=ATOL, rtol=RTOL
+    )
+
+
+@given(Z=poses(), along=coord, lat=small, ang=small)
+def test_line_residual_at_the_target_is_the_papers_form(
+    Z: np.ndarray, along: float, lat: float, ang: float
+) -> None:
+    """The target's reference point in the observed line's frame, bound: the paper's
+    ``B · x^F_G`` (eqs. 5 and 20), negated so that it is zero where ``G`` lies on
+    ``F`` and its sign is the observed form's."""
+    T = compose(Z, np.array([along, lat, ang]))
+    r, _, _ = line_residual(T, Z, "target")
+    np.testing.assert_allclose(r, [-lat, -ang], atol=1e-10)
+    np.testing.assert_allclose(r, -(relative(Z, T)[0][1:]), atol=1e-10)
+
+
+@given(T=poses(), s=slides, lat=small, flip=st.booleans())
+def test_line_residual_forms_coincide_for_parallel_lines(
+    T: np.ndarray, s: float, lat: float, flip: bool
+) -> None:
+    """Parallel (or opposite) lines: both forms give the same residual wherever the
+    reference points lie; with the points on one normal, the same Jacobians too."""
+    Z = compose(T, np.array([s, lat, math.pi if flip else 0.0]))
+    ro, JTo, JZo = line_residual(T, Z, "observed")
+    rt, JTt, JZt = line_residual(T, Z, "target")
+    scale = 1.0 + float(np.abs(T[:2]).max()) + abs(s)
+    np.testing.assert_allclose(rt, ro, atol=1e-12 * scale)
+    np.testing.assert_allclose(JTt[:, :2], JTo[:, :2], atol=1e-12)
+    np.testing.assert_allclose(JZt[:, :2], JZo[:, :2], atol=1e-12)
+    # The angle columns carry the lever arm (along-line distance between the points),
+    # on T's angle in one form and on Z's in the other.
+    assert abs(JTo[0, 2] + JZo[0, 2] - (JTt[0, 2] + JZt[0, 2])) <= 1e-12 * scale
+    Zn = compose(T, np.array([0.0, lat, math.pi if flip else 0.0]))
+    for a, b in zip(line_residual(T, Zn, "observed"), line_residual(T, Zn, "target"), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12 * scale)
+
+
+def test_line_residual_forms_differ_by_the_lever_arm() -> None:
+    """The observed reference point on the target line, 10 m behind the target's, and
+    the observed line turned by δ: the target's point is 10 sin δ to the observed
+    line's right, so the offset at it is 10 sin δ and the observed form's is 0."""
+    T = np.array([2.0, 1.0, 0.3])
+    d = 0.02
+    Z = compose(T, np.array([-10.0, 0.0, d]))
+    ro, _, _ = line_residual(T, Z, "observed")
+    rt, _, _ = line_residual(T, Z, "target")
+    assert abs(ro[0]) < 1e-12  # Z's point lies on T
+    assert rt[0] == pytest.approx(10.0 * math.sin(d), abs=1e-12)
+    with pytest.raises(ValueError, match="at must be"):
+        line_residual(T, Z, "segment")  # type: ignore[arg-type]
 
 
 @given(T=poses(), Z=poses(), s=slides)
@@ -242,6 +309,12 @@ def test_circle_observation_jacobians(X: np.ndarray, C: np.ndarray, z: np.ndarra
 @given(T=poses(), Z=poses(), X=poses())
 def test_features_dispatch_to_the_models(T: np.ndarray, Z: np.ndarray, X: np.ndarray) -> None:
     for a, b in zip(pairing_residual(ft.FeatureKind.LINE, T, Z), line_residual(T, Z), strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(
+        pairing_residual(ft.FeatureKind.LINE, T, Z, "target"),
+        line_residual(T, Z, "target"),
+        strict=True,
+    ):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(observe(ft.FeatureKind.LINE, Z, X, T), line_observation(X, T, Z), strict=True):
         np.testing.assert_array_equal(a, b)

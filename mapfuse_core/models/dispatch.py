@@ -8,6 +8,8 @@ callbacks are closed forms of them, held equal by tests).
 
 from __future__ import annotations
 
+from typing import Literal
+
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.models.circle import circle_observation, circle_residual, circle_residual_cov
@@ -23,16 +25,21 @@ circle_pairing = circle_residual
 
 
 def pairing_residual(
-    kind: FeatureKind, target: FloatArray, observed: FloatArray
+    kind: FeatureKind,
+    target: FloatArray,
+    observed: FloatArray,
+    at: Literal["observed", "target"] = "observed",
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Residual of ``observed`` against ``target`` (both of ``kind``, in one frame).
 
-    Dispatches to :func:`~mapfuse_core.models.line.line_residual` or
-    :func:`~mapfuse_core.models.circle.circle_residual`; returns the residual and its
-    Jacobians w.r.t. ``target`` and ``observed``.
+    Dispatches to :func:`~mapfuse_core.models.line.line_residual` (``at``: where a
+    line's lateral offset is measured) or
+    :func:`~mapfuse_core.models.circle.circle_residual` (a difference of centres and
+    radii: ``at`` does not apply); returns the residual and its Jacobians w.r.t.
+    ``target`` and ``observed``.
     """
     if kind == FeatureKind.LINE:
-        return line_residual(target, observed)
+        return line_residual(target, observed, at)
     return circle_residual(target, observed)
 
 

@@ -14,6 +14,13 @@ point sits along ``T``, nor on ``T``'s direction.  Its noise
 is the segment's covariance with the along-line pseudo-variance projected out
 (:func:`bind_line_cov`), propagated through ``∂r/∂Z``.
 
+Where the lateral offset is measured is the model's one parameter (``at``):
+``"observed"`` (above, the default) or ``"target"``, the offset of ``T``'s reference
+point from line ``Z``, ``−B · (⊖Z ⊕ T)``: the paper's ties of two map lines (its eqs.
+5 and 20, ``B · x^F_G``, ``G`` the target) measure there.  Where the two lines are
+parallel the two values are equal; they differ by (angle between the lines ×
+along-line distance between the two reference points).
+
 The observation form takes the target from the world through the sensor pose:
 ``r = line_residual(⊖X ⊕ L, z)`` (:func:`line_observation`).
 
@@ -24,6 +31,7 @@ parameters (absolute perturbations of ``(x, y, θ)``).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 
@@ -42,18 +50,32 @@ __all__ = [
 B_LINE: FloatArray = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
-def line_residual(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def line_residual(
+    T: FloatArray, Z: FloatArray, at: Literal["observed", "target"] = "observed"
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Residual of segment ``Z`` against line ``T`` with ``∂r/∂T`` and ``∂r/∂Z`` (2×3 each).
 
-    ``r[0]`` is the signed offset (metres) of ``Z``'s reference point from the line
-    ``T``, along ``T``'s normal oriented like ``Z``'s (``T``'s y axis, turned by π when
-    the two frames point more than π/2 apart); ``r[1]`` the angle ``θ_Z − θ_T`` modulo
-    π.  Neither depends on ``T``'s direction, so a target line's direction convention
-    never changes the residual, nor the sign of its lateral/angle correlation (the
-    noise, :func:`line_residual_cov`, is the segment's, in the segment's frame).  Zero
-    when ``Z``'s reference point lies on ``T`` and the two are parallel; discontinuous
-    only where they are perpendicular.
+    ``r[1]`` is the angle ``θ_Z − θ_T`` modulo π.  ``r[0]`` is a signed offset
+    (metres), measured ``at``:
+
+    * ``"observed"``: of ``Z``'s reference point from the line ``T``, along ``T``'s
+      normal oriented like ``Z``'s (``T``'s y axis, turned by π when the two frames
+      point more than π/2 apart).  Neither value depends on ``T``'s direction, so a
+      target line's direction convention never changes the residual, nor the sign of
+      its lateral/angle correlation (the noise, :func:`line_residual_cov`, is the
+      segment's, in the segment's frame).  Zero when ``Z``'s reference point lies on
+      ``T`` and the two are parallel; discontinuous only where they are perpendicular.
+    * ``"target"``: of the line ``Z`` from ``T``'s reference point, along ``Z``'s normal
+      (``−B · (⊖Z ⊕ T)`` when the two point less than π/2 apart): it depends on where
+      ``T``'s reference point sits along ``T`` and not on ``Z``'s.  Zero when ``T``'s
+      reference point lies on ``Z`` and the two are parallel.
+
+    Where the lines are parallel (or anti-parallel) the two offsets are equal.
     """
+    if at == "target":
+        return _offset_at_target(T, Z)
+    if at != "observed":
+        raise ValueError(f"at must be 'observed' or 'target', got {at!r}")
     # relative() written out: this is the inner loop of every association.
     c, s = math.cos(T[2]), math.sin(T[2])
     dx, dy = float(Z[0] - T[0]), float(Z[1] - T[1])
@@ -65,6 +87,19 @@ def line_residual(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray,
     r = np.array([g * (-s * dx + c * dy), wrap_scalar_half(dth)])
     JrT = np.array([[g * s, -g * c, -g * lx], [0.0, 0.0, -1.0]])
     JrZ = np.array([[-g * s, g * c, 0.0], [0.0, 0.0, 1.0]])
+    return r, JrT, JrZ
+
+
+def _offset_at_target(T: FloatArray, Z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`line_residual` ``at="target"``: ``r[0] = n_Z · (p_Z − p_T)``, ``n_Z`` the
+    normal (y axis) of ``Z``, ``p`` the reference points."""
+    cz, sz = math.cos(Z[2]), math.sin(Z[2])
+    dx, dy = float(Z[0] - T[0]), float(Z[1] - T[1])
+    # ∂n_Z/∂θ_Z · (p_Z − p_T) = −u_Z · (p_Z − p_T): T's reference point along Z.
+    along = -(cz * dx + sz * dy)
+    r = np.array([-sz * dx + cz * dy, wrap_scalar_half(float(Z[2] - T[2]))])
+    JrT = np.array([[sz, -cz, 0.0], [0.0, 0.0, -1.0]])
+    JrZ = np.array([[-sz, cz, along], [0.0, 0.0, 1.0]])
     return r, JrT, JrZ
 
 
