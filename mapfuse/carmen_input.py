@@ -18,6 +18,7 @@ colons, question marks) is read as it is written.  The one option is ``odometry=
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -165,7 +166,11 @@ def carmen_log_kind(source: str) -> str:
 
 
 def load_carmen_input(
-    source: str, *, seed: int | None = None, known_map: str | None = None
+    source: str,
+    *,
+    seed: int | None = None,
+    known_map: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> MeasurementLog:
     """The measurement log of a ``carmen:`` input (:func:`parse_carmen_source`).
 
@@ -174,7 +179,7 @@ def load_carmen_input(
     reference trajectory; an error for a log without one), ``"none"``, or ``None``
     (the floor plan when the log has a reference trajectory, else none).  A log whose
     kind its evidence does not decide, and the source does not state, is an error
-    naming ``--odometry``.
+    naming ``--odometry``.  ``progress(k, n)``: after each scan's extraction.
     """
     from mapfuse_core.data.datasets import (
         CarmenOptions,
@@ -190,7 +195,7 @@ def load_carmen_input(
     path = src.path
     options = CarmenOptions(seed=0 if seed is None else seed, odometry=src.odometry)
     try:
-        log = load_carmen(path, options=options)
+        log = load_carmen(path, options=options, progress=progress)
     except UndecidedOdometryError as exc:
         raise _undecided(exc) from None
     if log.true_poses is None:

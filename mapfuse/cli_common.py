@@ -388,8 +388,9 @@ def load_source(args: argparse.Namespace, src: Source) -> MeasurementLog:
             progress=progress_bar(args, "simulate"),
             workers=default_workers(),
         )
+    bar = progress_bar(args, "read scans") if src.kind == "carmen" else None
     with reading():
-        log = load(src.text, seed=src.seed, data=src.data, known_map=src.known_map)
+        log = load(src.text, seed=src.seed, data=src.data, known_map=src.known_map, progress=bar)
     if src.steps is not None:
         _check_steps(src.steps, log.n_steps, src.text)
         log = log.head(src.steps)

@@ -107,13 +107,14 @@ def load(
     ``seed`` applies to a simulation and to a CARMEN log's simulated odometry only, and
     ``data`` to a dataset only: given elsewhere they are errors (they would change
     nothing).  ``steps`` keeps the first ``steps`` steps of any log.  ``workers``:
-    extraction processes of a simulation (:func:`simulate`).
+    extraction processes of a simulation (:func:`simulate`).  ``progress(k, n)``: the
+    steps of a simulation, the scans of a CARMEN log read.
     """
     src = str(source)
     if data is not None and src not in DATASETS:
         raise ValueError(f"a data directory applies to {', '.join(DATASETS)} only, not {src!r}")
     if is_carmen(src):
-        log = load_carmen_input(src, seed=seed, known_map=known_map)
+        log = load_carmen_input(src, seed=seed, known_map=known_map, progress=progress)
         return log if steps is None else _head(log, steps)
     if known_map is not None:
         raise ValueError(f"a known-map choice applies to CARMEN logs only, not {src!r}")

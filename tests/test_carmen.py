@@ -203,6 +203,13 @@ def test_detection_tells_corrected_from_raw(tmp_path: Path) -> None:
         detect_odometry_kind(read_carmen(bare))
 
 
+def test_reading_reports_progress_once_per_scan_to_the_last(tmp_path: Path) -> None:
+    calls: list[tuple[int, int]] = []
+    log = load_carmen(_corrected_log(tmp_path, n=30), progress=lambda k, n: calls.append((k, n)))
+    assert log.n_steps == 30
+    assert calls == [(k, 30) for k in range(1, 31)]
+
+
 def test_simulated_odometry_is_seeded_and_its_noise_matches_its_covariance(
     tmp_path: Path,
 ) -> None:

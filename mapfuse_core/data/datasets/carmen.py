@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -280,11 +281,14 @@ def load_carmen(
     *,
     options: CarmenOptions | None = None,
     known_map: KnownMapArrays | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> MeasurementLog:
     """The CARMEN log at ``path`` (plain or gzipped) as a measurement log of lines.
 
     ``known_map`` (e.g. :func:`~mapfuse_core.data.datasets.floorplan.build_floor_plan`'s,
     in the reference frame) becomes the log's known map; none by default.
+    ``progress(k, n)`` is called after the features of each of the ``n`` scans are
+    extracted (the slow part).
     """
     opts = CarmenOptions() if options is None else options
     rec = read_carmen(path)
@@ -334,6 +338,8 @@ def load_carmen(
     rejected: dict[str, int] = {}
     for k, (scan, laser) in enumerate(carmen_scans(rec, opts)):
         res = extract_features(scan, laser, opts.extraction)
+        if progress is not None:
+            progress(k + 1, n)
         for key, c in res.rejected.items():
             rejected[key] = rejected.get(key, 0) + c
         for f in res.features:
