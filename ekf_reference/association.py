@@ -325,14 +325,16 @@ def stack(
     return r, H, R, state.dofs(elems)
 
 
-def apply(state: GaussianMap, chosen: list[Candidate]) -> None:
-    """One batched EKF update with all chosen pairings."""
+def apply(state: GaussianMap, chosen: list[Candidate]) -> float:
+    """One batched EKF update with all chosen pairings; returns the normalised
+    innovation squared ``rᵀ S⁻¹ r`` of the stacked pairings before it (χ² with their
+    summed residual dimensions for a consistent filter; 0 without pairings)."""
     if not chosen:
-        return
+        return 0.0
     r, H, R, idx = stack(state, chosen)
     elems = sorted({i for c in chosen for i in c.indices})
-    state.update(elems, r, H, R)
     del idx
+    return state.update(elems, r, H, R)
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from ekf_reference.maps import (
     tie_anchor_copy,
     vehicle_in_global,
 )
-from ekf_reference.result import EKFDetails, LoopClosure, UndoneAnchor
+from ekf_reference.result import EKFDetails, InnovationTotals, LoopClosure, UndoneAnchor
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from ekf_reference.tentative import Tentatives
 from ekf_reference.threads import single_threaded_blas
@@ -102,6 +102,8 @@ _STATE = (
     "known_tracks",
     "loop_closures",
     "gate",
+    "innovation_chi2",
+    "innovation_dof",
     "step",
 )
 """Attributes of :class:`_Run` that filtering changes: what a snapshot keeps.  The
@@ -130,6 +132,8 @@ class _Run:
         self.anchor_step = -1
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
+        self.innovation_chi2 = 0.0
+        self.innovation_dof = 0
         self.gate: KnownGate | None = None
         if self.fusion and config.known_map_gating:
             self.gate = KnownGate(config.known_gating, config.data_association)
@@ -182,7 +186,7 @@ class _Run:
             if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
                 e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
-        apply(loc, [c for c in chosen if c is not None])
+        self._apply_measurements(loc, [c for c in chosen if c is not None])
         born: list[int] = []
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is not None:
@@ -196,7 +200,7 @@ class _Run:
                 self.obs_track[j] = e.track
                 e.n_obs += 1
                 e.extent = merge_extent(loc.mean[twin.target], e.extent, q.params, q.extent)
-                apply(loc, [twin])
+                self._apply_measurements(loc, [twin])
                 continue
             t = self.tracks.new()
             self.obs_track[j] = t
@@ -239,6 +243,11 @@ class _Run:
             self.gate.record(step, state, queries, chosen, targets)
         if self.watch is not None:
             self.watch.record(step, state, chosen)
+
+    def _apply_measurements(self, loc: GaussianMap, chosen: list[Candidate]) -> None:
+        """Update with measurement pairings and add their innovations to the run's."""
+        self.innovation_chi2 += apply(loc, chosen)
+        self.innovation_dof += sum(c.residual.size for c in chosen)
 
     def _gated(self, state: GaussianMap, targets: Targets) -> Targets:
         """``targets`` without the known features the gate has un-fused."""
@@ -830,6 +839,7 @@ def _result(
             ccda_excluded=tuple(run.ccda_excluded),
             tentative_promoted=run.tentative.promoted,
             anchors_undone=tuple(run.undone),
+            innovations=InnovationTotals(run.innovation_chi2, run.innovation_dof),
         ),
     )
 

@@ -9,7 +9,19 @@ from ekf_reference.anchor_watch import Contradiction
 from ekf_reference.config import EKFConfig
 from mapfuse_core.geometry.se2 import FloatArray
 
-__all__ = ["EKFDetails", "LoopClosure", "UndoneAnchor"]
+__all__ = ["EKFDetails", "InnovationTotals", "LoopClosure", "UndoneAnchor"]
+
+
+@dataclass(frozen=True)
+class InnovationTotals:
+    """The observation updates' normalised innovations squared, summed over a run: for
+    a consistent filter a χ² with :attr:`dof` degrees of freedom (the association's
+    gate truncates the largest, which lowers it)."""
+
+    chi2: float
+    """``Σ rᵀ S⁻¹ r`` over every step's batched update with its measurements."""
+    dof: int
+    """Their summed residual dimensions (2 per line, 3 per circle)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,3 +103,6 @@ class EKFDetails:
     """Anchors the watch undid, in order (``config.anchor_watch``); each one's CCDA call
     is counted in ``matching.reasons`` as ``"anchor contradicted"``, and later matches
     compatible with it as ``"compatible with an undone anchor"``."""
+    innovations: InnovationTotals = InnovationTotals(0.0, 0)
+    """The measurement updates' innovations over the run: the consistency evidence of
+    a run without a reference trajectory (``mapfuse.changes.run_consistency``)."""

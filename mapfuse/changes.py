@@ -19,14 +19,30 @@ from typing import Any
 import numpy as np
 
 from mapfuse import registry
-from mapfuse_core.changes import ChangeParams, ChangeReport, classify_changes
+from mapfuse_core.changes import (
+    ChangeParams,
+    ChangeReport,
+    RunConsistency,
+    classify_changes,
+    consistency_from_innovations,
+    no_consistency_evidence,
+    withhold_changes,
+)
 from mapfuse_core.estimate import EstimatorResult
+from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
 from mapfuse_core.evaluation.change_truth import ChangeTruth, change_truth, score_changes
+from mapfuse_core.evaluation.run_consistency import consistency_from_nees
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario
 
-__all__ = ["NoChangeEvidenceError", "change_report_lines", "change_section", "detect_changes"]
+__all__ = [
+    "NoChangeEvidenceError",
+    "change_report_lines",
+    "change_section",
+    "detect_changes",
+    "run_consistency",
+]
 
 
 class NoChangeEvidenceError(ValueError):
@@ -56,7 +72,7 @@ def detect_changes(
     # uncertainty too (for the fixed-lag smoother, conservatively, every pose up to the
     # match).  A smoother over the whole run re-estimated them with the map.
     before_map = not _smooths_before_anchor(result)
-    return classify_changes(
+    report = classify_changes(
         log,
         lm,
         kn,
@@ -68,6 +84,22 @@ def detect_changes(
         anchored_from_step=result.anchor.accepted_at_step + 1 if before_map else 0,
         landmark_estimates=_landmark_estimates(result),
     )
+    return withhold_changes(report, run_consistency(result, log))
+
+
+def run_consistency(result: EstimatorResult, log: MeasurementLog) -> RunConsistency:
+    """Whether ``result``'s run may be trusted to judge its known map
+    (:mod:`mapfuse_core.changes.consistency`): its pose NEES against the log's reference
+    trajectory when there is one, else the χ² of its observation innovations over the
+    run when the estimator reports them (the EKF does), else no evidence."""
+    if log.true_poses is not None:
+        n = result.poses.shape[0]
+        err = pose_errors(result.poses, truth_in_global(log.true_poses[:n]))
+        return consistency_from_nees(nees_series(err.dx, result.covs))
+    totals = getattr(result.details, "innovations", None)
+    if totals is not None and totals.dof > 0:
+        return consistency_from_innovations(totals.chi2, totals.dof)
+    return no_consistency_evidence()
 
 
 def _smooths_before_anchor(result: EstimatorResult) -> bool:
@@ -112,6 +144,15 @@ def change_section(
     return out
 
 
+def _verdict(report: ChangeReport) -> str:
+    """The report's verdict with the consistency evidence it rests on."""
+    c = report.consistency
+    if c is None or c.evidence == "none":
+        return "conclusive (consistency not judged)"
+    word = "conclusive" if report.conclusive else "inconclusive"
+    return f"{word} ({c.evidence} {c.statistic:.3g}, 95 % region {c.low:.3g}–{c.high:.3g})"
+
+
 def _pr(d: dict[str, Any]) -> str:
     p, r = d["precision"], d["recall"]
     return " / ".join("–" if v is None else f"{v:.2f}" for v in (p, r))
@@ -138,17 +179,21 @@ def change_report_lines(
         if truth is not None:
             s = score_changes(rep, truth).as_dict()
             cells += [_pr(s["moved"]), _pr(s["removed"]), _pr(s["added"])]
+        cells.append(_verdict(rep))
         rows.append("| " + " | ".join(cells) + " |")
     if not rows:
         return []
     head = ["run", "confirmed", "moved", "missing", "unobserved", "new"]
     if truth is not None:
         head += ["moved ≥ 0.5 m P / R", "removed P / R", "added P / R"]
+    head.append("verdict")
     return [
         "",
         "## Known-map changes",
         "",
-        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/change-detection.md`).",
+        f"χ² tests at level {params.level} (`mapfuse changes`, `docs/change-detection.md`).  An "
+        "inconclusive run is more overconfident than its consistency evidence allows: "
+        "none of its features is called moved, missing or new.",
         "",
         "| " + " | ".join(head) + " |",
         "| " + " | ".join(["---"] * len(head)) + " |",

@@ -187,7 +187,10 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     png_path = out / "changes.png"
     fig.savefig(png_path, dpi=110)
     counts = report.counts()
+    verdict = "conclusive" if report.conclusive else "inconclusive"
     result: dict[str, Any] = {
+        "verdict": verdict,
+        "consistency": None if report.consistency is None else report.consistency.as_dict(),
         "counts": counts,
         "outputs": {"json": str(json_path), "png": str(png_path)},
     }
@@ -195,5 +198,8 @@ def _cmd_changes(args: argparse.Namespace) -> int:
         result["score"] = section["score"]
     emit(result)
     said = ", ".join(f"{v} {k}" for k, v in counts.items())
-    summary(args, f"changes of {log.scenario}'s known map ({estimator}): {said} → {json_path}")
+    summary(
+        args,
+        f"changes of {log.scenario}'s known map ({estimator}, {verdict}): {said} → {json_path}",
+    )
     return 0

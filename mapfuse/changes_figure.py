@@ -27,6 +27,7 @@ CLASS_COLOURS = {
     ChangeStatus.MOVED: "tab:orange",
     ChangeStatus.MISSING: "tab:red",
     ChangeStatus.UNOBSERVED: "0.7",
+    ChangeStatus.INCONCLUSIVE: "tab:purple",
 }
 
 
@@ -113,8 +114,10 @@ def changes_figure(
     ax.set_xlabel("x (m, Wknown)")
     ax.set_ylabel("y (m, Wknown)")
     counts = report.counts()
+    verdict = "" if report.conclusive else "INCONCLUSIVE (run not consistent), "
     ax.set_title(
         "Known-map changes: "
+        + verdict
         + ", ".join(f"{k} {v}" for k, v in counts.items() if k != "duplicates")
         + f" (χ² level {report.level})"
     )

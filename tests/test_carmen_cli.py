@@ -323,3 +323,30 @@ def test_changes_on_the_real_intel_log_call_no_standing_wall_missing(
     assert counts["moved"] <= len(data["known"]) // 10
     assert counts["confirmed"] >= len(data["known"]) // 2
     assert (out / "changes.png").is_file()
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
+    data_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = data_dir / "carmen" / "csail-corrected.log.gz"
+    if not log.is_file():
+        pytest.skip(f"{log} not found")
+    out = tmp_path / "csail"
+    res = _main_json(["changes", f"carmen:{log}", "--out", str(out), "--quiet"], capsys)
+    # Seed 0's EKF is far more overconfident than its NEES region allows (mean 74
+    # against [1.69, 4.69] for about ten independent samples): the run cannot be
+    # trusted, so no wall of the plan, all standing, is called moved, missing or new.
+    assert res["verdict"] == "inconclusive"
+    consistency = res["consistency"]
+    assert isinstance(consistency, dict)
+    assert consistency["evidence"] == "reference NEES"
+    assert consistency["trusted"] is False
+    assert consistency["statistic"] > consistency["interval_95"][1]
+    counts = res["counts"]
+    assert isinstance(counts, dict)
+    assert (counts["moved"], counts["missing"], counts["new"]) == (0, 0, 0)
+    assert counts["inconclusive"] > 0
+    data = json.loads((out / "changes.json").read_text())
+    assert data["verdict"] == "inconclusive"

@@ -599,8 +599,10 @@ def test_changes_command_writes_json_and_png_with_a_score(tmp_path):
     assert (out / "changes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert {"known", "new", "counts", "score", "truth", "level"} <= set(d)
     assert len(d["known"]) == sum(
-        d["counts"][k] for k in ("confirmed", "moved", "missing", "unobserved")
+        d["counts"][k] for k in ("confirmed", "moved", "missing", "unobserved", "inconclusive")
     )
+    assert d["verdict"] in ("conclusive", "inconclusive")
+    assert d["consistency"]["evidence"] == "reference NEES"
     # Every true move and removal is named in the truth section.
     assert len(d["truth"]["moved"]) == round(0.1 * 63)
     assert len(d["truth"]["removed"]) == 3
@@ -714,6 +716,7 @@ def test_detect_changes_gives_the_anchor_covariance_where_poses_predate_the_matc
         return "report"
 
     monkeypatch.setattr(mc, "classify_changes", spy)
+    monkeypatch.setattr(mc, "withhold_changes", lambda report, consistency: report)
     anchor = types.SimpleNamespace(
         x_Wknown_Wglobal=np.zeros(3), cov=np.eye(3) * 0.04, accepted_at_step=77
     )

@@ -7,6 +7,12 @@ The true changes of a simulated map and the score of a report against them are
 evaluation (:mod:`mapfuse_core.evaluation.change_truth`)."""
 
 from mapfuse_core.changes.classify import classify_changes
+from mapfuse_core.changes.consistency import (
+    RunConsistency,
+    consistency_from_innovations,
+    no_consistency_evidence,
+    withhold_changes,
+)
 from mapfuse_core.changes.evidence import (
     LandmarkEvidence,
     ObservationSet,
@@ -30,10 +36,14 @@ __all__ = [
     "LandmarkEvidence",
     "NewFeature",
     "ObservationSet",
+    "RunConsistency",
     "classify_changes",
+    "consistency_from_innovations",
     "feature_residual",
     "map_world",
+    "no_consistency_evidence",
     "observation_sets",
     "residual_dof",
     "scans_in_view",
+    "withhold_changes",
 ]

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
+
+if TYPE_CHECKING:
+    from mapfuse_core.changes.consistency import RunConsistency
 
 __all__ = ["ChangeReport", "ChangeStatus", "FeatureChange", "NewFeature"]
 
@@ -26,6 +29,9 @@ class ChangeStatus(StrEnum):
     """Predicted in view for at least ``K`` scans and never observed."""
     UNOBSERVED = "unobserved"
     """Never observed, and not predicted in view long enough to call it missing."""
+    INCONCLUSIVE = "inconclusive"
+    """Its tests call it moved or missing, but the run is not consistent enough to be
+    trusted with that (:mod:`mapfuse_core.changes.consistency`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,6 +151,17 @@ class ChangeReport:
     relocalize_refused: int = 0
     """Steps before the match with three or more merged features whose re-placement was
     refused; they are bridged like the steps without features, or enter as filtered."""
+    consistency: RunConsistency | None = None
+    """The run's consistency verdict (:mod:`mapfuse_core.changes.consistency`), or
+    ``None`` when it was not judged."""
+    withheld_new: int = 0
+    """Landmarks the tests found new but that are not reported, the run not being
+    trusted (0 on a trusted run)."""
+
+    @property
+    def conclusive(self) -> bool:
+        """Whether the run was trusted (or not judged): its changes are reported."""
+        return self.consistency is None or self.consistency.trusted
 
     def of(self, status: ChangeStatus) -> list[FeatureChange]:
         """Known features of one class."""
@@ -167,6 +184,9 @@ class ChangeReport:
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form (``changes.json``)."""
         return {
+            "verdict": "conclusive" if self.conclusive else "inconclusive",
+            "consistency": None if self.consistency is None else self.consistency.as_dict(),
+            "withheld_new": self.withheld_new,
             "level": self.level,
             "x_Wknown_Wglobal": [float(v) for v in self.x_Wknown_Wglobal],
             "counts": self.counts(),
