@@ -190,7 +190,7 @@ EVIDENCE: dict[str, str] = {
     "EKFConfig.known_map_in_local_maps": f"[paper preset]({_R}ekf-paper-preset.md"
     "#the-papers-three-forms)",
     "EKFConfig.line_tie_residual_at": f"[paper preset]({_R}ekf-paper-preset.md"
-    "#the-papers-three-forms), [models]({_R}models.md)",
+    f"#the-papers-three-forms), [models]({_R}models.md)",
     "KnownGatingParams.level": f"[changes]({_R}changes.md"
     "#fusion-that-does-not-trust-a-wrong-map-the-known-map-gate)",
     "KnownGatingParams.window": f"[changes]({_R}changes.md"
