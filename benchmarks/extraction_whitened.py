@@ -27,7 +27,9 @@ Scans come from two sources (``--source``):
   long, sparse loop of issue 43: 583 m, 10 walls, 45 trees, 80 m laser), scanned from
   the true poses of a simulated drive, every ``--stride``-th step.
 
-Bins: circles by range (distance to the true centre) × true radius; lines by range
+Bins: circles by range (distance to the true centre) × true radius, and by range in
+radii (the silhouette's width, which decides detection: trunks are tried as circles up to
+about 17 radii, ``min_circle_snr``); lines by range
 (distance to the observed midpoint) × incidence (between that line of sight and the
 wall's normal), and by range × observed length.  Seeded; prints one JSON document.
 
@@ -62,6 +64,7 @@ CIRCLE_DOFS = ("along", "across", "radius")
 LINE_DOFS = ("lateral", "angle")
 CIRCLE_RANGE_BINS = (0.0, 4.0, 7.0, 11.0, 16.0, 30.0)
 CIRCLE_RADIUS_BINS = (0.2, 0.4, 0.6, 0.8, 1.0)
+CIRCLE_RADII_BINS = (0.0, 6.0, 10.0, 13.0, 15.0, 17.0, 30.0)
 LINE_RANGE_BINS = (0.0, 10.0, 20.0, 40.0, 80.0)
 LINE_INCIDENCE_BINS_DEG = (0.0, 30.0, 55.0, 70.0, 90.0)
 LINE_LENGTH_BINS = (2.5, 6.0, 12.0, 25.0, 80.0)
@@ -79,6 +82,9 @@ class Sample:
     """True radius (circles, m) or incidence at the observed midpoint (lines, degrees)."""
     length_m: float
     """Observed length (lines, m); NaN for circles."""
+    radii: float
+    """Range in radii (circles: range / true radius; the detection limit is near 17);
+    NaN for lines."""
     z: tuple[float, ...]
     """Whitened error components (:data:`CIRCLE_DOFS` or :data:`LINE_DOFS`)."""
     nees: float
@@ -103,7 +109,8 @@ def score(world: World, pose: np.ndarray, features: Any) -> list[Sample]:
             S = R @ f.cov @ R.T
             z = e / np.sqrt(np.diag(S))
             nees = float(e @ np.linalg.solve(S, e))
-            out.append(Sample(kind, d, float(truth[2]), math.nan, tuple(z.tolist()), nees))
+            r = float(truth[2])
+            out.append(Sample(kind, d, r, math.nan, d / r, tuple(z.tolist()), nees))
         else:
             e, _, _ = line_residual(truth, f.params)
             S = line_residual_cov(truth, f.params, f.cov)
@@ -115,7 +122,7 @@ def score(world: World, pose: np.ndarray, features: Any) -> list[Sample]:
             los = math.atan2(mid[1], mid[0])
             inc = math.degrees(math.acos(min(1.0, abs(math.sin(los - float(truth[2]))))))
             length = float(f.extent[1] - f.extent[0])
-            out.append(Sample(kind, rng_m, inc, length, tuple(z.tolist()), nees))
+            out.append(Sample(kind, rng_m, inc, length, math.nan, tuple(z.tolist()), nees))
     return out
 
 
@@ -257,6 +264,7 @@ def summarise(samples: list[Sample], min_n: int) -> dict[str, Any]:
         circles, CIRCLE_DOFS, "rng_m", CIRCLE_RANGE_BINS, "size", CIRCLE_RADIUS_BINS, min_n
     )
     c_all = table(circles, CIRCLE_DOFS, "rng_m", (0.0, 1e9), "size", (0.0, 1e9), 1)
+    c_radii = table(circles, CIRCLE_DOFS, "radii", CIRCLE_RADII_BINS, "size", (0.0, 1e9), min_n)
     l_inc = table(
         lines, LINE_DOFS, "rng_m", LINE_RANGE_BINS, "size", LINE_INCIDENCE_BINS_DEG, min_n
     )
@@ -266,6 +274,7 @@ def summarise(samples: list[Sample], min_n: int) -> dict[str, Any]:
         "circle": {
             "all": c_all,
             "by_range_radius": c_rows,
+            "by_range_in_radii": c_radii,
             "worst": _worst(c_rows, CIRCLE_DOFS),
         },
         "line": {
@@ -283,11 +292,13 @@ def _cell(d: dict[str, Any]) -> str:
     )
 
 
-def _markdown_table(rows: list[dict[str, Any]], key_y: str, dofs: tuple[str, ...]) -> list[str]:
-    head = f"| range (m) | {key_y} | n | NEES/dof | " + " | ".join(dofs) + " |"
+def _markdown_table(
+    rows: list[dict[str, Any]], key_y: str, dofs: tuple[str, ...], key_x: str = "rng_m"
+) -> list[str]:
+    head = f"| {key_x} | {key_y} | n | NEES/dof | " + " | ".join(dofs) + " |"
     out = [head, "|" + "---|" * (4 + len(dofs))]
     for r in rows:
-        x, y = r["rng_m"], r[key_y]
+        x, y = r[key_x], r[key_y]
         cells = " | ".join(_cell(r[d]) for d in dofs)
         head = f"| {x[0]:g}–{x[1]:g} | {y[0]:g}–{y[1]:g} | {r['n']} | {r['nees_per_dof']:.2f}"
         out.append(f"{head} | {cells} |")
@@ -299,6 +310,8 @@ def markdown(out: dict[str, Any]) -> str:
     c, ln = out["circle"], out["line"]
     lines = ["Circles (along, across, radius): mean [95 %] / variance [95 %]", ""]
     lines += _markdown_table(c["all"] + c["by_range_radius"], "size", CIRCLE_DOFS)
+    lines += ["", "Circles by range in radii (first column)", ""]
+    lines += _markdown_table(c["by_range_in_radii"], "size", CIRCLE_DOFS, "radii")
     lines += ["", "Lines by incidence (°)", ""]
     lines += _markdown_table(ln["all"] + ln["by_range_incidence"], "size", LINE_DOFS)
     lines += ["", "Lines by length (m)", ""]
