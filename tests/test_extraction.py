@@ -63,16 +63,52 @@ def test_noise_free_wall_is_recovered_exactly() -> None:
     assert f.n_points > 50
 
 
-def test_noise_free_circle_is_recovered_exactly() -> None:
+def assert_circle_within_silhouette_step(f: ExtractedFeature, truth: np.ndarray) -> None:
+    """A noise-free scan reads a trunk's silhouette only to the beam grid: each edge lies
+    somewhere in the half spacing beyond the outermost return.  Exact ranges pin the near
+    side, so the radius and the centre can be off by at most about the distance times
+    half a spacing (both edges off the same way), and the stated covariance (the
+    uniform grid's ``Δβ²/12`` per edge) must cover that."""
+    dist = math.hypot(truth[0], truth[1])
+    step = dist * EXACT.beam_spacing_rad
+    err = f.params - truth
+    assert abs(err[2]) <= 0.5 * step
+    assert math.hypot(err[0], err[1]) <= 0.75 * step
+    assert float(err @ np.linalg.solve(f.cov, err)) <= 16.27  # χ²(3) at 0.999
+
+
+def test_noise_free_circle_is_recovered_to_the_beam_grid() -> None:
     world = World((), (CircleObstacle(5, (4.0, 1.0), 0.6),))
     res = extract_features(scan_of(world, ORIGIN), EXACT)
     assert len(res.features) == 1
     f = res.features[0]
     assert f.kind == FeatureKind.CIRCLE
     assert f.true_id == 5
-    assert np.allclose(f.params, [4.0, 1.0, 0.6], atol=1e-7)
+    assert_circle_within_silhouette_step(f, np.array([4.0, 1.0, 0.6]))
     assert math.isnan(f.extent[0])
     assert math.isnan(f.extent[1])
+
+
+def test_circle_fit_is_exact_on_exact_ranges_and_edges() -> None:
+    """The range model and the silhouette model are exact: ranges and edge readings at
+    their means give back the circle."""
+    laser = LaserParams()
+    noise = ex._Noise(laser.sigma_range_m**2, laser.sigma_bearing_rad**2, 1e-12)
+    truth = np.array([5.0, 1.5, 0.45])
+    d = math.hypot(truth[0], truth[1])
+    phi, half = math.atan2(truth[1], truth[0]), math.asin(truth[2] / d)
+    b = phi + np.linspace(-0.6, 0.6, 9) * half
+    r = ex._circle_system(b, truth, noise)[0]
+    edges = ex._Edges(
+        tau=phi + np.array([-1.0, 1.0]) * (half - 0.001),
+        side=np.array([-1.0, 1.0]),
+        bias=-0.001,
+        var=1e-5,
+        v_min=-math.inf,
+    )
+    fit = ex._refine_circle(r, b, truth + np.array([0.05, -0.04, 0.1]), noise, edges)
+    assert fit is not None
+    np.testing.assert_allclose(fit.x, truth, rtol=0.0, atol=1e-9)
 
 
 def test_noise_free_corner_gives_two_exact_lines() -> None:
@@ -128,7 +164,7 @@ def test_noise_free_circle_any_pose(dist: float, bearing: float, radius: float) 
     res = extract_features(scan_of(world, ORIGIN), EXACT)
     circles = only(res.features, FeatureKind.CIRCLE)
     assert len(circles) == 1
-    assert np.allclose(circles[0].params, [*centre, radius], atol=1e-6)
+    assert_circle_within_silhouette_step(circles[0], np.array([*centre, radius]))
 
 
 # --------------------------------------------------------------------------- covariances
@@ -209,6 +245,82 @@ def test_circle_fits_solve_the_problem_least_squares_solved(seed: int) -> None:
         x = least_squares(res, x, jac=jac, method="lm", xtol=1e-12, ftol=1e-12).x
     x[2] = abs(x[2])
     np.testing.assert_allclose(fit.x, x, rtol=0.0, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- silhouette
+
+
+def test_edge_reading_model_matches_the_simulated_laser() -> None:
+    """The model of where the beams stop hitting a trunk (``_edge_moments``): exact at
+    σβ = 0 (uniform over a spacing), and matching 3,000 simulated scans of one trunk
+    at the paper's σβ = Δβ/2.  Per edge and scan the reading varies by about 0.55
+    spacings, so the mean of 6,000 readings is known to ±0.007 spacings (σ) and their
+    variance to ±0.006 spacings²: the bounds are about 3.5 of those."""
+    mean0, var0 = ex._edge_moments(0.0)
+    assert mean0 == pytest.approx(0.0, abs=1e-12)
+    assert var0 == pytest.approx(1.0 / 12.0, rel=1e-4)
+    laser = LaserParams()
+    spacing = laser.beam_spacing_rad
+    mean, var = ex._edge_moments(laser.sigma_bearing_rad / spacing)
+    assert -0.03 < mean < -0.02  # an inner beam that misses ends the cluster early
+    world = World((), (CircleObstacle(1, (6.0, 0.0), 0.5),))
+    rng = np.random.default_rng(3)
+    err = []
+    for _ in range(3000):
+        heading = float(rng.uniform(-0.01, 0.01))
+        scan = simulate_scan(world, np.array([0.0, 0.0, heading]), laser, rng)
+        hits = np.flatnonzero(scan.hit_ids == 1)
+        runs = np.split(hits, np.flatnonzero(np.diff(hits) != 1) + 1)
+        trunk = max(runs, key=len)  # a stray hit beyond a missed beam is another cluster
+        first, last = trunk[0], trunk[-1]
+        half = math.asin(0.5 / 6.0)
+        err.append((scan.bearings[last] + 0.5 * spacing - (-heading + half)) / spacing)
+        err.append(-(scan.bearings[first] - 0.5 * spacing - (-heading - half)) / spacing)
+    assert float(np.mean(err)) == pytest.approx(mean, abs=0.025)
+    assert float(np.var(err)) == pytest.approx(var, abs=0.02)
+
+
+def test_every_cluster_above_the_smallest_candidate_size_is_a_candidate() -> None:
+    """``r / σ_r`` of the hypothetical circle falls back when the grazing cut drops a
+    pair of beams: at 1.8 m a cluster of 22 returns qualifies and one of 23 does not.
+    The detection rule is the smallest qualifying size, so a 23-return cluster is a
+    candidate too, and the fit's bound on the silhouette's width has no gaps."""
+    laser = LaserParams()
+    noise = ex._Noise(laser.sigma_range_m**2, laser.sigma_bearing_rad**2, 1e-12)
+    params = ExtractionParams()
+    sizes = np.arange(7, 40)
+    snr, usable = ex._silhouette_candidates(1.8, laser.beam_spacing_rad, sizes, noise, params)
+    i22, i23 = 22 - 7, 23 - 7
+    assert snr[i22] >= params.min_circle_snr > snr[i23]
+    assert int(sizes[np.flatnonzero(snr >= params.min_circle_snr)[0]]) == 22
+    assert np.count_nonzero(usable[i23]) < np.count_nonzero(usable[i22]) + 1
+    # A cluster of 23 returns at that range is a candidate.
+    b = (np.arange(21) - 10.0) * laser.beam_spacing_rad
+    span = (float(b[0] - laser.beam_spacing_rad), float(b[-1] + laser.beam_spacing_rad))
+    chosen = ex._candidate_beams(np.full(21, 1.8), b, span, noise, params)
+    assert chosen is not None
+    assert chosen[2] == 22
+
+
+def test_detection_correction_only_acts_near_the_detection_limit() -> None:
+    """Far above the smallest detectable width the fit is left alone; at the limit the
+    width read is lowered by about σλ(α) through the fit's gain, and the radius with it."""
+    x = np.array([15.0, 0.0, 0.9])
+    # The near side is known far better than the radius: centre and radius move together.
+    cov = np.array(
+        [[0.04**2, 0.0, 0.95 * 0.04**2], [0.0, 0.03**2, 0.0], [0.95 * 0.04**2, 0.0, 0.04**2]]
+    )
+    spacing = LaserParams().beam_spacing_rad
+    half = math.asin(0.9 / 15.0)
+    tau = np.array([-half, half])
+    far = ex._Edges(tau, np.array([-1.0, 1.0]), 0.0, 0.3 * spacing**2, 2 * half - 10 * spacing)
+    x_far, cov_far = ex._detection_correction(x, cov, far)
+    np.testing.assert_array_equal(x_far, x)
+    np.testing.assert_allclose(cov_far, cov, atol=1e-15)
+    near = ex._Edges(tau, np.array([-1.0, 1.0]), 0.0, 0.3 * spacing**2, 2 * half)
+    x_near, _ = ex._detection_correction(x, cov, near)
+    assert x_near[2] < x[2] - 0.003  # the radius comes down
+    assert x_near[0] < x[0]  # and the centre nearer
 
 
 # --------------------------------------------------------------------------- labels

@@ -293,3 +293,72 @@ def test_wall_beside_a_corner_hidden_by_a_tree_is_unbiased() -> None:
     assert abs(with_margin) <= 0.2
     # The rule is what removes the bias: without it the same scans are biased.
     assert without < -0.4
+
+
+def _tree_scene(rng: np.random.Generator, r_lo: float, r_hi: float, d_hi: float) -> World:
+    """Three trees at bearings −60°, 0°, +60° (radius uniform in ``[r_lo, r_hi]``, centre
+    log-uniform from ``1.2 r + 1`` m to ``d_hi · r``), half of the scans against a wall
+    3–20 m behind each."""
+    trees, walls = [], []
+    behind = bool(rng.random() < 0.5)
+    for k, bearing in enumerate((-math.pi / 3, 0.0, math.pi / 3)):
+        r = float(rng.uniform(r_lo, r_hi))
+        d = float(math.exp(rng.uniform(math.log(1.2 * r + 1.0), math.log(d_hi * r))))
+        b = bearing + float(rng.uniform(-0.05, 0.05))
+        trees.append(CircleObstacle(100 + k, (d * math.cos(b), d * math.sin(b)), r))
+        if behind:
+            w = d + r + float(rng.uniform(3.0, 20.0))
+            m = np.array([w * math.cos(b), w * math.sin(b)])
+            t = np.array([-math.sin(b), math.cos(b)]) * 0.3 * w
+            walls.append(WallSegment(10 + k, tuple((m - t).tolist()), tuple((m + t).tolist())))
+    return World(tuple(walls), tuple(trees))
+
+
+def whitened_circle_errors(
+    n_scans: int, seed: int, r_lo: float, r_hi: float, d_hi: float
+) -> np.ndarray:
+    """(n, 3) errors of the labelled circles of ``n_scans`` tree scenes, in the line of
+    sight of the true centre (along, across, radius), each divided by its stated σ."""
+    laser = LaserParams()
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_scans):
+        world = _tree_scene(rng, r_lo, r_hi, d_hi)
+        pose = np.array([0.0, 0.0, float(rng.uniform(-0.01, 0.01))])
+        for f in extract_features(simulate_scan(world, pose, laser, rng), laser).features:
+            if f.kind != FeatureKind.CIRCLE or f.true_id < 100:
+                continue
+            truth = express_in(FeatureKind.CIRCLE, pose, world.feature(f.true_id)[1])[0]
+            u = truth[:2] / math.hypot(truth[0], truth[1])
+            R = np.array([[u[0], u[1], 0.0], [-u[1], u[0], 0.0], [0.0, 0.0, 1.0]])
+            out.append(R @ (f.params - truth) / np.sqrt(np.diag(R @ f.cov @ R.T)))
+    return np.array(out)
+
+
+def assert_whitened(z: np.ndarray, label: str) -> None:
+    """Every component's mean within 3.5 standard errors of 0 and its variance within
+    ``max(0.1, 3.5 √(2/n))`` of 1 (a consistent extractor fails either with
+    probability below 1e-3 per component)."""
+    n = z.shape[0]
+    mean, var = z.mean(axis=0), z.var(axis=0, ddof=1)
+    print(f"\n{label}: n={n}, means {np.round(mean, 3)}, variances {np.round(var, 3)}")
+    assert np.all(np.abs(mean) <= 3.5 / math.sqrt(n)), (label, mean)
+    assert np.all(np.abs(var - 1.0) <= max(0.1, 3.5 * math.sqrt(2.0 / n))), (label, var)
+
+
+@pytest.mark.slow
+def test_circle_errors_whiten_to_zero_mean_and_unit_variance() -> None:
+    # Radii 0.2–1 m from close by to the detection limit (about 17 radii): before the
+    # silhouette entered the fit, the means were −0.16 σ (along) and −0.18 σ (radius)
+    # and the across variance 0.85 (benchmarks/extraction_whitened.py).
+    z = whitened_circle_errors(1200, seed=43, r_lo=0.2, r_hi=1.0, d_hi=20.0)
+    assert z.shape[0] >= 2500
+    assert_whitened(z, "circles, r 0.2–1 m")
+
+
+@pytest.mark.slow
+def test_small_close_trunks_are_not_measured_too_close() -> None:
+    # Trunks of 0.2–0.4 m, 1.2–4 m away: before, −0.35 σ along and −0.40 σ on the radius.
+    z = whitened_circle_errors(500, seed=44, r_lo=0.2, r_hi=0.4, d_hi=10.0)
+    assert z.shape[0] >= 1000
+    assert_whitened(z, "circles, r 0.2–0.4 m, 1.2–4 m away")

@@ -7,9 +7,10 @@ Pipeline (all geometry is in the sensor frame ``S`` of the scan):
    (an occlusion edge) starts a new cluster.  ``end_trim`` returns are dropped at
    both ends of each cluster.
 2. **Circle or line**, from geometry only.  A short cluster, not cut by the edge of
-   the field of view, is a circle candidate when a circle filling its bearing span
-   would be well determined (predicted ``r / σ_r ≥ min_circle_snr``, from the beam
-   geometry alone); it is a circle when a weighted circle fit of its central beams
+   the field of view, is a circle candidate when it has at least as many returns as
+   the smallest cluster at its range whose silhouette-filling circle would be well
+   determined by its ranges (predicted ``r / σ_r ≥ min_circle_snr``, from the beam
+   geometry alone); it is a circle when a weighted circle fit of its non-grazing beams
    passes a χ² test, has its centre behind the arc and does not contradict the beams
    beside the cluster (which must not cross it).  The laser's ``hit_ids`` are used
    only afterwards, to label a feature with the world id of most of its points.
@@ -22,7 +23,9 @@ Pipeline (all geometry is in the sensor frame ``S`` of the scan):
 4. **Circles**: Levenberg–Marquardt (MINPACK's ``lmder``, see
    :func:`~mapfuse_core.perception.extraction.circles._levenberg_marquardt`) on ``‖p_i − c‖ − r``
    weighted by ``1 / nᵢᵀΣᵢnᵢ`` for the decision, refined by Levenberg–Marquardt on the
-   measured ranges; covariance ``(Jᵀ W J)⁻¹``.
+   measured ranges of the central beams and on the silhouette's edges (where the
+   beams stop hitting the trunk); covariance ``(Jᵀ W J)⁻¹``, then both corrected for
+   the detection rule.
 
 Noise model (that of :mod:`mapfuse_core.sim.laser`): a return at nominal bearing ``β``
 has range ``ρ(β + δβ) + δρ``, independent between beams.  Its point covariance is
@@ -63,6 +66,21 @@ does not describe, with rules computable without the truth:
   the bearings of the cluster, never from the fitted radius: selecting on the fitted
   radius or its σ keeps the noise realisations that look most curved, which biases
   the radius of small trunks by σ's (``docs/results/extraction.md``);
+* a circle's radius comes mostly from its silhouette.  The ranges of a short arc fix
+  it only through the arc's curvature: such a fit errs outwards by a fifth of its σ,
+  and its covariance, taken at the fitted circle, shrinks as the fitted radius does,
+  so its whitened errors leaned −0.15 σ to −0.4 σ.  The bearings where the beams stop
+  hitting the trunk read its angular width ``2 asin(r / D)`` to a fraction of a beam
+  spacing (:func:`~mapfuse_core.perception.extraction.noise._edge_moments`): with them
+  in the fit the radius is known several times better and its covariance no longer
+  follows its error.  Two things keep that unbiased.  The ranges fitted are those of
+  a fixed number of central beams, the number every detectable cluster at that range
+  has: fitting all of a cluster's beams makes the fit's gain on the width depend on
+  the width read, which biased the radius by −0.07 σ.  And the size a cluster needs to
+  be tried as a circle is a bound on the width read, so near it only the trunks that
+  read wide are seen; the fit subtracts that excess, to first order, and widens or
+  narrows its covariance to match (``docs/results/extraction.md``: about half of the bias is
+  left where half the clusters are detected);
 * a circle whose silhouette a beam beside the cluster crosses is not a trunk, but only
   a crossing deeper than 3 σ of the fit counts
   (:func:`~mapfuse_core.perception.extraction.circles._crosses_silhouette`): testing the fitted
@@ -87,11 +105,20 @@ the rules above are in ``docs/results/extraction.md``.
 """
 
 from mapfuse_core.perception.extraction.circles import _beam_cos_inc as _beam_cos_inc
+from mapfuse_core.perception.extraction.circles import _candidate_beams as _candidate_beams
 from mapfuse_core.perception.extraction.circles import _circle_system as _circle_system
+from mapfuse_core.perception.extraction.circles import (
+    _detection_correction as _detection_correction,
+)
+from mapfuse_core.perception.extraction.circles import _Edges as _Edges
 from mapfuse_core.perception.extraction.circles import _geometric_circle as _geometric_circle
 from mapfuse_core.perception.extraction.circles import _kasa as _kasa
 from mapfuse_core.perception.extraction.circles import _refine_circle as _refine_circle
+from mapfuse_core.perception.extraction.circles import (
+    _silhouette_candidates as _silhouette_candidates,
+)
 from mapfuse_core.perception.extraction.extract import extract_features
+from mapfuse_core.perception.extraction.noise import _edge_moments as _edge_moments
 from mapfuse_core.perception.extraction.noise import _Noise as _Noise
 from mapfuse_core.perception.extraction.noise import _normal_var as _normal_var
 from mapfuse_core.perception.extraction.params import (

@@ -1,6 +1,6 @@
 """Circles: candidate beams, Kåsa and geometric fits, range-space fit, silhouette test.
 
-A cluster becomes a circle candidate from its bearings alone (:func:`_circle_beams`).
+A cluster becomes a circle candidate from its size alone (:func:`_silhouette_candidates`).
 The decision uses an algebraic start (:func:`_kasa`) and a point-space
 Levenberg–Marquardt fit (:func:`_geometric_circle`); the estimate and its covariance
 come from Levenberg–Marquardt on the measured ranges (:func:`_refine_circle`).  A
@@ -17,12 +17,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import leastsq
+from scipy.special import log_ndtr
 
 from mapfuse_core.geometry.features import FeatureKind
-from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.geometry.se2 import FloatArray, wrap_angle, wrap_scalar
 from mapfuse_core.perception.extraction.labels import _label
 from mapfuse_core.perception.extraction.noise import (
     _chi2_max,
+    _edge_moments,
     _Noise,
     _nonlinearity,
     _normal_var,
@@ -62,6 +64,200 @@ class _CircleFit:
     """(n,) cosine of each beam's incidence angle on the circle (0 if it misses)."""
     cov: FloatArray | None = None
     """(3, 3) covariance of :attr:`x`; only from the range-space fit."""
+
+
+@dataclass(frozen=True)
+class _Edges:
+    """Silhouette edges of a cluster: where the beams stop hitting the trunk."""
+
+    tau: FloatArray
+    """(m,) bearing of each edge read from the beams, half a spacing beyond the cluster's
+    outermost return (rad); m is 0, 1 or 2."""
+    side: FloatArray
+    """(m,) +1 for the counter-clockwise (upper) edge, −1 for the lower one."""
+    bias: float
+    """Mean of an edge reading minus the true tangent bearing, outwards positive (rad;
+    :func:`~mapfuse_core.perception.extraction.noise._edge_moments`)."""
+    var: float
+    """Variance of an edge reading (rad²)."""
+    v_min: float
+    """The cluster is a circle candidate only if ``Σ side · tau`` is at least this
+    (rad): the detection rule as a bound on the readings (:func:`_silhouette_edges`)."""
+
+
+_NO_EDGES = _Edges(np.zeros(0), np.zeros(0), 0.0, 1.0, -math.inf)
+
+
+def _silhouette_edges(
+    end_ranges: tuple[float, float],
+    span: tuple[float, float],
+    beyond_ranges: FloatArray,
+    spacing: float,
+    min_size: int,
+    noise: _Noise,
+) -> _Edges:
+    """The silhouette edges of a cluster whose outermost returns have ranges
+    ``end_ranges`` at bearings ``span`` (lower end first), with ``beyond_ranges`` the
+    returns just beyond them (``inf`` for none).
+
+    An end is a silhouette edge when the beam beyond it returns from farther away, or
+    not at all: that beam passed the trunk.  A nearer return beyond an end is an
+    occluder, and the trunk's edge behind it is unseen.
+
+    A cluster of ``n`` returns spans ``Σ_ends side · (β_end + side Δβ/2) = n Δβ``; it
+    is a circle candidate only from ``min_size`` returns on (:func:`_circle_from_cluster`),
+    which bounds the silhouette edges' ``Σ side · tau`` from below given the bearings of
+    the occluded ends (:attr:`_Edges.v_min`, with a whole number of returns read as
+    ``n Δβ ≥ (min_size − ½) Δβ``).
+    """
+    side_all = np.array([-1.0, 1.0])
+    tau_all = np.asarray(span, dtype=np.float64) + side_all * 0.5 * spacing
+    keep = np.asarray(beyond_ranges, dtype=np.float64) > np.asarray(end_ranges)
+    occluded = float(np.sum(side_all[~keep] * tau_all[~keep]))
+    mean, var = _edge_moments(math.sqrt(noise.var_b) / spacing)
+    return _Edges(
+        tau=tau_all[keep],
+        side=side_all[keep],
+        bias=mean * spacing,
+        var=var * spacing * spacing,
+        v_min=(min_size - 0.5) * spacing - occluded,
+    )
+
+
+def _edge_rows(
+    x: FloatArray, edges: _Edges
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The edge readings as the range-space fit uses them: readings, their means at
+    circle ``x``, the means' Jacobian w.r.t. ``(cx, cy, r)`` and their variances.
+
+    The tangent bearings from the sensor are ``φ ± h``, ``h = asin(r / D)`` (centre at
+    bearing ``φ`` and distance ``D``); a reading is off by :attr:`_Edges.bias`
+    outwards on average.  The first row is ``v = Σ side · τ̂`` (the angular width, or
+    one edge's bearing); with two edges the second is their mean ``(τ̂₊ + τ̂₋)/2``, the
+    centre's bearing, independent of ``v``.  ``D² − r²`` is floored so that a circle
+    reaching the sensor stays finite.
+    """
+    cx, cy, rad = float(x[0]), float(x[1]), float(x[2])
+    d2 = cx * cx + cy * cy
+    rad_abs = abs(rad)
+    q = math.sqrt(max(d2 - rad_abs * rad_abs, 1e-6 * d2))
+    phi = math.atan2(cy, cx)
+    d_phi = np.array([-cy / d2, cx / d2, 0.0])
+    # h = asin(r/D): ∂h/∂c = −r c / (D² q), ∂h/∂r = 1/q (with the sign of r).
+    d_half = np.array(
+        [-rad_abs * cx / (d2 * q), -rad_abs * cy / (d2 * q), math.copysign(1.0 / q, rad)]
+    )
+    k = edges.tau.size
+    s_sum = float(edges.side.sum())
+    meas = [float(edges.side @ edges.tau)]
+    mean = [s_sum * phi + k * (math.atan2(rad_abs, q) + edges.bias)]
+    J = [s_sum * d_phi + k * d_half]
+    var = [k * edges.var]
+    if k == 2:
+        meas.append(float(edges.tau.mean()))
+        mean.append(phi)
+        J.append(d_phi)
+        var.append(0.5 * edges.var)
+    return np.array(meas), np.array(mean), np.vstack(J), np.array(var)
+
+
+def _detection_correction(
+    x: FloatArray, cov: FloatArray, edges: _Edges
+) -> tuple[FloatArray, FloatArray]:
+    """The fit ``x`` (covariance ``cov``) corrected, to first order, for the detection
+    rule, and the covariance of the corrected fit.
+
+    A cluster is a circle candidate only from a certain size on, i.e. only when the
+    edges' ``v`` reaches :attr:`_Edges.v_min`.  Near that size the clusters whose edges
+    read wide are the ones seen: taken as normal with mean ``μ`` and standard deviation
+    ``σ``, a detected ``v`` exceeds ``μ`` by ``σ λ`` on average and varies by
+    ``σ² (1 − t)``, with ``α = (v_min − μ) / σ``, ``λ`` the inverse Mills ratio at ``α``
+    and ``t = λ (λ − α)``.  The fit passes the excess on through the gain of its ``v``
+    row, ``k = C Jᵥᵀ / σ²``, and the excess evaluated at the fit is subtracted.  The
+    corrected fit then follows ``v`` with the gain ``k (1 + g t)`` (``g = Jᵥ k``, the
+    part of ``v`` the fit's ``μ`` takes up) on the narrower spread of a detected ``v``,
+    so its covariance is ``C + k kᵀ σ² ((1 + g t)² (1 − t) − 1)``.
+
+    Evaluated at the fit, the excess removes about half to two thirds of the bias where
+    half the clusters are detected (``docs/results/extraction.md``).  Solving instead for the
+    circle whose truncated mean matches ``v`` overshoots: a reading at the threshold
+    says little about how far below it the circle is.
+    """
+    if edges.tau.size == 0 or not math.isfinite(edges.v_min):
+        return x, cov
+    meas, mean, J, var = _edge_rows(x, edges)
+    sd = math.sqrt(var[0])
+    # One edge's bearing and the bound are compared on the same branch of the angle.
+    alpha = (edges.v_min - meas[0] + wrap_scalar(meas[0] - mean[0])) / sd
+    lam = math.exp(_log_mills(alpha))
+    t = min(lam * (lam - alpha), 1.0)
+    gain = cov @ J[0] / var[0]
+    g = float(J[0] @ gain)
+    factor = (1.0 + g * t) ** 2 * (1.0 - t) - 1.0
+    out_cov = cov + np.outer(gain, gain) * (var[0] * factor)
+    return x - gain * (sd * lam), 0.5 * (out_cov + out_cov.T)
+
+
+def _log_mills(alpha: float) -> float:
+    """``log(φ(α) / (1 − Φ(α)))``, the log of the inverse Mills ratio, without overflow."""
+    return float(-0.5 * alpha * alpha - 0.5 * math.log(2.0 * math.pi) - log_ndtr(-alpha))
+
+
+def _silhouette_candidates(
+    rho: float, spacing: float, n: np.ndarray, noise: _Noise, params: ExtractionParams
+) -> tuple[FloatArray, np.ndarray]:
+    """For a cluster of each size in ``n`` with median range ``rho``: the ``r / σ_r`` a
+    fit to the ranges of its usable beams would have, and which of its trimmed beams
+    (``(len(n), max n − 2·end_trim)``, centred) are usable.
+
+    Both come from a *hypothetical* circle built from the cluster's bearings alone: the
+    tangent beams lie on average half a beam spacing beyond its outermost returns, so
+    the silhouette's half angle is ``h = n Δβ / 2``; the circle is centred on the mid
+    bearing at the distance that makes those beams tangent given ``rho``
+    (``r = ρ̃ sin h / (1 − sin h)``).  Beams that would graze it
+    (:func:`_circle_beams_usable`) are left out, ``σ_r`` is evaluated on this circle
+    (:func:`_circle_system`'s arithmetic for all the sizes at once), and a ratio is 0
+    when fewer than ``min_circle_points`` beams are usable.
+
+    Nothing here depends on the fitted radius, whose error is what the covariance has to
+    describe: choosing the beams, or accepting the circle, on the fitted radius or its
+    σ_r keeps the noise realisations that look most curved and biases the radius low.
+    The size is itself a reading of the silhouette, which the fit uses; the fit allows
+    for the choice (:func:`_detection_correction`).
+    """
+    n_fit = n - 2 * params.end_trim
+    k = np.arange(int(n_fit.max()))[None, :]
+    valid = k < n_fit[:, None]
+    beta = (k - 0.5 * (n_fit[:, None] - 1)) * spacing
+    sh = np.sin(np.minimum(0.5 * n * spacing, 0.5 * math.pi - 1e-3))
+    rad = (rho * sh / (1.0 - sh))[:, None]
+    dist = rho + rad
+    sb, cb = np.sin(beta), np.cos(beta)
+    a = dist * cb
+    s = -dist * sb
+    q = np.sqrt(np.maximum(rad * rad - s * s, (rad * math.cos(math.radians(89.0))) ** 2))
+    pred = a - q
+    d2 = -a + (a * a - s * s) / q + s * s * a * a / q**3
+    var = _range_moments(noise, -s * pred / q, d2)[1]
+    keep = valid & _circle_beams_usable(q / rad, _nonlinearity(noise, d2, var), params)
+    ks = s / q
+    J = np.stack((cb - ks * sb, sb + ks * cb, -rad / q * np.ones_like(cb)), axis=-1)
+    N = np.einsum("nk,nki,nkj->nij", np.where(keep, 1.0 / var, 0.0), J, J)
+    ev = np.linalg.eigvalsh(N)
+    ok = (np.count_nonzero(keep, axis=1) >= params.min_circle_points) & (ev[:, 0] > 0.0)
+    ok &= ev[:, -1] <= 1e12 * ev[:, 0]
+    snr = np.zeros(n.size)
+    if ok.any():
+        snr[ok] = rad[ok, 0] / np.sqrt(np.linalg.inv(N[ok])[:, 2, 2])
+    return snr, keep
+
+
+def _central(b: FloatArray, mid: float, k: int) -> np.ndarray:
+    """Mask of the ``k`` beams of ``b`` nearest to bearing ``mid`` (ties to the lower)."""
+    order = np.argsort(np.abs(b - mid), kind="stable")
+    out = np.zeros(b.size, dtype=bool)
+    out[order[:k]] = True
+    return out
 
 
 def _kasa(P: FloatArray) -> FloatArray | None:
@@ -207,9 +403,10 @@ def _circle_system(
 
 
 def _refine_circle(
-    r: FloatArray, b: FloatArray, x0: FloatArray, noise: _Noise
+    r: FloatArray, b: FloatArray, x0: FloatArray, noise: _Noise, edges: _Edges = _NO_EDGES
 ) -> _CircleFit | None:
-    """Levenberg–Marquardt fit of ``(cx, cy, r)`` to the measured *ranges*, from ``x0``.
+    """Levenberg–Marquardt fit of ``(cx, cy, r)`` to the measured *ranges* and the
+    silhouette ``edges``, from ``x0``.
 
     The point-space residual ``‖p_i − c‖ − r`` has the Jacobian ``[−n_i, −1]`` with
     ``n_i`` the direction from the centre to the *noisy* point: range noise moves a
@@ -219,26 +416,52 @@ def _refine_circle(
     (``docs/results/extraction.md``).  Predicting the
     measured range of each nominal beam (:func:`_circle_system`) removes it, and also
     accounts for the second-order effect of the bearing noise on the mean range.
+
+    The ranges alone fix the radius of a short arc only through its curvature, to a
+    fifth or so: the fit is then far from linear (it errs outwards by a fifth of its σ),
+    and the information the arc holds grows as the radius shrinks, so a covariance
+    taken at the fitted circle is smaller exactly when the radius came out too small
+    (``docs/results/extraction.md``).  The silhouette edges (:func:`_edge_rows`) fix the
+    angular width ``2 asin(r/D)`` to a fraction of a beam spacing whatever the radius:
+    with them the radius is known several times better, the fit is close to linear and
+    its covariance does not follow its error.  The fit is finally corrected for the
+    detection rule (:func:`_detection_correction`).
     """
     # The solver asks for the Jacobian at the point it last accepted, usually the one
     # whose residuals it just computed: keep the last system instead of recomputing it.
     last: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+    n = r.size
+    has_edges = edges.tau.size > 0
 
     def system(p: FloatArray) -> tuple[FloatArray, FloatArray]:
         key = p.tobytes()
         if key not in last:
             last.clear()
-            last[key] = _circle_system(b, p, noise)[:2]
+            mean, J = _circle_system(b, p, noise)[:2]
+            if has_edges:
+                _, e_mean, e_J, _ = _edge_rows(p, edges)
+                mean, J = np.concatenate((mean, e_mean)), np.vstack((J, e_J))
+            last[key] = (mean, J)
         return last[key]
+
+    meas = np.concatenate((r, _edge_rows(x0, edges)[0])) if has_edges else r
+
+    def variances(p: FloatArray) -> FloatArray:
+        var = _circle_system(b, p, noise)[2]
+        return np.concatenate((var, _edge_rows(p, edges)[3])) if has_edges else var
+
+    def residual(p: FloatArray, sig: FloatArray) -> FloatArray:
+        res = meas - system(p)[0]
+        res[n:] = wrap_angle(res[n:])  # edge readings are angles
+        out: FloatArray = res / sig
+        return out
 
     x = x0.copy()
     for _ in range(2):
-        var = _circle_system(b, x, noise)[2]
-        sig = np.sqrt(var)
+        sig = np.sqrt(variances(x))
 
         def fun(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
-            out: FloatArray = (r - system(p)[0]) / sig
-            return out
+            return residual(p, sig)
 
         def jac(p: FloatArray, sig: FloatArray = sig) -> FloatArray:
             out: FloatArray = -system(p)[1] / sig[:, None]
@@ -248,12 +471,15 @@ def _refine_circle(
         if not np.all(np.isfinite(x)):
             return None
     x[2] = abs(x[2])
-    mean, J, var, cos_inc, _ = _circle_system(b, x, noise)
-    cov = _gauss_newton_cov(J, 1.0 / var, 1e12)
+    var = variances(x)
+    cov = _gauss_newton_cov(system(x)[1], 1.0 / var, 1e12)
     if cov is None:
         return None
-    res = r - mean
-    return _CircleFit(x, float(np.sum(res * res / var)), cos_inc, cov)
+    z = residual(x, np.sqrt(var))
+    cos_inc = _circle_system(b, x, noise)[3]
+    x, cov = _detection_correction(x, cov, edges)
+    x[2] = abs(x[2])
+    return _CircleFit(x, float(z @ z), cos_inc, cov)
 
 
 def _circle_beams_usable(
@@ -264,47 +490,6 @@ def _circle_beams_usable(
         (cos_inc >= math.cos(params.max_circle_incidence_rad))
         & (eta <= params.max_range_nonlinearity)
     )
-
-
-def _circle_beams(
-    r: FloatArray,
-    b: FloatArray,
-    span: tuple[float, float],
-    noise: _Noise,
-    params: ExtractionParams,
-) -> tuple[np.ndarray, float]:
-    """Beams to fit a circle to, and the ``r / σ_r`` that fit would have.
-
-    Both come from a *hypothetical* circle built from the cluster's bearings alone:
-    ``span`` holds the bearings of its outermost returns before trimming, and the
-    tangent beams lie on average half a beam spacing beyond them.  The circle is centred
-    on the mid bearing at the distance that makes those beams tangent given the median
-    range ``ρ̃`` (``r = ρ̃ sin h / (1 − sin h)``, ``h`` the half span).  Beams that would
-    graze it (:func:`_circle_beams_usable`) are left out, and ``σ_r`` is the one
-    :func:`_refine_circle` reports, evaluated on this circle.
-
-    Nothing here depends on the fitted radius, whose error is what the covariance has to
-    describe: choosing the beams, or accepting the circle, on the fitted radius or its
-    σ_r keeps the noise realisations that look most curved and biases the radius low.
-    """
-    none = np.zeros(b.size, dtype=bool)
-    spacing = float(b[1] - b[0]) if b.size > 1 else 0.0
-    half = 0.5 * (span[1] - span[0] + spacing)
-    sh = math.sin(min(half, 0.5 * math.pi - 1e-3))
-    rho = _median(r)
-    rad = rho * sh / (1.0 - sh)
-    if rad <= 0.0:
-        return none, 0.0
-    mid = 0.5 * (span[0] + span[1])
-    c = np.array([(rho + rad) * math.cos(mid), (rho + rad) * math.sin(mid), rad])
-    _, J, var, cos_inc, eta = _circle_system(b, c, noise)
-    keep = _circle_beams_usable(cos_inc, eta, params)
-    if np.count_nonzero(keep) < params.min_circle_points:
-        return keep, 0.0
-    cov = _gauss_newton_cov(J[keep], 1.0 / var[keep], 1e12)
-    if cov is None:
-        return keep, 0.0
-    return keep, rad / math.sqrt(float(cov[2, 2]))
 
 
 def _crosses_silhouette(
@@ -337,6 +522,40 @@ def _crosses_silhouette(
     return bool(np.any(deep & (mean < ranges - 3.0 * np.sqrt(var_r))))
 
 
+def _candidate_beams(
+    r: FloatArray, b: FloatArray, span: tuple[float, float], noise: _Noise, params: ExtractionParams
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Whether a cluster (trimmed ranges ``r`` at bearings ``b``, outermost returns at
+    ``span``) is a circle candidate: if so its usable beams, the central beams whose
+    ranges the fit uses, and the smallest size a candidate has at its range.
+
+    Every cluster at least as large as the smallest that qualifies
+    (:func:`_silhouette_candidates`) is a candidate: ``r / σ_r`` is not monotone in
+    the size (each time the grazing cut drops the outermost pair of beams it falls
+    back), and the fit needs the detection rule to be a bound on the silhouette's
+    width, not a set of gaps in it (:attr:`_Edges.v_min`).
+
+    The ranges fitted are those of the central beams that the smallest candidate at this
+    range has usable, whatever the cluster's own size: with all of its usable beams the
+    fit's gain on the silhouette's width would depend on the width read (a wider reading
+    brings in more beams near the edges, whose ranges pull the radius back), and its
+    radius came out −0.07 σ low on trunks far from the detection limit.
+    """
+    spacing = float(b[1] - b[0])
+    trim = 2 * params.end_trim
+    sizes = np.arange(trim + params.min_circle_points, r.size + trim + 1)
+    if sizes.size == 0:
+        return None
+    snr, usable = _silhouette_candidates(_median(r), spacing, sizes, noise, params)
+    first = np.flatnonzero(snr >= params.min_circle_snr)
+    keep = usable[-1, : r.size]
+    if first.size == 0 or np.count_nonzero(keep) < params.min_circle_points:
+        return None
+    n_central = int(np.count_nonzero(usable[first[0]]))
+    central = _central(b, 0.5 * (span[0] + span[1]), n_central) & keep
+    return keep, central, int(sizes[first[0]])
+
+
 def _circle_from_cluster(
     P: FloatArray,
     r: FloatArray,
@@ -344,17 +563,21 @@ def _circle_from_cluster(
     ids: np.ndarray,
     span: tuple[float, float],
     outside: tuple[FloatArray, FloatArray],
+    end_ranges: tuple[float, float],
     noise: _Noise,
     params: ExtractionParams,
 ) -> ExtractedFeature | str | None:
     """A circle feature, the reason a circle was rejected, or ``None`` if not a circle.
 
-    ``outside`` holds the ranges and bearings of the beams just beyond both ends of the
-    cluster (``inf`` for no return).
+    ``span`` holds the bearings and ``end_ranges`` the ranges of the cluster's outermost
+    returns (before trimming), ``outside`` the ranges and bearings of the beams just
+    beyond both ends (``inf`` for no return).
     """
-    keep, snr = _circle_beams(r, b, span, noise, params)
-    if snr < params.min_circle_snr:
+    chosen = _candidate_beams(r, b, span, noise, params)
+    if chosen is None:
         return None
+    keep, central, min_size = chosen
+    edges = _silhouette_edges(end_ranges, span, outside[0], float(b[1] - b[0]), min_size, noise)
     P, r, b, ids = P[keep], r[keep], b[keep], ids[keep]
     n_pts = r.size
     geo = _geometric_circle(P, r, b, noise, 4.0 * params.circle_radius_max_m)
@@ -363,7 +586,9 @@ def _circle_from_cluster(
     # A laser sees the near side of a trunk: the centre lies behind the points.
     if math.hypot(geo.x[0], geo.x[1]) <= float(np.mean(r)):
         return None
-    fit = _refine_circle(r, b, geo.x, noise)
+    central = central[keep]
+    n_pts = int(np.count_nonzero(central))
+    fit = _refine_circle(r[central], b[central], geo.x, noise, edges)
     # A trunk is bounded by its silhouette: the beams beside the cluster must not pass
     # through the fitted circle well before their measured range.  A short wall piece
     # or a building corner that happens to fit an arc fails this.
@@ -375,7 +600,7 @@ def _circle_from_cluster(
     # From here on the cluster is curved like a trunk: reject it rather than cut lines.
     if fit is None or fit.cov is None:
         return "ill_conditioned"
-    if fit.chi2 > _chi2_max(params, n_pts - 3):
+    if fit.chi2 > _chi2_max(params, n_pts + edges.tau.size - 3):
         return "poor_fit"
     if not params.circle_radius_min_m <= fit.x[2] <= params.circle_radius_max_m:
         return "radius_out_of_range"

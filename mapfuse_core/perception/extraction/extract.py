@@ -66,6 +66,7 @@ def extract_features(
             rejected["too_few_points"] += 1
             continue
         span_b = (float(scan.bearings[cl[0]]), float(scan.bearings[cl[-1]]))
+        end_r = (float(scan.ranges[cl[0]]), float(scan.ranges[cl[-1]]))
         at_fov_edge = bool(cl[0] == 0 or cl[-1] == n_beams - 1)
         ends = [(e, j) for e, j in ((cl[0], cl[0] - 1), (cl[-1], cl[-1] + 1)) if 0 <= j < n_beams]
         beside = np.array([j for _, j in ends], dtype=int)
@@ -84,7 +85,7 @@ def extract_features(
             and cl.size >= params.min_circle_points
             and chord <= 2.2 * params.circle_radius_max_m
         ):
-            circ = _circle_from_cluster(P, r, b, ids, span_b, outside, noise, params)
+            circ = _circle_from_cluster(P, r, b, ids, span_b, outside, end_r, noise, params)
             if isinstance(circ, ExtractedFeature):
                 features.append(circ)
                 continue

@@ -1,9 +1,10 @@
-"""The laser's range-noise model as the fits need it, and the χ² acceptance bound.
+"""The laser's noise model as the fits need it, and the χ² acceptance bound.
 
 A return at nominal bearing ``β`` has range ``ρ(β + δβ) + δρ``
 (:mod:`mapfuse_core.sim.laser`).  Point-space fits weight a residual along a unit normal
 by :func:`_normal_var`; range-space fits predict the mean and variance of each
-measured range with :func:`_range_moments`.
+measured range with :func:`_range_moments`, and those of where the beams stop hitting
+a trunk with :func:`_edge_moments`.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
+from scipy.stats import norm as norm_dist
 
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction.params import ExtractionParams
@@ -62,6 +64,31 @@ def _nonlinearity(noise: _Noise, d2: FloatArray, var: FloatArray) -> FloatArray:
     """
     out: FloatArray = np.abs(d2) * noise.var_b / math.sqrt(2.0) / np.sqrt(var)
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def _edge_moments(s: float) -> tuple[float, float]:
+    """Mean and variance, in beam spacings, of a silhouette edge read from the beams.
+
+    Beams ``Δβ`` apart sweep outwards across the tangent bearing ``τ`` of a trunk, each
+    cast at its nominal bearing plus ``N(0, σβ²)``; ``s = σβ / Δβ``.  A beam hits while
+    its cast bearing is inside ``τ``, and the cluster ends at the first beam ``K`` that
+    misses.  The edge is read half a spacing beyond the last return,
+    ``τ̂ = β_K − Δβ/2``.  Returns the mean of ``τ̂ − τ``, outwards positive (≤ 0: an
+    inner beam that misses ends the cluster early), and its variance: sums over the
+    beams of the exact probability that each is the first miss, averaged over 256 beam
+    phases; 0 and ``1/12`` for ``s = 0``, −0.025 and 0.307 for the paper's ``s = ½``.
+    """
+    phase = (np.arange(256) + 0.5) / 256.0
+    k = np.arange(-(10 * math.ceil(s) + 10), 10 * math.ceil(s) + 11)
+    x = k[None, :] - phase[:, None]  # nominal bearing − τ, in spacings
+    hit = norm_dist.cdf(-x / s) if s > 0.0 else (x < 0.0).astype(np.float64)
+    survive = np.concatenate((np.ones((phase.size, 1)), np.cumprod(hit, axis=1)[:, :-1]), axis=1)
+    p_first_miss = survive * (1.0 - hit)
+    e = x - 0.5
+    mean = float(np.mean(np.sum(p_first_miss * e, axis=1)))
+    second = float(np.mean(np.sum(p_first_miss * e * e, axis=1)))
+    return mean, second - mean * mean
 
 
 @functools.lru_cache(maxsize=4096)

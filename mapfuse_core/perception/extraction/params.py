@@ -71,11 +71,13 @@ class ExtractionParams:
     standard deviation.  Near the silhouette of a small, far trunk this bites well
     before ``max_circle_incidence_rad``."""
     min_circle_snr: float = 4.0
-    """A short cluster is tried as a circle only if a circle filling its bearing span
-    would have ``r / σ_r`` at least this large, predicted from the beam geometry alone
-    (see :func:`~mapfuse_core.perception.extraction.circles._circle_beams`).  At 4 the radius is
-    known to 25 %; at lower ratios the estimate is visibly non-Gaussian (heavier NEES
-    tails, ``docs/results/extraction.md``)."""
+    """A short cluster is tried as a circle only if it has at least as many returns as
+    the smallest cluster at its range whose silhouette-filling circle would give a fit
+    to the ranges alone ``r / σ_r`` at least this large, predicted from the beam
+    geometry alone (see
+    :func:`~mapfuse_core.perception.extraction.circles._silhouette_candidates`).  At 4
+    the ranges alone know the radius to 25 %; the fit adds the silhouette, so this sets
+    how far trunks are seen rather than how well they are measured."""
     max_circle_radius_rel_sigma: float = 0.5
     """Sanity bound: circles whose fitted σ_r exceeds this fraction of the radius are
     rejected (``ill_conditioned``); not reached after ``min_circle_snr`` unless the fit
