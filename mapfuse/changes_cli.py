@@ -200,6 +200,6 @@ def _cmd_changes(args: argparse.Namespace) -> int:
     said = ", ".join(f"{v} {k}" for k, v in counts.items())
     summary(
         args,
-        f"changes of {log.scenario}'s known map ({estimator}, {verdict}): {said} → {json_path}",
+        f"changes of {log.scenario}'s known map ({estimator}): {said}, {verdict} → {json_path}",
     )
     return 0

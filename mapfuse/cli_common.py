@@ -150,11 +150,12 @@ def summary(args: argparse.Namespace, text: str) -> None:
         note(text)
 
 
-def progress_bar(args: argparse.Namespace, label: str) -> ProgressBar:
-    """A ``progress(k, n)`` bar labelled ``label`` (drawing nothing with ``--quiet``)."""
+def progress_bar(args: argparse.Namespace, label: str, delay_s: float = 0.0) -> ProgressBar:
+    """A ``progress(k, n)`` bar labelled ``label`` (drawing nothing with ``--quiet``),
+    shown after ``delay_s`` seconds."""
     from mapfuse.progress import ProgressBar
 
-    return ProgressBar(label, enabled=not args.quiet)
+    return ProgressBar(label, enabled=not args.quiet, delay_s=delay_s)
 
 
 def labelled_bars(args: argparse.Namespace) -> LabelledProgress:
@@ -388,7 +389,8 @@ def load_source(args: argparse.Namespace, src: Source) -> MeasurementLog:
             progress=progress_bar(args, "simulate"),
             workers=default_workers(),
         )
-    bar = progress_bar(args, "read scans") if src.kind == "carmen" else None
+    # A log read in under a second (a snippet, a short log) draws no bar.
+    bar = progress_bar(args, "read scans", delay_s=1.0) if src.kind == "carmen" else None
     with reading():
         log = load(src.text, seed=src.seed, data=src.data, known_map=src.known_map, progress=bar)
     if src.steps is not None:

@@ -24,11 +24,13 @@ _open: set[ProgressBar] = set()
 class ProgressBar:
     """A ``progress(k, n)`` callback drawing one tqdm bar (created at the first call)."""
 
-    def __init__(self, label: str, enabled: bool = True) -> None:
+    def __init__(self, label: str, enabled: bool = True, delay_s: float = 0.0) -> None:
         self.label = label
         """Text in front of the bar."""
         self.enabled = enabled
         """Whether anything is drawn (``False``: ``--quiet``)."""
+        self.delay_s = delay_s
+        """Seconds before the bar first shows: work done sooner draws nothing."""
         self._bar: Any = None
 
     def __call__(self, k: int, n: int) -> None:
@@ -38,7 +40,12 @@ class ProgressBar:
             return
         if self._bar is None:
             self._bar = tqdm(
-                total=n, desc=self.label, unit="step", file=sys.stderr, dynamic_ncols=True
+                total=n,
+                desc=self.label,
+                unit="step",
+                file=sys.stderr,
+                dynamic_ncols=True,
+                delay=self.delay_s,
             )
             _open.add(self)
         self._bar.update(k - self._bar.n)
