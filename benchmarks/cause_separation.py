@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.campaign.cli import parse_world_args
+from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
 from mapfuse.run import run
