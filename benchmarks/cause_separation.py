@@ -52,11 +52,11 @@ import numpy as np
 from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
-from mapfuse.run import run
-from mapfuse_core.data.measlog import MeasurementLog
+from mapfuse.runner import run
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import wrap_scalar
+from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.models.line import line_residual_cov
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
