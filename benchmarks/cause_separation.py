@@ -2,8 +2,9 @@
 the association or the estimator.
 
 For every seed a world is generated (``--world``, the generator's keywords; by default
-the long, thin, sparse loop of issue 43: a 583 m corridor, 10 walls, 45 trees, 80 m
-laser) and simulated once.  Each variant then runs on that log:
+a long, thin, sparse loop: a 583 m corridor, 10 walls, 45 trees, 80 m laser, where
+the estimators are least consistent) and simulated once.  Each variant then runs on
+that log:
 
 ========================  =========  ======  ============  ==================================
 variant                   estimator  fusion  association   observations

@@ -24,7 +24,7 @@ Scans come from two sources (``--source``):
   its midpoint 2–78 m away (log-uniform) at an incidence of 0–85°.  A small random
   heading puts the beams at a random phase.
 * ``worlds``: generated worlds (``--world``, the generator's keywords; by default the
-  long, sparse loop of issue 43: 583 m, 10 walls, 45 trees, 80 m laser), scanned from
+  long, sparse loop: 583 m, 10 walls, 45 trees, 80 m laser), scanned from
   the true poses of a simulated drive, every ``--stride``-th step.
 
 Bins: circles by range (distance to the true centre) × true radius, and by range in
