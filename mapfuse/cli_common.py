@@ -389,8 +389,9 @@ def load_source(args: argparse.Namespace, src: Source) -> MeasurementLog:
             progress=progress_bar(args, "simulate"),
             workers=default_workers(),
         )
-    # A log read in under a second (a snippet, a short log) draws no bar.
-    bar = progress_bar(args, "read scans", delay_s=1.0) if src.kind == "carmen" else None
+    # A reader that reports progress (a CARMEN log's scans) draws its bar after a
+    # second: a snippet or a short log draws none.
+    bar = progress_bar(args, "read scans", delay_s=1.0)
     with reading():
         log = load(src.text, seed=src.seed, data=src.data, known_map=src.known_map, progress=bar)
     if src.steps is not None:
