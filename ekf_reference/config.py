@@ -259,10 +259,11 @@ class EKFConfig:
         * ``local_map_steps`` *(choice)*: 40; the paper bounds a local map by "a maximal
           number of filter iterations" without giving it (§1).
         * ``data_association.gate_prob``, ``prefilter_m``, ``prefilter_rad``, ``method``,
-          ``jcbb_max_nodes``, ``one_observation_per_circle``,
-          ``one_observation_per_line`` *(choice)*: the association within the filter is
-          not described (the paper defers to its reference [5]): individual χ² at 0.999,
-          nearest neighbour, one observation per trunk and scan.  *(choice)* So is the
+          ``map_method``, ``map_ambiguity``, ``jcbb_max_nodes``,
+          ``one_observation_per_circle``, ``one_observation_per_line`` *(choice)*: the
+          association within the filter and at a join is not described (the paper
+          defers to its reference [5]): individual χ² at 0.999, nearest neighbour for
+          measurements and at joins, one observation per trunk and scan.  *(choice)* So is the
           observation model of a local feature ([5]): a measured segment's lateral
           residual is taken at the segment (``docs/method.md``).
         * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``
@@ -358,6 +359,12 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _DA + "known_gap_m": _c("30 m: read by the factor graph's own association only."),
         _DA + "method": _c("nearest neighbour: the search is not described (ref. [5])."),
         _DA + "jcbb_max_nodes": _c("unused with nearest neighbour."),
+        _DA + "map_method": _c(
+            "nearest neighbour: the join's association is not described (ref. [5])."
+        ),
+        _DA + "map_ambiguity": _c(
+            "the nearest: the join's association is not described (ref. [5])."
+        ),
         _DA + "one_observation_per_circle": _c("a scan sees a trunk once; not described."),
         _DA + "one_observation_per_line": _c("an occluded wall gives several segments."),
         _DA + "min_obs_for_matching": _x(
