@@ -98,7 +98,7 @@ class CCDAParams:
     CARMEN logs a fifth of the landmarks are more than 0.5 m longer than the plan
     wall most of their observations lie on, and ``"within"`` loses their true
     pairings, matches later and, among fewer true pairings, accepted wrong ones
-    (``docs/ccda.md``)."""
+    (``docs/results/ccda.md``)."""
     unique_partners: bool = True
     """Re-association pairs a feature of ``map_a`` only when it has a single partner
     inside the gate under the fitted transform.  A feature with two (a wall between
