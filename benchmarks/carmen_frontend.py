@@ -341,7 +341,7 @@ def main() -> None:
         type=json.loads,
         default={},
         help="JSON overrides of the EKF's options, e.g. "
-        "'{\"data_association\": {\"map_method\": \"nn\"}}'",
+        '\'{"data_association": {"map_method": "nn"}}\'',
     )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()

@@ -93,12 +93,8 @@ class CCDAParams:
     longer than its partner (a unary test on the nodes) and never reaches past its
     partner's ends (the binary test of non-parallel pairings and the
     re-association).  *(choice)* ``"overlap"``: an EKF landmark outgrows its wall by
-    the drift along it between its observations, by the collinear pieces its
-    association joins across doorways and by its stray first observation; on the
-    CARMEN logs a fifth of the landmarks are more than 0.5 m longer than the plan
-    wall most of their observations lie on, and ``"within"`` loses their true
-    pairings, matches later and, among fewer true pairings, accepted wrong ones
-    (``docs/results/ccda.md``)."""
+    the drift along it between its observations and by the collinear pieces its
+    association joins across doorways (``docs/results/ccda.md``)."""
     unique_partners: bool = True
     """Re-association pairs a feature of ``map_a`` only when it has a single partner
     inside the gate under the fitted transform.  A feature with two (a wall between
