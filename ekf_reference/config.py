@@ -266,9 +266,10 @@ class EKFConfig:
           measurements and at joins, one observation per trunk and scan.  *(choice)* So is the
           observation model of a local feature ([5]): a measured segment's lateral
           residual is taken at the segment (``docs/method.md``).
-        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``
-          *(choice)*: the paper uses a line's along-line coordinate to disambiguate
-          association (§2.2.1) and gives no threshold.
+        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``,
+          ``data_association.ccda.extent_rule`` *(choice)*: the paper uses a line's
+          along-line coordinate to disambiguate association (§2.2.1) and gives no
+          threshold.
         * ``data_association.known_gap_m`` *(choice)*: read by the factor graph only.
         * ``data_association.ccda.gate_prob``, ``parallel_tol_rad``,
           ``parallel_along_std_m``, ``var_floor_m``, ``var_floor_rad``,
@@ -408,6 +409,7 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _CCDA + "max_clique_work": _c("2·10⁶: a bound on the search; the paper gives none."),
         _CCDA + "max_edges": _c("5·10⁶: a bound on the search; the paper gives none."),
         _CCDA + "extent_margin_m": _c("0.5 m: §2.2.1 uses the along-line coordinate."),
+        _CCDA + "extent_rule": _c("overlap: §2.2.1 uses the along-line coordinate."),
         _CCDA + "unique_partners": _c("re-association under the fit; not described."),
         _CCDA + "var_floor_m": _c("1e-4 m: keeps zero-covariance maps' gates invertible."),
         _CCDA + "var_floor_rad": _c("1e-5 rad: keeps zero-covariance maps' gates invertible."),
