@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import t as student_t
 
+from mapfuse.campaign.spec import parse_seeds
 from mapfuse.runner import load, run
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import FeatureKind
@@ -41,17 +42,6 @@ RULES: dict[str, dict[str, str]] = {
     "jcbb/refuse": {"map_method": "jcbb", "map_ambiguity": "refuse"},
 }
 """Join rules: ``map_method/map_ambiguity``; the first is the default."""
-
-
-def _seeds(text: str) -> list[int]:
-    """``"0-29"`` or ``"0,3,7"`` as a list."""
-    out: list[int] = []
-    for part in text.split(","):
-        lo, dash, hi = (s.strip() for s in part.partition("-"))
-        if not lo.isdigit() or (dash and not hi.isdigit()):
-            raise argparse.ArgumentTypeError(f"seeds look like 0-29 or 0,3,7; got {text!r}")
-        out += list(range(int(lo), int(hi) + 1)) if dash else [int(lo)]
-    return out
 
 
 def landmark_counts(log: MeasurementLog, obs_landmark: np.ndarray) -> dict[str, int]:
@@ -128,7 +118,7 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="loop600")
-    ap.add_argument("--seeds", type=_seeds, default=_seeds("0-29"))
+    ap.add_argument("--seeds", type=parse_seeds, default=parse_seeds("0-29"))
     ap.add_argument("--rules", default=",".join(RULES), help="comma list of RULES")
     ap.add_argument("--out", type=Path, required=True, help="JSONL, appended and resumed")
     args = ap.parse_args()

@@ -139,6 +139,29 @@ def _ambiguous(hyps: list[_Hypothesis], params: CCDAParams, gates: _Gates) -> bo
     return runner_up >= _rival_floor(params, best.support)
 
 
+def _clique_hypothesis(
+    A: _Prep,
+    B: _Prep,
+    c: IntArray,
+    ni: IntArray,
+    nj: IntArray,
+    gates: _Gates,
+    params: CCDAParams,
+) -> _Hypothesis:
+    """The hypothesis of clique ``c`` (node ids) with ``params``' re-association rules."""
+    return _hypothesis(
+        A,
+        B,
+        c,
+        ni,
+        nj,
+        gates,
+        params.extent_margin_m,
+        params.unique_partners,
+        params.extent_rule == "within",
+    )
+
+
 def _partial(
     A: _Prep,
     B: _Prep,
@@ -156,17 +179,7 @@ def _partial(
         return None
     G = _CliqueGraph(np.arange(ni.size, dtype=np.int64), eu, ev, ni, nj)
     c = G.greedy_clique()
-    return _hypothesis(
-        A,
-        B,
-        c,
-        ni,
-        nj,
-        gates,
-        params.extent_margin_m,
-        params.unique_partners,
-        params.extent_rule == "within",
-    )
+    return _clique_hypothesis(A, B, c, ni, nj, gates, params)
 
 
 def ccda_match(
@@ -219,17 +232,7 @@ def ccda_match(
                 # One more candidate than the hypotheses allowed: unresolved.
                 complete = False
                 break
-            h = _hypothesis(
-                A,
-                B,
-                c,
-                ni,
-                nj,
-                gates,
-                params.extent_margin_m,
-                params.unique_partners,
-                params.extent_rule == "within",
-            )
+            h = _clique_hypothesis(A, B, c, ni, nj, gates, params)
             hyps.append(h)
             # Remove what this transform explains, not the whole clique: with distance
             # invariants a mirror image of a symmetric map is a clique too, and its
