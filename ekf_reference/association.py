@@ -24,7 +24,7 @@ import numpy as np
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
-from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
+from mapfuse_core.matching import AssociationConfig, chi2_gate, drop_ambiguous, pregate
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
 from mapfuse_core.models import pairing_cov, pairing_residual
@@ -35,6 +35,7 @@ __all__ = [
     "Query",
     "apply",
     "apply_iterated",
+    "choose",
     "element_pairings",
     "evaluate",
     "exclusive",
@@ -44,6 +45,7 @@ __all__ = [
     "nearest_neighbour",
     "predict_all_targets",
     "predict_targets",
+    "targets_distinct",
 ]
 
 
@@ -261,6 +263,60 @@ def individual_candidates(
             out.append(c)
     out.sort(key=lambda c: c.d2)
     return out
+
+
+def targets_distinct(state: GaussianMap, a: int, b: int, gate_prob: float) -> bool:
+    """Whether map elements ``a`` and ``b`` (features or known features of one kind)
+    are not compatible with each other at the ``gate_prob`` χ² gate, their
+    correlations included: they cannot be one feature.
+
+    An estimated feature is tested as a query against the other (a known one seen
+    through the anchor); two known features are compared where both are, in
+    ``Wknown``.
+    """
+    ea, eb = state.elements[a], state.elements[b]
+    if ea.role == Role.KNOWN and eb.role == Role.KNOWN:
+        fk = ea.kind.feature_kind()
+        r, Jp, Jq = pairing_residual(fk, state.mean[b], state.mean[a])
+        S = _project(state, [a, b], np.hstack([Jq, Jp]))
+        d2 = _mahalanobis(r, S)
+    else:
+        if ea.role == Role.KNOWN:
+            a, b, ea = b, a, eb
+        q = Query(ea.kind, state.mean[a], np.zeros((3, 3)), ea.extent, element=a)
+        d2 = evaluate(state, q, b).d2
+    gate = chi2_gate(gate_prob, 2 if ea.kind == ElementKind.LINE else 3)
+    return d2 > gate
+
+
+def choose(
+    state: GaussianMap,
+    queries: list[Query],
+    targets_for: dict[ElementKind, tuple[list[int], FloatArray]],
+    config: AssociationConfig,
+) -> list[Candidate | None]:
+    """The pairing of every query (``None``: unpaired), measurements and map elements
+    alike: individually compatible candidates, map queries that are ambiguous left
+    out (:attr:`~mapfuse_core.matching.AssociationConfig.map_ambiguity`), then nearest
+    neighbour or JCBB (``config.method`` for measurements, ``config.map_method`` for
+    map elements; a list mixing both takes ``method``).  ``targets_for[kind]`` gives
+    the targets of each kind and their predictions (:func:`predict_all_targets`)."""
+    cands = []
+    for q in queries:
+        targets, preds = targets_for[q.kind]
+        cands.append(individual_candidates(state, q, targets, preds, config))
+    maps = [k for k, q in enumerate(queries) if q.element >= 0]
+    if config.map_ambiguity == "refuse":
+        kept = drop_ambiguous(
+            [cands[k] for k in maps],
+            lambda a, b: targets_distinct(state, a, b, config.gate_prob),
+        )
+        for k, cs in zip(maps, kept, strict=True):
+            cands[k] = cs
+    method = config.map_method if queries and len(maps) == len(queries) else config.method
+    if method == "jcbb":
+        return jcbb(state, cands, config)
+    return nearest_neighbour(cands, config)
 
 
 def exclusive(c: Candidate, config: AssociationConfig) -> bool:

@@ -259,15 +259,17 @@ class EKFConfig:
         * ``local_map_steps`` *(choice)*: 40; the paper bounds a local map by "a maximal
           number of filter iterations" without giving it (§1).
         * ``data_association.gate_prob``, ``prefilter_m``, ``prefilter_rad``, ``method``,
-          ``jcbb_max_nodes``, ``one_observation_per_circle``,
-          ``one_observation_per_line`` *(choice)*: the association within the filter is
-          not described (the paper defers to its reference [5]): individual χ² at 0.999,
-          nearest neighbour, one observation per trunk and scan.  *(choice)* So is the
+          ``map_method``, ``map_ambiguity``, ``jcbb_max_nodes``,
+          ``one_observation_per_circle``, ``one_observation_per_line`` *(choice)*: the
+          association within the filter and at a join is not described (the paper
+          defers to its reference [5]): individual χ² at 0.999, nearest neighbour for
+          measurements and at joins, one observation per trunk and scan.  *(choice)* So is the
           observation model of a local feature ([5]): a measured segment's lateral
           residual is taken at the segment (``docs/method.md``).
-        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``
-          *(choice)*: the paper uses a line's along-line coordinate to disambiguate
-          association (§2.2.1) and gives no threshold.
+        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``,
+          ``data_association.ccda.extent_rule`` *(choice)*: the paper uses a line's
+          along-line coordinate to disambiguate association (§2.2.1) and gives no
+          threshold.
         * ``data_association.known_gap_m`` *(choice)*: read by the factor graph only.
         * ``data_association.ccda.gate_prob``, ``parallel_tol_rad``,
           ``parallel_along_std_m``, ``var_floor_m``, ``var_floor_rad``,
@@ -358,6 +360,12 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _DA + "known_gap_m": _c("30 m: read by the factor graph's own association only."),
         _DA + "method": _c("nearest neighbour: the search is not described (ref. [5])."),
         _DA + "jcbb_max_nodes": _c("unused with nearest neighbour."),
+        _DA + "map_method": _c(
+            "nearest neighbour: the join's association is not described (ref. [5])."
+        ),
+        _DA + "map_ambiguity": _c(
+            "the nearest: the join's association is not described (ref. [5])."
+        ),
         _DA + "one_observation_per_circle": _c("a scan sees a trunk once; not described."),
         _DA + "one_observation_per_line": _c("an occluded wall gives several segments."),
         _DA + "min_obs_for_matching": _x(
@@ -401,6 +409,7 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _CCDA + "max_clique_work": _c("2·10⁶: a bound on the search; the paper gives none."),
         _CCDA + "max_edges": _c("5·10⁶: a bound on the search; the paper gives none."),
         _CCDA + "extent_margin_m": _c("0.5 m: §2.2.1 uses the along-line coordinate."),
+        _CCDA + "extent_rule": _c("overlap: §2.2.1 uses the along-line coordinate."),
         _CCDA + "unique_partners": _c("re-association under the fit; not described."),
         _CCDA + "var_floor_m": _c("1e-4 m: keeps zero-covariance maps' gates invertible."),
         _CCDA + "var_floor_rad": _c("1e-5 rad: keeps zero-covariance maps' gates invertible."),

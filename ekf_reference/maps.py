@@ -32,13 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import block_diag
 
-from ekf_reference.association import (
-    Candidate,
-    Query,
-    individual_candidates,
-    jcbb,
-    nearest_neighbour,
-)
+from ekf_reference.association import Candidate, Query, choose
 from ekf_reference.config import EKFConfig
 from ekf_reference.known_frame import known_element
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
@@ -371,15 +365,9 @@ def associate(
     targets_for: dict[ElementKind, tuple[list[int], FloatArray]],
     config: EKFConfig,
 ) -> list[Candidate | None]:
-    """Associate queries to targets (NN or JCBB over individually compatible candidates)."""
-    assoc = config.data_association
-    cands = []
-    for q in queries:
-        targets, preds = targets_for[q.kind]
-        cands.append(individual_candidates(state, q, targets, preds, assoc))
-    if assoc.method == "jcbb":
-        return jcbb(state, cands, assoc)
-    return nearest_neighbour(cands, assoc)
+    """Associate queries to targets with ``config``'s association settings
+    (:func:`ekf_reference.association.choose`)."""
+    return choose(state, queries, targets_for, config.data_association)
 
 
 def merge_extent(

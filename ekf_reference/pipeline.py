@@ -840,6 +840,7 @@ def _result(
             tentative_promoted=run.tentative.promoted,
             anchors_undone=tuple(run.undone),
             innovations=InnovationTotals(run.innovation_chi2, run.innovation_dof),
+            obs_local_track=run.obs_track.copy(),
         ),
     )
 

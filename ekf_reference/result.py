@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ekf_reference.anchor_watch import Contradiction
 from ekf_reference.config import EKFConfig
 from mapfuse_core.geometry.se2 import FloatArray
@@ -106,3 +108,9 @@ class EKFDetails:
     innovations: InnovationTotals = InnovationTotals(0.0, 0)
     """The measurement updates' innovations over the run: the consistency evidence of
     a run without a reference trajectory (``mapfuse.changes.run_consistency``)."""
+    obs_local_track: np.ndarray | None = None
+    """(M,) int64 the feature each observation was given in its local map (a track id,
+    −1 for none), before the joins merged it with global ones; the result's
+    ``decisions.obs_landmark`` is the landmark the joins made of it.  A wrong pairing
+    is the measurement association's when the observation disagrees with its local
+    track, a join's when the local track went to another feature's landmark."""

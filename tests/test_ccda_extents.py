@@ -43,15 +43,33 @@ def without_extents(m: KnownMapArrays) -> KnownMapArrays:
     return dataclasses.replace(m, extents=None)
 
 
+def nodes(a: KnownMapArrays, b: KnownMapArrays, params: CCDAParams) -> dict[tuple[int, int], int]:
+    """Node index of every pairing ``(i, j)`` of the correspondence graph."""
+    g = correspondence_graph(a, b, params)
+    return {(int(i), int(j)): n for n, (i, j) in enumerate(zip(g.node_a, g.node_b, strict=True))}
+
+
 def has_edge(
-    a: KnownMapArrays, b: KnownMapArrays, na: tuple[int, int], nb: tuple[int, int]
+    a: KnownMapArrays,
+    b: KnownMapArrays,
+    na: tuple[int, int],
+    nb: tuple[int, int],
+    params: CCDAParams | None = None,
 ) -> bool:
-    """Whether the pairings ``na[0]→nb[0]`` and ``na[1]→nb[1]`` share an edge."""
-    g = correspondence_graph(a, b)
-    node = {(int(i), int(j)): n for n, (i, j) in enumerate(zip(g.node_a, g.node_b, strict=True))}
+    """Whether the pairings ``na[0]→nb[0]`` and ``na[1]→nb[1]`` share an edge (both
+    must be nodes)."""
+    params = CCDAParams() if params is None else params
+    g = correspondence_graph(a, b, params)
+    node = nodes(a, b, params)
     u, v = node[(na[0], nb[0])], node[(na[1], nb[1])]
     edges = set(zip(g.edge_u.tolist(), g.edge_v.tolist(), strict=True))
     return (u, v) in edges or (v, u) in edges
+
+
+OVERLAP = CCDAParams(extent_rule="overlap")
+"""Segments need only overlap (the default)."""
+WITHIN = CCDAParams(extent_rule="within")
+"""``map_a``'s segments lie within ``map_b``'s walls (a known map of whole walls)."""
 
 
 @pytest.mark.parametrize(
@@ -62,9 +80,15 @@ def has_edge(
 def test_perpendicular_walls_whose_segments_meet_alike_share_an_edge(T: np.ndarray) -> None:
     # A rigid motion keeps each segment's interval measured from the corner (a turn
     # by π reverses both lines' directions, which the test must allow).
-    a = corner([(0.0, 5.0), (0.0, 4.0)])
-    b = corner([(-1.0, 6.0), (0.5, 3.0)], T)
-    assert has_edge(a, b, (0, 1), (0, 1))
+    a = corner([(0.0, 5.0), (0.0, 3.0)])
+    b = corner([(-1.0, 6.0), (0.0, 3.2)], T)
+    for params in (OVERLAP, WITHIN):
+        assert has_edge(a, b, (0, 1), (0, 1), params)
+    # Overlapping without lying within: A's second wall runs 1 m past B's end.
+    c = corner([(0.0, 5.0), (0.0, 4.0)])
+    d = corner([(-1.0, 6.0), (0.5, 3.0)], T)
+    assert has_edge(c, d, (0, 1), (0, 1), OVERLAP)
+    assert (1, 1) not in nodes(c, d, WITHIN)
 
 
 def test_perpendicular_walls_whose_segments_lie_apart_share_no_edge() -> None:
@@ -72,11 +96,50 @@ def test_perpendicular_walls_whose_segments_lie_apart_share_no_edge() -> None:
     # map's segment would have to be on the wall's extension past its end.
     a = corner([(0.0, 5.0), (0.0, 4.0)])
     b = corner([(10.0, 15.0), (0.0, 4.0)])
-    assert not has_edge(a, b, (0, 1), (0, 1))
-    # Without extents only the angle is tested, and the edge is there.
-    assert has_edge(without_extents(a), without_extents(b), (0, 1), (0, 1))
+    for params in (WITHIN, OVERLAP):
+        assert not has_edge(a, b, (0, 1), (0, 1), params)
+        # Without extents only the angle is tested, and the edge is there.
+        assert has_edge(without_extents(a), without_extents(b), (0, 1), (0, 1), params)
     # Beyond the margin plus noise only: 0.3 m apart passes with the default margin.
-    assert has_edge(a, corner([(5.3, 9.0), (0.0, 4.0)]), (0, 1), (0, 1))
+    assert has_edge(a, corner([(5.3, 9.0), (0.0, 4.0)]), (0, 1), (0, 1), OVERLAP)
+
+
+def test_a_segment_reaching_past_its_known_walls_end_shares_no_edge() -> None:
+    # Within: the part of a wall a run saw lies on the known wall.  A's first wall
+    # runs 0–5 m from the corner, B's 0–3.5 m: 1.5 m past its end, beyond the 0.5 m
+    # margin and the centimetres of noise.  The wall lengths alone (5 m against
+    # 3.5 m) already rule the node out.
+    a = corner([(0.0, 5.0), (0.0, 3.0)])
+    b = corner([(0.0, 3.5), (0.0, 3.0)])
+    assert (0, 0) not in nodes(a, b, WITHIN)
+    assert has_edge(a, b, (0, 1), (0, 1), OVERLAP)
+    # As long as B's wall, but shifted 1.5 m along it: the node stands, the corner
+    # test refuses the edge.
+    c = corner([(1.5, 6.5), (0.0, 3.0)])
+    assert (0, 0) in nodes(a, c, WITHIN)
+    assert not has_edge(a, c, (0, 1), (0, 1), WITHIN)
+    assert has_edge(a, c, (0, 1), (0, 1), OVERLAP)
+    # Within the margin: 0.3 m past the end passes.
+    assert has_edge(a, corner([(0.3, 5.3), (0.0, 3.0)]), (0, 1), (0, 1), WITHIN)
+
+
+def test_a_segment_reaching_past_its_partner_is_not_reassociated_within() -> None:
+    p = CCDAParams()
+    A = _prepare(corner([(0.0, 5.0), (0.0, 4.0)]), "map_a", p)
+    B = _prepare(corner([(0.0, 3.0), (0.0, 4.0)]), "map_b", p)
+    ii, jj = np.array([0]), np.array([0])
+    assert _segments_overlap(A, B, np.zeros(3), ii, jj, 0.5)[0]
+    assert not _segments_overlap(A, B, np.zeros(3), ii, jj, 0.5, within=True)[0]
+    # Shifted by 2 m along the wall, B's segment covers 2–5 m: A (0–5 m) starts 2 m
+    # before it.
+    B6 = _prepare(corner([(0.0, 6.0), (0.0, 4.0)]), "map_b", p)
+    assert _segments_overlap(A, B6, np.zeros(3), ii, jj, 0.5, within=True)[0]
+    assert not _segments_overlap(A, B6, np.array([2.0, 0.0, 0.0]), ii, jj, 0.5, within=True)[0]
+
+
+def test_an_unknown_extent_rule_is_refused() -> None:
+    with pytest.raises(ValueError, match="extent_rule"):
+        _check_params(CCDAParams(extent_rule="inside"))  # type: ignore[arg-type]
 
 
 def test_segment_overlap_under_a_transform_follows_the_along_line_shift() -> None:

@@ -250,13 +250,26 @@ def test_clutter_and_outliers_in_a_unique_map_still_match() -> None:
 HARD_BUDGET = 100_000
 
 
+def test_the_likely_clique_first_ends_a_search_that_never_ended() -> None:
+    # City blocks seen over 70 m: the exact search for the maximum clique of this graph
+    # did not end within minutes.  The greedy clique is found first, its rival too,
+    # and the periodic map is refused as ambiguous without any exact search.
+    case = known_and_local(manhattan(), 1, radius=70.0)
+    res = ccda_match(
+        case.local, case.known, CCDAParams(min_pairings=8, max_clique_work=HARD_BUDGET)
+    )
+    assert res.reason == "ambiguous"
+    assert res.search_work == 0
+
+
 def test_a_search_that_never_ended_stops_at_its_budget() -> None:
-    # City blocks seen over 70 m: the unbounded exact search on this graph does not
-    # end within minutes; with a budget it stops with "search_limit", never a guess.
+    # The same graph, asked for 33 pairings: its greedy cliques hold 31, so the exact
+    # search has to prove there is no clique of 32, which it cannot within minutes;
+    # with a budget it stops with "search_limit", never a guess.
     case = known_and_local(manhattan(), 1, radius=70.0)
     t0 = time.perf_counter()
     res = ccda_match(
-        case.local, case.known, CCDAParams(min_pairings=8, max_clique_work=HARD_BUDGET)
+        case.local, case.known, CCDAParams(min_pairings=33, max_clique_work=HARD_BUDGET)
     )
     elapsed = time.perf_counter() - t0
     assert res.reason == "search_limit"
@@ -265,7 +278,7 @@ def test_a_search_that_never_ended_stops_at_its_budget() -> None:
     assert HARD_BUDGET < res.search_work <= HARD_BUDGET + res.n_nodes + 1
     assert elapsed < 120.0  # generous: the point is "ends", not a timing
     again = ccda_match(
-        case.local, case.known, CCDAParams(min_pairings=8, max_clique_work=HARD_BUDGET)
+        case.local, case.known, CCDAParams(min_pairings=33, max_clique_work=HARD_BUDGET)
     )
     assert again.reason == res.reason
     assert again.search_work == res.search_work

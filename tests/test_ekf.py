@@ -241,6 +241,21 @@ def test_consistent_and_accurate_on_synthetic_ring(fusion: bool, carry: bool) ->
         assert all(t == k for t, k in res.anchor.pairings)
 
 
+def test_each_local_feature_ends_in_one_landmark() -> None:
+    # ``obs_local_track`` is what the local maps decided, ``obs_landmark`` what the joins
+    # made of it: observations of one local feature share its landmark, and joins
+    # merge local features (fewer landmarks than local features).
+    log = synthetic_log(steps=200, seed=0)
+    res = run_ekf(log, EKFConfig(), fusion=False)
+    local, landmark = res.details.obs_local_track, res.decisions.obs_landmark
+    assert local.shape == landmark.shape == (log.n_features,)
+    assert np.array_equal(local < 0, landmark < 0)
+    pairs = {(int(t), int(m)) for t, m in zip(local, landmark, strict=True) if t >= 0}
+    tracks = {t for t, _ in pairs}
+    assert len(pairs) == len(tracks)
+    assert len({m for _, m in pairs}) < len(tracks)
+
+
 def test_no_fusion_has_no_anchor() -> None:
     res = run_ekf(synthetic_log(steps=120, seed=3), EKFConfig(), fusion=False)
     assert res.anchor is None

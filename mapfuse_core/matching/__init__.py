@@ -5,21 +5,29 @@
 * :mod:`mapfuse_core.matching.gating` — χ² gate, pre-gate, gap between collinear
   segments;
 * :mod:`mapfuse_core.matching.search` — greedy nearest neighbour and JCBB over scored
-  candidates, with the one-to-one rules.
+  candidates, with the one-to-one rules, and the ambiguity rule of map pairings.
 
 numpy and scipy only.
 """
 
-from mapfuse_core.matching.config import METHODS, AssociationConfig
+from mapfuse_core.matching.config import MAP_AMBIGUITY, METHODS, AssociationConfig
 from mapfuse_core.matching.gating import chi2_gate, line_gap, near, pregate
-from mapfuse_core.matching.search import Scored, ScoredPair, jcbb, nearest_neighbour
+from mapfuse_core.matching.search import (
+    Scored,
+    ScoredPair,
+    drop_ambiguous,
+    jcbb,
+    nearest_neighbour,
+)
 
 __all__ = [
+    "MAP_AMBIGUITY",
     "METHODS",
     "AssociationConfig",
     "Scored",
     "ScoredPair",
     "chi2_gate",
+    "drop_ambiguous",
     "jcbb",
     "line_gap",
     "near",

@@ -18,10 +18,13 @@ from typing import Literal
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.matching.ccda import CCDAParams
 
-__all__ = ["METHODS", "AssociationConfig"]
+__all__ = ["MAP_AMBIGUITY", "METHODS", "AssociationConfig"]
 
 METHODS: tuple[str, ...] = ("nn", "jcbb")
 """Names of the association searches: nearest neighbour, joint compatibility."""
+
+MAP_AMBIGUITY: tuple[str, ...] = ("refuse", "nearest")
+"""What an ambiguous map-to-map pairing does (:attr:`AssociationConfig.map_ambiguity`)."""
 
 
 def _default_ccda() -> CCDAParams:
@@ -56,6 +59,33 @@ class AssociationConfig:
     (smallest d²) first.  ``"jcbb"``: joint compatibility branch and bound (Neira &
     Tardós 2001), the largest jointly compatible set.  The factor graph's own
     association supports ``"nn"`` only."""
+    map_method: Literal["nn", "jcbb"] = "nn"
+    """The search of map-to-map pairings (a local map's features at its join with the
+    global map, map features with the known map), as :attr:`method` is that of
+    measurements.  ``"jcbb"``: a local map's features pair with the global map only as
+    a jointly compatible set.  They share the local map's drift relative to the global
+    map, so a pairing that fits alone but not with the others (the parallel wall a
+    metre off, once the drift allows a metre) is a wrong one.  ``"nn"``: each feature
+    its nearest compatible target.  *(choice)* ``"nn"``: on loop600 (30 seeds)
+    ``"jcbb"`` leaves more duplicate landmarks and raises the unfused NEES by 0.13; on
+    the CARMEN logs, where walls come in parallel families, it cuts the joins' wrong
+    pairings by 38–79 %, and the CARMEN profile sets it
+    (``docs/results/association.md``).  Used by the EKF."""
+    map_ambiguity: Literal["refuse", "nearest"] = "nearest"
+    """What a map feature paired with another map (a local map's feature at its join
+    with the global map, a map feature with the known map) does when it is
+    individually compatible with two targets that are not compatible with each
+    other: two walls a door or a corridor apart, a wall and the next one along a
+    turn.  ``"refuse"``: it is not paired (it stays a landmark of its own, a
+    duplicate at worst, and is paired at a later join once the maps have drifted
+    less); which of the two it is would be a guess, and a wrong merge joins two
+    walls for the rest of the run.  ``"nearest"``: the nearest of them.  Measurements
+    follow :attr:`method` alone.  *(choice)* ``"nearest"``: on loop600 a refused
+    feature becomes a duplicate landmark, and with ``map_method`` ``"jcbb"`` the
+    duplicates double the line landmarks.  On the CARMEN logs, with ``"jcbb"``, refusing
+    halves the joins' wrong pairings on three logs of six and leaves every judged pairing
+    of CCDA's accepted matches right, and the CARMEN profile refuses
+    (``docs/results/association.md``).  Used by the EKF."""
     jcbb_max_nodes: int = 20_000
     """JCBB stops after visiting this many search nodes and returns the best set found
     so far (its cost is exponential in the worst case)."""
@@ -109,8 +139,16 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, numbers.Real) and v > 0.0):
                 raise ValueError(f"{name} must be a number > 0 (inf: no limit), got {v!r}")
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.map_ambiguity not in MAP_AMBIGUITY:
+            raise ValueError(
+                f"map_ambiguity must be one of {', '.join(MAP_AMBIGUITY)}, "
+                f"got {self.map_ambiguity!r}"
+            )
+        for name in ("method", "map_method"):
+            if getattr(self, name) not in METHODS:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(METHODS)}, got {getattr(self, name)!r}"
+                )
         for name in ("jcbb_max_nodes", "min_obs_for_matching"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-__all__ = ["Scored", "ScoredPair", "jcbb", "nearest_neighbour"]
+__all__ = ["Scored", "ScoredPair", "drop_ambiguous", "jcbb", "nearest_neighbour"]
 
 
 class Scored(Protocol):
@@ -41,6 +41,21 @@ class ScoredPair:
 
 
 C = TypeVar("C", bound=Scored)
+
+
+def drop_ambiguous(
+    cands: Sequence[Sequence[C]], distinct: Callable[[int, int], bool]
+) -> list[list[C]]:
+    """``cands`` without the candidates of ambiguous queries: those whose best
+    candidate's target and another candidate's target are ``distinct`` (not
+    compatible with each other, so not one feature).  Candidates are best first; a
+    query whose candidates all name one feature (duplicates of it) keeps them."""
+    out: list[list[C]] = []
+    for cs in cands:
+        best = cs[0].target if cs else -1
+        ambiguous = any(c.target != best and distinct(best, c.target) for c in cs[1:])
+        out.append([] if ambiguous else list(cs))
+    return out
 
 
 def nearest_neighbour(

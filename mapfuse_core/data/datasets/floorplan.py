@@ -287,21 +287,53 @@ def _merge_clusters(
 def same_wall(
     plan: FloorPlan, a: int, b: int, params: FloorPlanParams | None = None, gap_m: float = 4.0
 ) -> bool:
-    """Whether walls ``a`` and ``b`` of ``plan`` lie on one line: ``a == b``, or ``(ρ, α)``
-    within the plan's tolerances and extents at most ``gap_m`` apart.  How a pairing
-    of a landmark labelled wall ``a`` (the wall most of its observations lie on,
-    :func:`~mapfuse_core.evaluation.landmark_labels`) with known wall ``b`` is judged: a line
-    pairing constrains only the lateral offset and the angle, so a pairing with a
-    collinear piece (the wall beyond a door) is as right as one with the piece itself;
-    ``gap_m`` defaults to ``AssociationConfig.line_gap_m``'s 4 m."""
+    """Whether walls ``a`` and ``b`` of ``plan`` lie on one line: ``a == b``, or their
+    directions within the plan's ``alpha_tol_rad``, each segment's midpoint within its
+    ``rho_tol_m`` of the other's line, and their extents at most ``gap_m`` apart.  How a
+    pairing of a landmark labelled wall ``a`` (the wall most of its observations lie
+    on, :func:`~mapfuse_core.evaluation.landmark_labels`) with known wall ``b`` is
+    judged: a line pairing constrains only the lateral offset and the angle, so a
+    pairing with a collinear piece (the wall beyond a door) is as right as one with the
+    piece itself; ``gap_m`` defaults to ``AssociationConfig.line_gap_m``'s 4 m.
+
+    The offsets are measured at the walls, not as ρ at ``W``'s origin: there two walls
+    0.3° apart and 20 m from the foot of their normal differ by 0.1 m whether or not
+    they meet, so the verdict would depend on where the reference frame starts."""
     p = replace(FloorPlanParams() if params is None else params, gap_m=gap_m)
     if a < 0 or b < 0:
         return False
     if a == b:
         return True
     ext = _extents(plan)
-    ends = [_wall_interval(plan.walls.params[w], ext[w]) for w in (a, b)]
-    return _compatible(ends[0], ends[1], p)
+    wa, wb = (_wall_interval(plan.walls.params[w], ext[w]) for w in (a, b))
+    wb = _facing(wb, wa[1])
+    if abs(wrap_scalar(wa[1] - wb[1])) > p.alpha_tol_rad:
+        return False
+    if max(_offset_at_midpoint(wa, wb), _offset_at_midpoint(wb, wa)) > p.rho_tol_m:
+        return False
+    return wa[2] <= wb[3] + p.gap_m and wb[2] <= wa[3] + p.gap_m
+
+
+def _facing(
+    w: tuple[float, float, float, float], alpha: float
+) -> tuple[float, float, float, float]:
+    """Wall ``w`` ``(ρ, α, s0, s1)`` written with its normal within 90° of ``alpha``:
+    ``(−ρ, α + π, −s1, −s0)`` when it points the other way.  The normal form takes
+    ``ρ ≥ 0``, so two pieces of one line on either side of the origin's foot point
+    can differ by π in ``α``."""
+    if abs(wrap_scalar(w[1] - alpha)) <= math.pi / 2:
+        return w
+    return -w[0], wrap_scalar(w[1] + math.pi), -w[3], -w[2]
+
+
+def _offset_at_midpoint(
+    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
+) -> float:
+    """Distance (m) from the midpoint of wall ``a`` ``(ρ, α, s0, s1)`` to ``b``'s line."""
+    n = np.array([math.cos(a[1]), math.sin(a[1])])
+    t = np.array([-n[1], n[0]])
+    mid = a[0] * n + 0.5 * (a[2] + a[3]) * t
+    return abs(float(mid @ np.array([math.cos(b[1]), math.sin(b[1])])) - b[0])
 
 
 def _extents(plan: FloorPlan) -> FloatArray:

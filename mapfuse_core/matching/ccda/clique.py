@@ -79,9 +79,31 @@ class _CliqueGraph:
         """Remove nodes (graph node ids) from later searches."""
         self.alive[graph_nodes] = False
 
-    def max_clique(self, at_least: int = 1, budget: _SearchBudget | None = None) -> IntArray:
+    def greedy_clique(self) -> IntArray:
+        """Graph node ids of the largest clique the greedy growth (step 2) finds among
+        the alive nodes: a maximal clique, not always a maximum one, found without the
+        exact search (so without spending any budget)."""
+        keep = self.alive[self.eu] & self.alive[self.ev]
+        eu, ev = self.eu[keep], self.ev[keep]
+        alive_ids = np.nonzero(self.alive)[0].astype(np.int64)
+        if eu.size == 0:
+            return alive_ids[:1]
+        ids, (u, v) = _compact(self.alive.size, eu, ev)
+        W = _packed_adjacency(ids.size, u, v)
+        best = _greedy_best(W, _common_neighbours(W, u, v), u, v)
+        return ids[np.array(sorted(best), dtype=np.int64)]
+
+    def max_clique(
+        self, at_least: int = 1, budget: _SearchBudget | None = None, maximum: bool = True
+    ) -> IntArray:
         """Graph node ids of a maximum clique among the alive nodes, or an empty array
         when none has ``at_least`` nodes.
+
+        With ``maximum=False``, any clique of at least ``at_least`` nodes, the likely
+        one first: the greedy clique (step 2) when it is that large, else the first
+        the exact search finds.  The search then spends its budget only where the
+        greedy growth fails, and proving that no clique of ``at_least`` nodes is
+        left, not proving which one is largest.
 
         Raises :class:`_SearchLimitError` when the exact search exhausts ``budget``
         (unlimited without one).
@@ -101,23 +123,36 @@ class _CliqueGraph:
         if self._common is None:
             self._common = np.zeros(self.eu.size, dtype=np.int64)
             self._common[keep] = common
-        tri = np.bincount(u, common, ids.size) + np.bincount(v, common, ids.size)
-        best: list[int] = []
-        for seed in np.argsort(-tri, kind="stable")[:8].tolist():
-            c = _greedy_clique(W, int(seed))
-            if len(c) > len(best):
-                best = c
+        best = _greedy_best(W, common, u, v)
+        if not maximum and len(best) >= at_least:
+            return ids[np.array(sorted(best), dtype=np.int64)]
         floor = max(len(best), at_least - 1)  # only larger cliques are of interest now
         u, v, common = _truss(ids.size, u, v, common, floor + 1, self.fa[ids], self.fb[ids])
         if u.size:
             sub, (su, sv) = _compact(ids.size, u, v)
-            bits = _Bitsets(_packed_adjacency(sub.size, su, sv), budget or _SearchBudget(1 << 62))
-            found = bits.exact(floor)
+            feats = (self.fa[ids[sub]], self.fb[ids[sub]])
+            bits = _Bitsets(
+                _packed_adjacency(sub.size, su, sv), budget or _SearchBudget(1 << 62), feats
+            )
+            found = bits.exact(floor, stop_at=None if maximum else at_least)
             if len(found) > floor:
                 best = sub[np.array(found, dtype=np.int64)].tolist()
         if len(best) < at_least:
             return alive_ids[:0]
         return ids[np.array(sorted(best), dtype=np.int64)]
+
+
+def _greedy_best(W: NDArray[np.uint64], common: IntArray, u: IntArray, v: IntArray) -> list[int]:
+    """The largest of the cliques grown greedily from the 8 nodes in the most
+    triangles (``common``: common neighbours of each edge ``(u, v)``)."""
+    n = W.shape[0]
+    tri = np.bincount(u, common, n) + np.bincount(v, common, n)
+    best: list[int] = []
+    for seed in np.argsort(-tri, kind="stable")[:8].tolist():
+        c = _greedy_clique(W, int(seed))
+        if len(c) > len(best):
+            best = c
+    return best
 
 
 def _greedy_clique(W: NDArray[np.uint64], seed: int) -> list[int]:
@@ -248,23 +283,47 @@ def _bits(x: int) -> list[int]:
     return out
 
 
-class _Bitsets:
-    """Adjacency as one Python integer per node, for the branch and bound."""
+class _FoundError(Exception):
+    """The branch and bound reached the clique size it was asked to stop at."""
 
-    def __init__(self, W: NDArray[np.uint64], budget: _SearchBudget) -> None:
+
+class _Bitsets:
+    """Adjacency as one Python integer per node, for the branch and bound.
+
+    The bound on the clique a candidate set can still add is the number of colours
+    of a colouring of it (classes of pairwise non-adjacent nodes).  Tomita's greedy
+    colouring is one; the pairings of one feature are another, since a clique pairs
+    each feature of either map once: nodes sharing a feature of ``A``, or of ``B``,
+    are never adjacent.  Each expansion uses whichever of the three has the fewest
+    colours.  Against a known map of a few dozen walls the feature classes bound
+    far tighter than the greedy colouring of a dense angle-only graph.
+    """
+
+    def __init__(
+        self,
+        W: NDArray[np.uint64],
+        budget: _SearchBudget,
+        feats: tuple[IntArray, ...] = (),
+    ) -> None:
         self.adj = [int.from_bytes(row.astype("<u8").tobytes(), "little") for row in W]
         """Neighbour bitset of each node."""
+        self.feats = [f.tolist() for f in feats]
+        """Per map, the feature of each node (classes of non-adjacent nodes)."""
         self.budget = budget
         """Work left: every expansion and start vertex spends one unit plus one per
         candidate vertex."""
         self._best: list[int] = []
         self._floor = 0
+        self._stop: int | None = None
 
     def _size(self) -> int:
         """Size a new clique must exceed: the best so far, or the floor."""
         return max(len(self._best), self._floor)
 
     def _colour_sort(self, P: int) -> tuple[list[int], list[int]]:
+        """The nodes of ``P`` in colour order and, for each, the number of colours up
+        to its own: the fewest-colour colouring of the greedy one and the feature
+        classes (class docstring)."""
         order: list[int] = []
         bound: list[int] = []
         colour = 0
@@ -280,6 +339,14 @@ class _Bitsets:
                 uncoloured ^= low
                 order.append(v)
                 bound.append(colour)
+        for feat in self.feats:
+            classes: dict[int, list[int]] = {}
+            for v in order:
+                classes.setdefault(feat[v], []).append(v)
+            if len(classes) < colour:
+                colour = len(classes)
+                order = [v for members in classes.values() for v in members]
+                bound = [c for c, members in enumerate(classes.values(), 1) for _ in members]
         return order, bound
 
     def _expand(self, R: list[int], P: int) -> None:
@@ -295,12 +362,32 @@ class _Bitsets:
             if NP:
                 self._expand(R, NP)
             elif len(R) > self._size():
-                self._best = list(R)
+                self._found(R)
             R.pop()
             P &= ~(1 << v)
 
-    def exact(self, floor: int) -> list[int]:
-        """A maximum clique if it has more than ``floor`` nodes, else ``[]``."""
+    def _found(self, clique: list[int]) -> None:
+        """Keep ``clique`` as the best so far; stop when it is as large as asked."""
+        self._best = list(clique)
+        if self._stop is not None and len(clique) >= self._stop:
+            raise _FoundError
+
+    def _reach(self, P: int) -> int:
+        """Fewest distinct features of either map among the nodes of ``P``: a bound
+        on the clique they hold (a clique pairs each feature once)."""
+        nodes = _bits(P)
+        return min((len({feat[v] for v in nodes}) for feat in self.feats), default=len(nodes))
+
+    def exact(self, floor: int, stop_at: int | None = None) -> list[int]:
+        """A maximum clique if it has more than ``floor`` nodes, else ``[]``; with
+        ``stop_at``, the first clique found of at least that many nodes instead."""
+        self._stop = stop_at
+        try:
+            return self._exact(floor)
+        except _FoundError:
+            return self._best
+
+    def _exact(self, floor: int) -> list[int]:
         self._best, self._floor = [], floor
         n = len(self.adj)
         # Degree order approximates a degeneracy order: each clique is searched from
@@ -326,10 +413,10 @@ class _Bitsets:
                     break
                 P &= ~drop
                 self.budget.spend(P.bit_count())
-            if P.bit_count() < need:
+            if P.bit_count() < need or (need and self._reach(P) < need):
                 continue
             if not P:
-                self._best = [v]
+                self._found([v])
                 continue
             self._expand([v], P)
         return self._best

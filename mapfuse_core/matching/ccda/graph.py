@@ -220,7 +220,9 @@ def _gated_join(
 def _corners_overlap(
     ca: FloatArray, cb: FloatArray, sign: FloatArray, gates: _Gates, params: CCDAParams
 ) -> BoolArray:
-    """Whether the segments of two non-parallel line pairings can overlap, pair by pair.
+    """Whether the segments of two non-parallel line pairings can agree, pair by pair:
+    each ``A`` segment within its ``B`` partner (``params.extent_rule`` ``"within"``)
+    or overlapping it (``"overlap"``), along the line from the lines' intersection.
 
     ``ca``, ``cb``: :attr:`_Pairs.corner` rows of the ``A`` pair ``(i, k)`` and the
     ``B`` pair ``(j, l)``; ``sign`` from the directed angles.  The rotation is known
@@ -233,6 +235,7 @@ def _corners_overlap(
     if not np.any(known):
         return out
     a, b, sg = ca[known], cb[known], sign[known]
+    within = params.extent_rule == "within"
     m_i = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 4] + b[:, 4]))
     m_k = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 5] + b[:, 5]))
 
@@ -246,7 +249,11 @@ def _corners_overlap(
     ) -> BoolArray:
         lo2 = np.where(s > 0, lo, -hi)
         hi2 = np.where(s > 0, hi, -lo)
-        res: BoolArray = (lo2 <= bhi + margin) & (blo <= hi2 + margin)
+        res: BoolArray
+        if within:
+            res = (blo - margin <= lo2) & (hi2 <= bhi + margin)
+        else:
+            res = (lo2 <= bhi + margin) & (blo <= hi2 + margin)
         return res
 
     one = np.ones(sg.size)
@@ -299,6 +306,22 @@ def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit
     return parallel_test
 
 
+def _lengths_fit(A: _Prep, B: _Prep, la: IntArray, lb: IntArray, params: CCDAParams) -> BoolArray:
+    """Unary test of line nodes ``(la, lb)`` under ``params.extent_rule`` ``"within"``:
+    the ``A`` segment is at most ``2 · extent_margin_m`` longer than its ``B``
+    partner (a length is frame-free: the part of a wall a run saw is no longer than
+    the wall).  Every node passes under ``"overlap"``, and where an extent is unknown.
+    """
+    ok = np.ones(la.size, dtype=bool)
+    if params.extent_rule != "within" or la.size == 0:
+        return ok
+    len_a = A.ext[la, 1] - A.ext[la, 0]
+    len_b = B.ext[lb, 1] - B.ext[lb, 0]
+    known = np.isfinite(len_a) & np.isfinite(len_b)
+    ok[known] = len_a[known] <= len_b[known] + 2.0 * params.extent_margin_m
+    return ok
+
+
 def _build_graph(
     A: _Prep, B: _Prep, params: CCDAParams, gates: _Gates
 ) -> tuple[IntArray, IntArray, IntArray, IntArray]:
@@ -312,9 +335,11 @@ def _build_graph(
     ca, cb = cag.ravel(), cbg.ravel()
     dr = A.params[ca, 2] - B.params[cb, 2]
     okr = dr * dr <= gates.g1 * (A.vr[ca] + B.vr[cb])
-    la, lb = np.meshgrid(A.line, B.line, indexing="ij")
-    ni = np.concatenate([ca[okr], la.ravel()]).astype(np.int64)
-    nj = np.concatenate([cb[okr], lb.ravel()]).astype(np.int64)
+    lag, lbg = np.meshgrid(A.line, B.line, indexing="ij")
+    la, lb = lag.ravel(), lbg.ravel()
+    okl = _lengths_fit(A, B, la, lb, params)
+    ni = np.concatenate([ca[okr], la[okl]]).astype(np.int64)
+    nj = np.concatenate([cb[okr], lb[okl]]).astype(np.int64)
     node_of[ni, nj] = np.arange(ni.size, dtype=np.int64)
 
     us: list[IntArray] = []

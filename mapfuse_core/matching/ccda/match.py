@@ -10,7 +10,7 @@ from mapfuse_core.geometry.se2 import FloatArray, rot2, wrap_angle
 from mapfuse_core.matching.ccda.clique import _CliqueGraph, _SearchBudget, _SearchLimitError
 from mapfuse_core.matching.ccda.graph import _build_graph, _GraphTooLargeError, _k_core
 from mapfuse_core.matching.ccda.params import CCDAParams, CCDAResult, _check_params, _Gates
-from mapfuse_core.matching.ccda.prepare import _centred, _Prep, _prepare
+from mapfuse_core.matching.ccda.prepare import IntArray, _centred, _Prep, _prepare
 from mapfuse_core.matching.ccda.residuals import _residuals
 from mapfuse_core.matching.ccda.verification import (
     _compatible,
@@ -139,6 +139,49 @@ def _ambiguous(hyps: list[_Hypothesis], params: CCDAParams, gates: _Gates) -> bo
     return runner_up >= _rival_floor(params, best.support)
 
 
+def _clique_hypothesis(
+    A: _Prep,
+    B: _Prep,
+    c: IntArray,
+    ni: IntArray,
+    nj: IntArray,
+    gates: _Gates,
+    params: CCDAParams,
+) -> _Hypothesis:
+    """The hypothesis of clique ``c`` (node ids) with ``params``' re-association rules."""
+    return _hypothesis(
+        A,
+        B,
+        c,
+        ni,
+        nj,
+        gates,
+        params.extent_margin_m,
+        params.unique_partners,
+        params.extent_rule == "within",
+    )
+
+
+def _partial(
+    A: _Prep,
+    B: _Prep,
+    ni: IntArray,
+    nj: IntArray,
+    eu: IntArray,
+    ev: IntArray,
+    gates: _Gates,
+    params: CCDAParams,
+) -> _Hypothesis | None:
+    """The best partial match for a refusal's diagnostics: the hypothesis of a greedy
+    clique of the whole graph (not proven maximum: no budget is spent on a match that
+    cannot be accepted), or ``None`` without nodes."""
+    if ni.size == 0:
+        return None
+    G = _CliqueGraph(np.arange(ni.size, dtype=np.int64), eu, ev, ni, nj)
+    c = G.greedy_clique()
+    return _clique_hypothesis(A, B, c, ni, nj, gates, params)
+
+
 def ccda_match(
     map_a: KnownMapArrays, map_b: KnownMapArrays, params: CCDAParams = _DEFAULT_PARAMS
 ) -> CCDAResult:
@@ -163,11 +206,12 @@ def ccda_match(
         return _result(False, "graph too large", None, centres, err.n_nodes, params.max_edges + 1)
     n_nodes, n_edges = int(ni.size), int(eu.size)
 
-    alive = _k_core(n_nodes, eu, ev, params.min_pairings - 1)
-    if not np.any(alive):
-        # No clique can reach min_pairings; search the whole (then very sparse)
-        # graph anyway so that the rejection reports the best partial match.
-        alive[:] = True
+    # Only cliques that can lead to an accepted match are searched for: min_pairings
+    # nodes, less one of slack (re-association adds a pairing the clique missed by an
+    # edge that failed its gate by chance).  Proving the maximum of a smaller clique
+    # is what exhausts the budget on dense graphs, and it decides nothing.
+    first = max(params.min_pairings - 1, 1)
+    alive = _k_core(n_nodes, eu, ev, first - 1)
     keep = alive[eu] & alive[ev]
     G = _CliqueGraph(np.nonzero(alive)[0].astype(np.int64), eu[keep], ev[keep], ni, nj)
     budget = _SearchBudget(params.max_clique_work)
@@ -176,19 +220,19 @@ def ccda_match(
     complete = True  # every clique that could compete was searched
     try:
         for n_search in range(params.max_hypotheses + 1):
-            needed = 1
+            needed = first
             if hyps:
                 # A feature shared by two hypotheses (the centre of a rotational
                 # symmetry) went with the first one's nodes: one pairing of slack.
                 needed = _rival_floor(params, max(h.support for h in hyps)) - 1
-            c = G.max_clique(at_least=needed, budget=budget)
+            c = G.max_clique(at_least=needed, budget=budget, maximum=False)
             if c.size == 0:
                 break
             if n_search == params.max_hypotheses:
                 # One more candidate than the hypotheses allowed: unresolved.
                 complete = False
                 break
-            h = _hypothesis(A, B, c, ni, nj, gates, params.extent_margin_m, params.unique_partners)
+            h = _clique_hypothesis(A, B, c, ni, nj, gates, params)
             hyps.append(h)
             # Remove what this transform explains, not the whole clique: with distance
             # invariants a mirror image of a symmetric map is a clique too, and its
@@ -207,7 +251,8 @@ def ccda_match(
     n_hyp = len(hyps)
     if not hyps:
         reason = "search_limit" if not complete else "too few pairings"
-        return _result(False, reason, None, centres, n_nodes, n_edges, 0, 0, budget.used)
+        partial = _partial(A, B, ni, nj, eu, ev, gates, params)
+        return _result(False, reason, partial, centres, n_nodes, n_edges, 0, 0, budget.used)
     best, runner_up = _best_and_runner_up(hyps, gates)
 
     def out(ok: bool, reason: str) -> CCDAResult:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.stats import chi2
@@ -74,14 +75,26 @@ class CCDAParams:
     this the call returns ``"graph too large"`` instead of running for minutes; match
     a cropped map."""
     extent_margin_m: float = 0.5
-    """Slack (m) of the segment-overlap tests, on top of the propagated position
-    noise.  Where both maps give a line's extent, a pairing needs the two segments
-    to overlap along the line (the observed part of a wall lies on the known wall,
-    not on its extension past a door or a corridor's end): in the binary test of
-    two non-parallel line pairings, whose intersection fixes where along each line
-    the segments are, and in the re-association under a fitted transform.  Extents
-    are shortened by occlusion and lengthened by merges of collinear pieces, so
-    the test only refuses segments that miss each other by more than this."""
+    """Slack (m) of the segment tests (:attr:`extent_rule`), on top of the propagated
+    position noise.  Where both maps give a line's extent, a pairing needs the two
+    segments to agree along the line (the observed part of a wall lies on the known
+    wall, not on its extension past a door or a corridor's end): in the unary length
+    test, in the binary test of two non-parallel line pairings, whose intersection
+    fixes where along each line the segments are, and in the re-association under a
+    fitted transform.  An extent's ends move by a few beams' spacing with the view,
+    and a landmark's grow by the drift along the wall between its observations, so
+    the tests refuse only segments that disagree by more than this."""
+    extent_rule: Literal["within", "overlap"] = "overlap"
+    """How a line pairing's segments must lie, where both maps give extents.
+    ``"overlap"``: the segments overlap along the line (within
+    :attr:`extent_margin_m` plus noise).  ``"within"``: ``map_a``'s segment lies
+    within ``map_b``'s, for a ``map_b`` that holds every wall whole and a ``map_a``
+    whose landmarks never outgrow their wall: a wall of ``map_a`` is then never
+    longer than its partner (a unary test on the nodes) and never reaches past its
+    partner's ends (the binary test of non-parallel pairings and the
+    re-association).  *(choice)* ``"overlap"``: an EKF landmark outgrows its wall by
+    the drift along it between its observations and by the collinear pieces its
+    association joins across doorways (``docs/results/ccda.md``)."""
     unique_partners: bool = True
     """Re-association pairs a feature of ``map_a`` only when it has a single partner
     inside the gate under the fitted transform.  A feature with two (a wall between
@@ -95,6 +108,9 @@ class CCDAParams:
     var_floor_rad: float = 1e-5
     """Standard deviation (rad) added in quadrature to every angular variance."""
 
+
+#: Every :attr:`CCDAParams.extent_rule`.
+EXTENT_RULES = ("within", "overlap")
 
 #: Every :attr:`CCDAResult.reason`.
 REASONS = (
@@ -183,6 +199,10 @@ def _check_params(p: CCDAParams) -> None:
         raise ValueError(f"max_edges must be >= 0, got {p.max_edges}")
     if p.ambiguity_margin is not None and p.ambiguity_margin < 0:
         raise ValueError(f"ambiguity_margin must be None or >= 0, got {p.ambiguity_margin}")
+    if p.extent_rule not in EXTENT_RULES:
+        raise ValueError(
+            f"extent_rule must be one of {', '.join(EXTENT_RULES)}, got {p.extent_rule!r}"
+        )
     if not 0.0 < p.rival_fraction <= 1.0:
         raise ValueError(f"rival_fraction must be in (0, 1], got {p.rival_fraction}")
     if p.max_clique_work < 1:

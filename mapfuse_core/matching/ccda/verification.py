@@ -119,10 +119,17 @@ def _fit_inliers(
 
 
 def _segments_overlap(
-    A: _Prep, B: _Prep, T: FloatArray, ii: IntArray, jj: IntArray, margin: float
+    A: _Prep,
+    B: _Prep,
+    T: FloatArray,
+    ii: IntArray,
+    jj: IntArray,
+    margin: float,
+    within: bool = False,
 ) -> BoolArray:
-    """Whether each line pairing's segments overlap along ``A``'s line under ``T``
-    (within ``margin``); circles and lines without extents pass."""
+    """Whether each line pairing's segments agree along ``A``'s line under ``T``
+    (within ``margin``): overlap, or with ``within`` the ``A`` segment inside the
+    ``B`` one (``CCDAParams.extent_rule``); circles and lines without extents pass."""
     out = np.ones(ii.size, dtype=bool)
     known = np.all(np.isfinite(A.ext[ii]), axis=1) & np.all(np.isfinite(B.ext[jj]), axis=1)
     if not np.any(known):
@@ -138,7 +145,10 @@ def _segments_overlap(
     e0 = base + slope * B.ext[j, 0]
     e1 = base + slope * B.ext[j, 1]
     lo, hi = np.minimum(e0, e1), np.maximum(e0, e1)
-    out[known] = (lo <= A.ext[i, 1] + margin) & (A.ext[i, 0] <= hi + margin)
+    if within:
+        out[known] = (lo - margin <= A.ext[i, 0]) & (A.ext[i, 1] <= hi + margin)
+    else:
+        out[known] = (lo <= A.ext[i, 1] + margin) & (A.ext[i, 0] <= hi + margin)
     return out
 
 
@@ -152,6 +162,7 @@ def _one_to_one(
     gates: _Gates,
     margin: float,
     unique: bool,
+    within: bool = False,
 ) -> tuple[IntArray, IntArray, IntArray]:
     """Greedy one-to-one assignment of the nodes passing the gate under ``T`` (whose
     covariance ``P`` widens the gate) whose segments overlap (``margin``); with
@@ -160,7 +171,7 @@ def _one_to_one(
     Returns the chosen ``(ii, jj)`` and the indices of every passing node.
     """
     ratio = _gate_ratio(A, B, T, ni, nj, gates, P)
-    ratio[~_segments_overlap(A, B, T, ni, nj, margin)] = np.inf
+    ratio[~_segments_overlap(A, B, T, ni, nj, margin, within)] = np.inf
     passing = np.nonzero(ratio <= 1.0)[0].astype(np.int64)
     used_a: set[int] = set()
     used_b: set[int] = set()
@@ -190,6 +201,7 @@ def _hypothesis(
     gates: _Gates,
     margin: float = math.inf,
     unique: bool = False,
+    within: bool = False,
 ) -> _Hypothesis:
     """Fit a clique, then re-associate every node with the fitted transform."""
     ii, jj, T, cov = _fit_inliers(A, B, ni[clique], nj[clique], gates)
@@ -199,7 +211,7 @@ def _hypothesis(
     # (collinear walls); the transform then tells which one is nearest.  A few
     # rounds: the refit moves the transform, which can change the assignment.
     for _ in range(3):
-        ri, rj, passing = _one_to_one(A, B, T, cov, ni, nj, gates, margin, False)
+        ri, rj, passing = _one_to_one(A, B, T, cov, ni, nj, gates, margin, False, within)
         if ri.size == 0:
             break
         same = ri.size == ii.size and np.array_equal(ri, ii) and np.array_equal(rj, jj)
@@ -211,7 +223,7 @@ def _hypothesis(
     if passing.size == 0:
         # The nodes this transform explains (removed before the search for rivals).
         ratio = _gate_ratio(A, B, T, ni, nj, gates, cov)
-        ratio[~_segments_overlap(A, B, T, ni, nj, margin)] = np.inf
+        ratio[~_segments_overlap(A, B, T, ni, nj, margin, within)] = np.inf
         passing = np.nonzero(ratio <= 1.0)[0].astype(np.int64)
     support = int(ii.size)
     if unique and ii.size:

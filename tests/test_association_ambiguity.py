@@ -1,0 +1,224 @@
+"""Map-to-map pairings at a join: the ambiguity rule (``AssociationConfig.map_ambiguity``:
+a map feature compatible with two walls that cannot be one wall is not paired) and the
+joint search (``AssociationConfig.map_method``: a local map's features pair as a
+jointly compatible set).
+
+Constructed joins: a global map with walls, and a local feature (a query element)
+whose uncertainty relative to them makes it compatible with more than one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from ekf_reference.association import Query, choose, predict_all_targets, targets_distinct
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
+from mapfuse_core.matching import AssociationConfig, ScoredPair, drop_ambiguous
+
+REFUSE = AssociationConfig(map_ambiguity="refuse")
+NEAREST = AssociationConfig(map_ambiguity="nearest")
+
+
+def _line(y: float, theta: float = 0.0, x: float = 0.0) -> np.ndarray:
+    """A wall through ``(x, y)`` with direction ``theta``."""
+    return np.array([x, y, theta])
+
+
+def _cov(lat: float, ang: float, line: np.ndarray) -> np.ndarray:
+    """A bound line covariance: ``lat`` (m) across the line, ``ang`` (rad)."""
+    c, s = math.cos(line[2]), math.sin(line[2])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return bind_line_cov(line, R @ np.diag([0.0, lat**2, ang**2]) @ R.T)
+
+
+def _join(
+    walls: list[tuple[np.ndarray, float]], local: np.ndarray, local_sigma: float
+) -> tuple[GaussianMap, int]:
+    """Global walls ``(line, lateral σ)`` (not in the local map) and one local feature
+    (``in_local``) at ``local`` with lateral σ ``local_sigma``; returns the map and
+    the local feature's index."""
+    m = GaussianMap()
+    for k, (line, sig) in enumerate(walls):
+        m.add(
+            Element(ElementKind.LINE, Role.FEATURE, moving=False, track=k, extent=(-3.0, 3.0)),
+            line,
+            _cov(sig, 0.01, line),
+        )
+    i = m.add(
+        Element(
+            ElementKind.LINE,
+            Role.FEATURE,
+            moving=False,
+            track=len(walls),
+            extent=(-2.0, 2.0),
+            in_local=True,
+        ),
+        local,
+        _cov(local_sigma, 0.01, local),
+    )
+    return m, i
+
+
+def _pair(m: GaussianMap, i: int, config: AssociationConfig) -> int | None:
+    """The global wall local feature ``i`` is paired with, ``None`` for none."""
+    e = m.elements[i]
+    q = Query(e.kind, m.mean[i], np.zeros((3, 3)), e.extent, element=i)
+    targets = predict_all_targets(m, lambda el: not el.in_local)
+    (c,) = choose(m, [q], targets, config)
+    return None if c is None else c.target
+
+
+def test_a_feature_between_two_parallel_walls_a_corridor_apart_is_not_merged() -> None:
+    # Walls at y = 0 and y = 1.2 m (a corridor), each known to 5 cm; the local feature
+    # at y = 0.5 m with a lateral σ of 0.4 m (the drift since the walls were mapped)
+    # is compatible with both: which one it is cannot be told.
+    m, i = _join([(_line(0.0), 0.05), (_line(1.2), 0.05)], _line(0.5), 0.4)
+    assert targets_distinct(m, 0, 1, REFUSE.gate_prob)
+    assert _pair(m, i, NEAREST) == 0
+    assert _pair(m, i, REFUSE) is None
+    # Once its drift is small, only the right wall is in the gate: it is merged.
+    m, i = _join([(_line(0.0), 0.05), (_line(1.2), 0.05)], _line(0.05), 0.05)
+    assert _pair(m, i, REFUSE) == 0
+
+
+def test_two_landmarks_of_one_wall_are_not_an_ambiguity() -> None:
+    # Two global landmarks of one wall (compatible with each other, a duplicate the
+    # association made earlier): the local feature goes to the nearer.
+    m, i = _join([(_line(0.0), 0.05), (_line(0.03), 0.05)], _line(0.2), 0.3)
+    assert not targets_distinct(m, 0, 1, REFUSE.gate_prob)
+    assert _pair(m, i, REFUSE) == 1
+    # Collinear walls a doorway apart are one line to a line landmark: not ambiguous.
+    m, i = _join([(_line(0.0), 0.05), (_line(0.0, x=7.0), 0.05)], _line(0.2, x=3.5), 0.3)
+    assert not targets_distinct(m, 0, 1, REFUSE.gate_prob)
+    assert _pair(m, i, REFUSE) is not None
+
+
+def test_a_feature_between_a_wall_and_the_next_one_beyond_a_turn_is_not_merged() -> None:
+    # A wall along y = 0 and, beyond a 10° turn at its end, the next wall: a local
+    # feature midway in angle, drifted by 0.3 m and 0.1 rad (σ), fits both, and they
+    # are not one wall.
+    a = _line(0.0)
+    b = _line(0.0, math.radians(10.0), x=4.0)
+    m, i = _join([(a, 0.05), (b, 0.05)], _line(0.0, math.radians(5.0), x=2.0), 0.3)
+    m.cov[3 * i + 2, 3 * i + 2] = 0.1**2
+    assert targets_distinct(m, 0, 1, REFUSE.gate_prob)
+    assert _pair(m, i, NEAREST) is not None
+    assert _pair(m, i, REFUSE) is None
+
+
+def test_measurements_always_take_the_nearest() -> None:
+    # The same corridor, seen by a measurement: it is paired, with the nearest wall.
+    m, _ = _join([(_line(0.0), 0.05), (_line(1.2), 0.05)], _line(0.5), 0.4)
+    z = _line(0.5)
+    q = Query(ElementKind.LINE, z, _cov(0.4, 0.01, z), (-1.0, 1.0))
+    targets = predict_all_targets(m, lambda el: not el.in_local)
+    (c,) = choose(m, [q], targets, REFUSE)
+    assert c is not None
+    assert c.target == 0
+
+
+def test_two_known_walls_are_compared_in_the_known_frame() -> None:
+    # An anchor far from the identity: two known walls 1.2 m apart are distinct, and
+    # one known wall against itself shifted by 1 cm is not.
+    m = GaussianMap()
+    m.add(
+        Element(ElementKind.POSE, Role.ANCHOR, moving=True, track=-1),
+        np.array([30.0, -12.0, 2.0]),
+        np.diag([0.3**2, 0.3**2, 0.05**2]),
+    )
+    for k, y in enumerate((0.0, 1.2, 0.01)):
+        w = _line(y)
+        m.add(Element(ElementKind.LINE, Role.KNOWN, moving=False, track=k), w, _cov(0.02, 0.002, w))
+    assert targets_distinct(m, 1, 2, 0.999)
+    assert not targets_distinct(m, 1, 3, 0.999)
+
+
+def test_drop_ambiguous_keeps_queries_whose_candidates_name_one_feature() -> None:
+    cands = [
+        [ScoredPair(0, 1.0), ScoredPair(1, 2.0)],
+        [ScoredPair(2, 0.5), ScoredPair(3, 4.0)],
+        [ScoredPair(4, 0.1)],
+        [],
+    ]
+    # 0 and 1 are two walls, 2 and 3 one wall seen twice.
+    out = drop_ambiguous(cands, lambda a, b: {a, b} == {0, 1})
+    assert out == [[], cands[1], cands[2], []]
+
+
+def test_an_unknown_ambiguity_rule_is_refused() -> None:
+    with pytest.raises(ValueError, match="map_ambiguity"):
+        dataclasses.replace(REFUSE, map_ambiguity="guess")  # type: ignore[arg-type]
+
+
+def _drifted_local_map(drift: float, common_sigma: float) -> tuple[GaussianMap, list[int]]:
+    """Global walls along y = 0, 1 and 3 m (lateral σ 2 cm) and a local map that saw the
+    walls at y = 0 and 3 m with a common lateral drift ``drift`` (m): two local features,
+    each known to 3 cm relative to the other, both to ``common_sigma`` relative to the
+    global map (the local map's pose in it)."""
+    m = GaussianMap()
+    for k, y in enumerate((0.0, 1.0, 3.0)):
+        w = _line(y)
+        m.add(
+            Element(ElementKind.LINE, Role.FEATURE, moving=False, track=k, extent=(-3.0, 3.0)),
+            w,
+            _cov(0.02, 0.002, w),
+        )
+    local = []
+    for k, y in enumerate((0.0, 3.0)):
+        w = _line(y + drift)
+        local.append(
+            m.add(
+                Element(
+                    ElementKind.LINE,
+                    Role.FEATURE,
+                    moving=False,
+                    track=10 + k,
+                    extent=(-2.0, 2.0),
+                    in_local=True,
+                ),
+                w,
+                _cov(0.03, 0.002, w),
+            )
+        )
+    ya, yb = (3 * i + 1 for i in local)
+    for a in (ya, yb):
+        for b in (ya, yb):
+            m.cov[a, b] += common_sigma**2
+    return m, local
+
+
+def _pair_all(m: GaussianMap, local: list[int], config: AssociationConfig) -> list[int | None]:
+    queries = [
+        Query(m.elements[i].kind, m.mean[i], np.zeros((3, 3)), m.elements[i].extent, element=i)
+        for i in local
+    ]
+    targets = predict_all_targets(m, lambda el: not el.in_local)
+    return [None if c is None else c.target for c in choose(m, queries, targets, config)]
+
+
+def test_a_join_pairs_the_local_features_as_a_jointly_compatible_set() -> None:
+    # The local map drifted 0.6 m: its wall at y = 0.6 m is nearer the global wall at
+    # 1 m than the one at 0 m it is, while the other local wall (3.6 m) has only the
+    # wall at 3 m in its gate.  Alone, each fits its nearest; together, both must
+    # share one drift, which only (0 m, 3 m) does.
+    m, local = _drifted_local_map(0.6, 0.4)
+    jcbb = AssociationConfig(map_method="jcbb", map_ambiguity="nearest")
+    nn = AssociationConfig(map_method="nn", map_ambiguity="nearest")
+    assert _pair_all(m, local, nn) == [1, 2]
+    assert _pair_all(m, local, jcbb) == [0, 2]
+    # Refusing ambiguous features (the CARMEN profile) leaves the first unpaired (two
+    # walls fit it) and pairs the second.
+    assert _pair_all(m, local, REFUSE) == [None, 2]
+    assert _pair_all(m, local, AssociationConfig(map_method="jcbb", map_ambiguity="refuse")) == [
+        None,
+        2,
+    ]
+
+
+def test_an_unknown_map_method_is_refused() -> None:
+    with pytest.raises(ValueError, match="map_method"):
+        dataclasses.replace(REFUSE, map_method="guess")  # type: ignore[arg-type]
