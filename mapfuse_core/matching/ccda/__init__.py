@@ -32,11 +32,14 @@ The method, step by step:
    the pairs of ``A`` are joined to those of ``B`` by sorting ``B``'s values and
    searching a window around each value of ``A`` (so the cost grows with the number
    of edges, not with ``|A|²·|B|²``), and each candidate is then tested exactly.
-3. **Maximum clique.**  Nodes that cannot be in a clique of ``min_pairings`` nodes
-   are pruned (k-core), then an exact maximum clique is searched by
-   :class:`~mapfuse_core.matching.ccda.clique._CliqueGraph` (networkx's ``max_weight_clique``
-   takes seconds on the graphs of maps of a few hundred features; see that class for
-   the method).
+3. **A clique that can be accepted.**  Nodes that cannot be in a clique of
+   ``min_pairings − 1`` nodes (one of slack for the re-association) are pruned
+   (k-core), then a clique of that size is searched by
+   :class:`~mapfuse_core.matching.ccda.clique._CliqueGraph`: the greedy clique when it
+   is large enough, else the first the exact branch and bound finds (networkx's
+   ``max_weight_clique`` takes seconds on the graphs of maps of a few hundred
+   features; see that class for the method).  Proving which clique is the largest
+   decides nothing and is what exhausts a budget on dense graphs.
 4. **Transform and verification.**  The transform is estimated from the clique's
    pairings by weighted least squares (:func:`estimate_transform`).  Every pairing
    is then tested *leave-one-out*: its residual against the transform fitted to
@@ -52,8 +55,8 @@ The method, step by step:
    pairings fix the transform, and fix it without any one of them (a pairing
    that alone fixes a direction cannot be checked by the others), and no
    competing hypothesis: the nodes that agree
-   with the transform are removed, the next maximum clique is searched and
-   fitted, and so on while a clique large enough to compete remains; if a
+   with the transform are removed, the next clique large enough to compete is
+   searched and fitted, and so on while one remains; if a
    hypothesis whose transform is incompatible with the best one has comparable
    support (at least ``max(min_pairings, ⌈rival_fraction · best⌉)`` pairings), the
    map is symmetric or repetitive at the scale of the noise and the match is
