@@ -32,8 +32,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import block_diag
 
-from ekf_reference.association import Candidate, Query, choose
-from ekf_reference.config import EKFConfig
 from ekf_reference.known_frame import known_element
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.geometry.features import express_in, transform_feature
@@ -357,17 +355,6 @@ def shared_in_global_frame(
         J[3 * r : 3 * r + 3, 0:3] = Jb
         J[3 * r : 3 * r + 3, 3 * r + 3 : 3 * r + 6] = Je
     return vals, J, idx
-
-
-def associate(
-    state: GaussianMap,
-    queries: list[Query],
-    targets_for: dict[ElementKind, tuple[list[int], FloatArray]],
-    config: EKFConfig,
-) -> list[Candidate | None]:
-    """Associate queries to targets with ``config``'s association settings
-    (:func:`ekf_reference.association.choose`)."""
-    return choose(state, queries, targets_for, config.data_association)
 
 
 def merge_extent(

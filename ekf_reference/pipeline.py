@@ -24,6 +24,7 @@ from ekf_reference.association import (
     IteratedUpdate,
     Query,
     apply,
+    choose,
     evaluate,
     individual_candidates,
     predict_all_targets,
@@ -36,7 +37,6 @@ from ekf_reference.loops import LoopClosureParams, accepted, register_circles
 from ekf_reference.maps import (
     CIContext,
     _wrap_diff,
-    associate,
     bind_line_cov,
     compose_into,
     copied_local_map,
@@ -175,7 +175,7 @@ class _Run:
         targets = self._gated(
             loc, predict_all_targets(loc, lambda e: e.moving, known=not self._copied())
         )
-        chosen = associate(loc, queries, targets, self.config)
+        chosen = choose(loc, queries, targets, self.config.data_association)
         self._record(k, loc, queries, chosen, targets)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is None:
@@ -306,7 +306,7 @@ class _Run:
         if not queries:
             return
         targets = self._gated(state, predict_all_targets(state, lambda e: False))
-        chosen = associate(state, queries, targets, self.config)
+        chosen = choose(state, queries, targets, self.config.data_association)
         self._record(self.step, state, queries, chosen, targets)
         pairs = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         if not pairs:
@@ -420,7 +420,7 @@ class _Run:
             for kind, (idx, preds) in list(targets.items()):
                 keep = [r for r, t in enumerate(idx) if t not in used]
                 targets[kind] = ([idx[r] for r in keep], preds[keep])
-        chosen = associate(joint, queries, targets, self.config)
+        chosen = choose(joint, queries, targets, self.config.data_association)
         self._record(k, joint, queries, chosen, targets)
         new = [(q, c) for q, c in zip(queries, chosen, strict=True) if c is not None]
         apply(joint, [c for _, c in new])

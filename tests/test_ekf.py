@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, maps, run_ekf
-from ekf_reference.association import Query, predict_all_targets
+from ekf_reference.association import Query, choose, predict_all_targets
 from ekf_reference.loops import LoopClosureParams
-from ekf_reference.maps import associate, predict
+from ekf_reference.maps import predict
 from ekf_reference.pipeline import _Run
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.evaluation import nees_series, pose_errors, truth_in_global
@@ -367,7 +367,8 @@ def test_line_landmarks_take_several_observations_circles_one(method: str) -> No
 
     def targets_of(**kw: object) -> list[int | None]:
         cfg = EKFConfig(data_association=AssociationConfig(method=method, **kw))  # type: ignore[arg-type]
-        return [c.target if c is not None else None for c in associate(m, queries, targets, cfg)]
+        chosen = choose(m, queries, targets, cfg.data_association)
+        return [c.target if c is not None else None for c in chosen]
 
     chosen = targets_of()
     assert chosen[:2] == [1, 1]
