@@ -79,20 +79,6 @@ class _CliqueGraph:
         """Remove nodes (graph node ids) from later searches."""
         self.alive[graph_nodes] = False
 
-    def greedy_clique(self) -> IntArray:
-        """Graph node ids of the largest clique the greedy growth (step 2) finds among
-        the alive nodes: a maximal clique, not always a maximum one, found without the
-        exact search (so without spending any budget)."""
-        keep = self.alive[self.eu] & self.alive[self.ev]
-        eu, ev = self.eu[keep], self.ev[keep]
-        alive_ids = np.nonzero(self.alive)[0].astype(np.int64)
-        if eu.size == 0:
-            return alive_ids[:1]
-        ids, (u, v) = _compact(self.alive.size, eu, ev)
-        W = _packed_adjacency(ids.size, u, v)
-        best = _greedy_best(W, _common_neighbours(W, u, v), u, v)
-        return ids[np.array(sorted(best), dtype=np.int64)]
-
     def max_clique(
         self, at_least: int = 1, budget: _SearchBudget | None = None, maximum: bool = True
     ) -> IntArray:

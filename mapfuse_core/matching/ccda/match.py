@@ -178,7 +178,7 @@ def _partial(
     if ni.size == 0:
         return None
     G = _CliqueGraph(np.arange(ni.size, dtype=np.int64), eu, ev, ni, nj)
-    c = G.greedy_clique()
+    c = G.max_clique(at_least=1, maximum=False)  # the greedy clique: no exact search
     return _clique_hypothesis(A, B, c, ni, nj, gates, params)
 
 
