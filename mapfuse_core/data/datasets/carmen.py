@@ -40,6 +40,7 @@ from mapfuse_core.data.datasets.carmen_kind import (
     laser_poses_on_odometry,
 )
 from mapfuse_core.data.datasets.common import DatasetError, check_finite, empty_map
+from mapfuse_core.data.datasets.line_noise import estimate_line_model_error, with_line_model_error
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, relative, wrap_scalar
 from mapfuse_core.matching import AssociationConfig
@@ -59,6 +60,10 @@ __all__ = [
 ]
 
 OdometryKind = Literal["auto", "raw", "corrected"]
+
+LineModelErrorSource = Literal["estimated", "profile"]
+"""Where a CARMEN log's line model-error terms come from
+(:attr:`CarmenOptions.line_model_error`)."""
 
 _DEFAULT_MAX_RANGE_M = 80.0
 """Maximum range when the log states none (m): the SICK LMS 2xx's 80 m.  Its
@@ -126,6 +131,14 @@ class CarmenOptions:
     80 m.  Readings at or above it, or ≤ 0, are no return."""
     extraction: ExtractionParams = field(default_factory=ExtractionParams.indoor_sick)
     """Extraction thresholds (:meth:`ExtractionParams.indoor_sick`)."""
+    line_model_error: LineModelErrorSource = "estimated"
+    """``"estimated"``: a log with a reference trajectory gets line model-error terms
+    estimated from its own scans against its floor plan, with the correlation of
+    consecutive scans (:func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`),
+    in place of :attr:`extraction`'s ``line_model_sigma_m`` / ``line_model_sigma_rad``;
+    a log without one (raw odometry), or with too few observations on its plan, keeps
+    :attr:`extraction`'s.  ``"profile"``: :attr:`extraction`'s terms on every log.  The
+    log's metadata (``line_model_error``) says which were used."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""
@@ -153,6 +166,11 @@ class CarmenOptions:
             raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
         if not isinstance(self.keep_scans, bool):
             raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
+        if self.line_model_error not in ("estimated", "profile"):
+            raise ValueError(
+                "CarmenOptions.line_model_error must be 'estimated' or 'profile', "
+                f"got {self.line_model_error!r}"
+            )
 
 
 def detect_odometry_kind(rec: CarmenRecords) -> LogKind:
@@ -330,6 +348,11 @@ def load_carmen(
             odometry_cov[k] = opts.odometry_noise.cov(odometry[k])
         metadata["odometry"] = "raw"
 
+    estimate = opts.line_model_error == "estimated" and kind == "corrected"
+    extraction = opts.extraction
+    if estimate:
+        # Fitted covariances alone: the terms are estimated on them, then added.
+        extraction = replace(extraction, line_model_sigma_m=0.0, line_model_sigma_rad=0.0)
     steps: list[int] = []
     params: list[FloatArray] = []
     covs: list[FloatArray] = []
@@ -337,7 +360,7 @@ def load_carmen(
     extents: list[tuple[float, float]] = []
     rejected: dict[str, int] = {}
     for k, (scan, laser) in enumerate(carmen_scans(rec, opts)):
-        res = extract_features(scan, laser, opts.extraction)
+        res = extract_features(scan, laser, extraction)
         if progress is not None:
             progress(k + 1, n)
         for key, c in res.rejected.items():
@@ -357,7 +380,7 @@ def load_carmen(
     else:
         metadata["raw_scans"] = f"{scans[1].shape[0]} x {scans[1].shape[1]} beams"
         scan_bearings, scan_ranges = scans
-    return MeasurementLog(
+    log = MeasurementLog(
         scenario=f"carmen:{Path(path).name}",
         seed=opts.seed if kind == "corrected" else -1,
         timestamps=t,
@@ -377,6 +400,33 @@ def load_carmen(
         scan_bearings=scan_bearings,
         scan_ranges=scan_ranges,
     )
+    return _with_line_model_error(log, opts.extraction) if estimate else _profile_terms(log, opts)
+
+
+def _profile_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
+    """``log`` (extracted with ``opts.extraction``'s terms) with the metadata saying so."""
+    why = "as asked" if opts.line_model_error == "profile" else "the log has no reference"
+    return _noted(log, opts.extraction, why)
+
+
+def _noted(log: MeasurementLog, e: ExtractionParams, why: str) -> MeasurementLog:
+    text = (
+        f"extraction profile's ({why}): {e.line_model_sigma_m:.3f} m, "
+        f"{math.degrees(e.line_model_sigma_rad):.2f} deg"
+    )
+    return replace(log, metadata={**log.metadata, "line_model_error": text})
+
+
+def _with_line_model_error(log: MeasurementLog, profile: ExtractionParams) -> MeasurementLog:
+    """``log`` (lines without model-error terms) with the terms estimated on it, or the
+    profile's where it has too few observations on its floor plan."""
+    try:
+        err = estimate_line_model_error(log)
+    except ValueError as exc:
+        out = with_line_model_error(log, profile.line_model_sigma_m, profile.line_model_sigma_rad)
+        return _noted(out, profile, str(exc))
+    out = with_line_model_error(log, err.sigma_m, err.sigma_rad)
+    return replace(out, metadata={**out.metadata, "line_model_error": err.summary()})
 
 
 def carmen_association() -> AssociationConfig:

@@ -20,7 +20,13 @@ import numpy as np
 from mapfuse_core.geometry.features import FeatureKind, line_from_normal
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction.labels import _label
-from mapfuse_core.perception.extraction.noise import _chi2_max, _Noise, _normal_var, _range_moments
+from mapfuse_core.perception.extraction.noise import (
+    _chi2_max,
+    _Noise,
+    _normal_var,
+    _range_moments,
+    line_model_cov,
+)
 from mapfuse_core.perception.extraction.params import ExtractedFeature, ExtractionParams
 from mapfuse_core.sensor import LaserParams
 
@@ -241,10 +247,8 @@ def _line_feature(
     line, J = line_from_normal(fit.rho, fit.alpha, t_mid)
     C = np.zeros((3, 3))
     C[:2, :2] = fit.cov
-    C[0, 0] += params.line_model_sigma_m**2
-    C[1, 1] += params.line_model_sigma_rad**2
     C[2, 2] = length * length / 12.0
-    cov = J @ C @ J.T
+    cov = J @ C @ J.T + line_model_cov(line, params.line_model_sigma_m, params.line_model_sigma_rad)
     return ExtractedFeature(
         kind=FeatureKind.LINE,
         params=line,

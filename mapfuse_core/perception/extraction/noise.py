@@ -17,6 +17,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import norm as norm_dist
 
+from mapfuse_core.geometry.features import line_from_normal
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.perception.extraction.params import ExtractionParams
 
@@ -99,3 +100,25 @@ def _chi2_quantile(q: float, dof: int) -> float:
 def _chi2_max(params: ExtractionParams, dof: int) -> float:
     """Acceptance bound on a fit's χ² with ``dof`` degrees of freedom."""
     return _chi2_quantile(params.chi2_quantile, dof)
+
+
+def line_model_cov(line: FloatArray, sigma_m: float, sigma_rad: float) -> FloatArray:
+    """(3, 3) covariance the line model-error terms add to an observed line.
+
+    ``line`` is an SPmap line ``(x, y, θ)`` in the sensor frame, y axis towards the
+    sensor (:class:`~mapfuse_core.perception.extraction.ExtractedFeature`).  The terms
+    are variances of its normal form: ``sigma_m²`` on the distance ``ρ`` from the
+    sensor, ``sigma_rad²`` on the normal's direction ``α`` (rotating the line about
+    the foot of that normal), propagated to ``(x, y, θ)`` at the line's origin.  The
+    extractor adds it to every line (``ExtractionParams.line_model_sigma_m`` and
+    ``line_model_sigma_rad``); :func:`~mapfuse_core.data.datasets.line_noise.with_line_model_error`
+    adds it to the lines of a log already extracted, with the same result.
+    """
+    alpha = float(line[2]) - math.pi / 2.0
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    rho = float(line[0]) * ca + float(line[1]) * sa
+    t = -float(line[0]) * sa + float(line[1]) * ca
+    _, J = line_from_normal(rho, alpha, t)
+    Jm = J[:, :2]
+    out: FloatArray = (Jm * np.array([sigma_m * sigma_m, sigma_rad * sigma_rad])) @ Jm.T
+    return out

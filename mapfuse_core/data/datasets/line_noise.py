@@ -1,0 +1,240 @@
+"""The line model-error terms of a log with a reference trajectory, from its own scans.
+
+A real wall is not the straight line the extractor fits (bowed plaster, skirting
+boards, door frames, furniture against it), and the part of that departure all
+returns of one segment share is not averaged away by more returns: it is a model
+error, added to every line's covariance as a σ on the normal's distance ``ρ`` and one
+on its direction ``α`` (:func:`~mapfuse_core.perception.extraction.noise.line_model_cov`).
+It also repeats from one scan to the next while the sensor sees the same piece of wall
+from nearly the same place, so an estimator that takes consecutive observations as
+independent counts the same error several times.
+
+:func:`estimate_line_model_error` measures both on the log itself.  It builds the
+log's floor plan (each wall the mean of the observations clustered on it, with the
+standard error of that mean and no survey σ), expresses every observation's wall at
+the reference pose and takes the residual (lateral offset, angle) against the
+observation's own covariance plus the wall's.  Then, per degree of freedom:
+
+1. the σ that makes the mean whitened squared residual 1;
+2. with it, the integrated autocorrelation time ``τ = 1 + 2 Σ ρ_L`` of the whitened
+   residuals of one wall ``L`` scans apart (pooled over the walls, summed while the
+   correlation stays above :data:`MIN_CORRELATION`);
+3. the σ that makes that mean ``1/τ``: each observation then carries ``1/τ`` of the
+   information it would carry alone, which is what a run of ``τ`` correlated
+   observations is worth about what they share.
+
+The angle's σ is solved first (the lateral offset depends on both terms, through the
+distance from the normal's foot to the observed segment).  The tail of the residuals
+is heavy (mixed-up walls, furniture); the mean counts it, as a run's NEES does.
+Measured on the seven CARMEN logs in ``docs/results/carmen.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from mapfuse_core.data.datasets.floorplan import FloorPlan, FloorPlanParams, build_floor_plan
+from mapfuse_core.geometry.features import FeatureKind, express_line_in
+from mapfuse_core.geometry.se2 import FloatArray
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.models import line_pairing
+from mapfuse_core.perception.extraction.noise import line_model_cov
+
+__all__ = [
+    "MIN_CORRELATION",
+    "MIN_OBSERVATIONS",
+    "LineModelError",
+    "estimate_line_model_error",
+    "with_line_model_error",
+]
+
+MIN_OBSERVATIONS = 50
+"""Fewest line observations on plan walls from which the terms are estimated."""
+
+MIN_CORRELATION = 0.05
+"""The autocorrelation sum stops at the first lag whose correlation is at most this
+(noise at the pooled sample sizes of a log, a few hundred pairs per lag)."""
+
+_MAX_LAG = 10
+"""Longest lag (scans) summed: the correlation of the seven logs is gone by lag 5."""
+
+_NEGLIGIBLE_SURVEY = 1e-9
+"""The plan's survey σ while estimating (m and rad): the residuals are compared with
+the merge's own standard error, not with a stated survey tolerance."""
+
+
+@dataclass(frozen=True)
+class LineModelError:
+    """Line model-error terms estimated on one log (:func:`estimate_line_model_error`)."""
+
+    sigma_m: float
+    """σ (m) on every line's ``ρ`` (``ExtractionParams.line_model_sigma_m``)."""
+    sigma_rad: float
+    """σ (rad) on every line's ``α`` (``ExtractionParams.line_model_sigma_rad``)."""
+    iact: tuple[float, float]
+    """Integrated autocorrelation time ``τ`` (scans) of the whitened (lateral, angle)
+    residuals of one wall: how many consecutive observations share one error."""
+    observations: int
+    """Line observations on a plan wall the estimate rests on."""
+    nees_without: tuple[float, float]
+    """Mean whitened squared residual (lateral, angle) without the terms."""
+
+    def summary(self) -> str:
+        """One line for a log's metadata."""
+        return (
+            f"estimated from the log: {self.sigma_m:.3f} m, "
+            f"{math.degrees(self.sigma_rad):.2f} deg (autocorrelation time "
+            f"{self.iact[0]:.1f} / {self.iact[1]:.1f} scans, "
+            f"{self.observations} observations on plan walls)"
+        )
+
+
+@dataclass(frozen=True)
+class _Residuals:
+    """Every observation against its wall: the residuals, the diagonal of their
+    covariance without the terms, and how each term enters it."""
+
+    wall: np.ndarray
+    """(N,) wall of each observation."""
+    step: np.ndarray
+    """(N,) its scan."""
+    r: FloatArray
+    """(N, 2) (lateral, angle) residual."""
+    var: FloatArray
+    """(N, 2) its variance without the terms (observation's and wall's)."""
+    gain: FloatArray
+    """(N, 2, 2) ``[d, k]``: variance added to dof ``d`` by a unit variance of term
+    ``k`` (``ρ``, ``α``)."""
+
+    def whitened(self, var_m: float, var_rad: float) -> FloatArray:
+        """(N, 2) residuals over their standard deviation with the terms."""
+        v = self.var + self.gain @ np.array([var_m, var_rad])
+        out: FloatArray = self.r / np.sqrt(v)
+        return out
+
+
+def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
+    assert log.true_poses is not None
+    idx = np.flatnonzero(plan.obs_wall >= 0)
+    r = np.empty((idx.size, 2))
+    var = np.empty((idx.size, 2))
+    gain = np.empty((idx.size, 2, 2))
+    for n, i in enumerate(idx.tolist()):
+        w = int(plan.obs_wall[i])
+        z = log.feat_params[i]
+        pred, _, Jf = express_line_in(log.true_poses[log.feat_step[i]], plan.walls.params[w])
+        r[n], Jz, Jp = line_pairing(z, pred)
+        Jw = Jp @ Jf
+        var[n] = np.diag(Jz @ log.feat_cov[i] @ Jz.T + Jw @ plan.walls.covs[w] @ Jw.T)
+        for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
+            gain[n, :, k] = np.diag(Jz @ line_model_cov(z, *unit) @ Jz.T)
+    return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain)
+
+
+def _solve(f: Callable[[float], float], target: float) -> float:
+    """Smallest ``v ≥ 0`` with ``f(v) ≤ target`` for a decreasing ``f`` (bisection)."""
+    if f(0.0) <= target:
+        return 0.0
+    hi = 1e-4
+    while f(hi) > target:
+        hi *= 4.0
+        if hi > 1e6:
+            raise ValueError("no finite line model error whitens the residuals")
+    lo = 0.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if f(mid) > target:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+def _variances(res: _Residuals, target: tuple[float, float]) -> tuple[float, float]:
+    """(σ_m², σ_rad²) bringing the mean whitened squared residuals to ``target``: the
+    angle's first, since it alone moves the angle residual."""
+
+    def mean_nees(d: int, var_m: float, var_rad: float) -> float:
+        return float(np.mean(res.whitened(var_m, var_rad)[:, d] ** 2))
+
+    var_rad = _solve(lambda v: mean_nees(1, 0.0, v), target[1])
+    var_m = _solve(lambda v: mean_nees(0, v, var_rad), target[0])
+    return var_m, var_rad
+
+
+def _iact(res: _Residuals, var_m: float, var_rad: float) -> tuple[float, float]:
+    """τ per dof of the whitened residuals of one wall ``L`` scans apart."""
+    z = res.whitened(var_m, var_rad)
+    index = {(int(w), int(k)): j for j, (w, k) in enumerate(zip(res.wall, res.step, strict=True))}
+    taus = []
+    for d in range(2):
+        tau = 1.0
+        for lag in range(1, _MAX_LAG + 1):
+            later = [
+                index.get((int(w), int(k) + lag), -1)
+                for w, k in zip(res.wall, res.step, strict=True)
+            ]
+            j = np.array(later)
+            a, b = z[j >= 0, d], z[j[j >= 0], d]
+            if a.size < 2 or np.std(a) == 0.0 or np.std(b) == 0.0:
+                break
+            rho = float(np.corrcoef(a, b)[0, 1])
+            if not rho > MIN_CORRELATION:
+                break
+            tau += 2.0 * rho
+        taus.append(tau)
+    return taus[0], taus[1]
+
+
+def estimate_line_model_error(
+    log: MeasurementLog, params: FloorPlanParams | None = None
+) -> LineModelError:
+    """The line model-error terms of ``log`` (module docstring).
+
+    ``log`` needs a reference trajectory, and its line covariances must hold no
+    model-error term yet (extracted with ``line_model_sigma_m = line_model_sigma_rad
+    = 0``).  ``params`` builds the plan (its survey σ is ignored).  Raises
+    :class:`ValueError` without a reference or with fewer than
+    :data:`MIN_OBSERVATIONS` line observations on plan walls.
+    """
+    if log.true_poses is None:
+        raise ValueError(
+            "the line model error is estimated against a reference trajectory; the log has none"
+        )
+    p = FloorPlanParams() if params is None else params
+    p = replace(p, survey_sigma_m=_NEGLIGIBLE_SURVEY, survey_sigma_rad=_NEGLIGIBLE_SURVEY)
+    res = _residuals(log, build_floor_plan(log, p))
+    n = int(res.r.shape[0])
+    if n < MIN_OBSERVATIONS:
+        raise ValueError(
+            f"{n} line observations lie on walls of the log's floor plan; the line "
+            f"model error needs at least {MIN_OBSERVATIONS}"
+        )
+    z0 = res.whitened(0.0, 0.0)
+    without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
+    tau = _iact(res, *_variances(res, (1.0, 1.0)))
+    var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
+    return LineModelError(
+        sigma_m=math.sqrt(var_m),
+        sigma_rad=math.sqrt(var_rad),
+        iact=tau,
+        observations=n,
+        nees_without=without,
+    )
+
+
+def with_line_model_error(log: MeasurementLog, sigma_m: float, sigma_rad: float) -> MeasurementLog:
+    """``log`` with the model-error terms (σ on ``ρ``, σ on ``α``) added to every line's
+    covariance, as the extractor adds ``ExtractionParams.line_model_sigma_m`` and
+    ``line_model_sigma_rad``."""
+    for name, v in (("sigma_m", sigma_m), ("sigma_rad", sigma_rad)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be finite and >= 0, got {v}")
+    cov = log.feat_cov.copy()
+    for i in np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist():
+        cov[i] = cov[i] + line_model_cov(log.feat_params[i], sigma_m, sigma_rad)
+    return replace(log, feat_cov=cov)
