@@ -21,7 +21,10 @@ observation's own covariance plus the wall's.  Then, per degree of freedom:
    correlation stays above :data:`MIN_CORRELATION`);
 3. the σ that makes that mean ``1/τ``: each observation then carries ``1/τ`` of the
    information it would carry alone, which is what a run of ``τ`` correlated
-   observations is worth about what they share.
+   observations is worth about what they share;
+4. steps 2–3 again until ``τ`` settles (the terms reweight the observations, which
+   moves ``τ`` a little): the ``τ`` reported is that of the residuals whitened with
+   the terms reported.
 
 The angle's σ is solved first (the lateral offset depends on both terms, through the
 distance from the normal's foot to the observed segment).  The tail of the residuals
@@ -61,6 +64,12 @@ MIN_CORRELATION = 0.05
 
 _MAX_LAG = 10
 """Longest lag (scans) summed: the correlation of the seven logs is gone by lag 5."""
+
+_MAX_ROUNDS = 10
+"""Most rounds of the τ fixed point (three suffice on the seven logs)."""
+
+_TAU_TOL = 0.01
+"""Relative change of τ below which the fixed point has converged."""
 
 _NEGLIGIBLE_SURVEY = 1e-9
 """The plan's survey σ while estimating (m and rad): the residuals are compared with
@@ -216,8 +225,14 @@ def estimate_line_model_error(
         )
     z0 = res.whitened(0.0, 0.0)
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
-    tau = _iact(res, *_variances(res, (1.0, 1.0)))
-    var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
+    var_m, var_rad = _variances(res, (1.0, 1.0))
+    tau = (1.0, 1.0)
+    for _ in range(_MAX_ROUNDS):
+        # τ moves with the terms (they reweight the observations): to a fixed point.
+        last, tau = tau, _iact(res, var_m, var_rad)
+        var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
+        if max(abs(a - b) / b for a, b in zip(tau, last, strict=True)) < _TAU_TOL:
+            break
     return LineModelError(
         sigma_m=math.sqrt(var_m),
         sigma_rad=math.sqrt(var_rad),
