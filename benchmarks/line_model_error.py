@@ -1,0 +1,194 @@
+"""Line model-error terms on CARMEN logs: estimated per log against the profile's (prints JSON).
+
+For every corrected log given (``--logs``; default every ``*-corrected.log*`` in
+``--data``/carmen):
+
+* **the estimate** (:func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`
+  on the log extracted without model-error terms): line observations on plan walls,
+  mean whitened squared residual per dof without terms, autocorrelation time τ per
+  dof, the σ on ρ and α;
+* **what it does to the estimators** with the association taken from the reference
+  labels (``association="truth"``) and no known map, so that only the line noise model
+  differs: for every seed of the simulated odometry and every ``--estimators`` entry
+  (a graph backend, ``NAME+KERNEL`` for a robust kernel), the log loaded with the
+  profile's terms and with the estimated ones: position RMSE and mean pose NEES.
+
+One JSON line per (log, seed, terms, estimator) and, after every log, a summary line
+(ANEES over the seeds with the two-sided 95 % acceptance region from the runs'
+effective samples, median RMSE); ``--markdown`` prints the tables at the end.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/line_model_error.py --seeds 0 1 2 3 4 5 6 7 \\
+        --markdown
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+from scipy.stats import chi2
+
+from mapfuse.runner import run
+from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
+from mapfuse_core.data.datasets.line_noise import LineModelError, estimate_line_model_error
+from mapfuse_core.perception.extraction import ExtractionParams
+
+SOURCES = ("profile", "estimated")
+"""``CarmenOptions.line_model_error`` values compared."""
+
+
+def estimate_row(path: Path) -> tuple[dict[str, Any], LineModelError]:
+    """The estimate on ``path`` extracted without model-error terms, as a JSON row."""
+    bare = dataclasses.replace(
+        ExtractionParams.indoor_sick(), line_model_sigma_m=0.0, line_model_sigma_rad=0.0
+    )
+    log = load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile"))
+    est = estimate_line_model_error(log)
+    return {
+        "log": _name(path),
+        "observations": est.observations,
+        "nees_per_dof_without": list(est.nees_without),
+        "iact": list(est.iact),
+        "sigma_m": est.sigma_m,
+        "sigma_deg": math.degrees(est.sigma_rad),
+    }, est
+
+
+def _name(path: Path) -> str:
+    return path.name.split("-corrected")[0]
+
+
+def _runs(path: Path, seeds: list[int], estimators: list[str]) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    plan = None
+    for source in SOURCES:
+        for seed in seeds:
+            opts = CarmenOptions(seed=seed, line_model_error=source)  # type: ignore[arg-type]
+            raw = load_carmen(path, options=opts)
+            # The plan's walls come from the scatter of their members, not from the
+            # observations' covariances: one plan serves both sources.
+            plan = build_floor_plan(raw) if plan is None else plan
+            log = label_with_plan(raw, plan)
+            for est in estimators:
+                name, _, kernel = est.partition("+")
+                kw: dict[str, Any] = {"graph": {"robust": kernel}} if kernel else {}
+                c0 = time.process_time()
+                r = run(log, name, fusion=False, association="truth", **kw)
+                m = r.metrics
+                # A corrected log has its reference: both metrics exist.
+                assert m.nees is not None
+                assert m.position_error is not None
+                iv = m.nees.mean_interval
+                rows.append(
+                    {
+                        "log": _name(path),
+                        "seed": seed,
+                        "terms": source,
+                        "estimator": est,
+                        "rmse_m": m.position_error.rmse,
+                        "nees_mean": m.nees.mean,
+                        "nees_effective_samples": iv.effective_samples if iv else None,
+                        "cpu_s": time.process_time() - c0,
+                    }
+                )
+                print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """ANEES over the seeds (mean of the runs' means) with the 95 % acceptance region of
+    a consistent estimator from their effective samples summed, per (terms, estimator)."""
+    out = []
+    keys = sorted(
+        {(r["terms"], r["estimator"]) for r in rows}, key=lambda k: (SOURCES.index(k[0]), k[1])
+    )
+    for terms, est in keys:
+        runs = [r for r in rows if r["terms"] == terms and r["estimator"] == est]
+        n_eff = sum(r["nees_effective_samples"] or 0.0 for r in runs)
+        lo = float(chi2.ppf(0.025, 3 * n_eff) / n_eff) if n_eff else math.nan
+        hi = float(chi2.ppf(0.975, 3 * n_eff) / n_eff) if n_eff else math.nan
+        out.append(
+            {
+                "log": runs[0]["log"],
+                "terms": terms,
+                "estimator": est,
+                "seeds": len(runs),
+                "anees": statistics.fmean(r["nees_mean"] for r in runs),
+                "interval": [lo, hi],
+                "rmse_median_m": statistics.median(r["rmse_m"] for r in runs),
+            }
+        )
+    return out
+
+
+def _markdown(estimates: list[dict[str, Any]], summaries: list[dict[str, Any]]) -> str:
+    lines = [
+        "| log | observations on plan walls | NEES/dof without terms (lateral, angle) "
+        "| τ (lateral, angle) | σ on ρ (m) | σ on α (°) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for e in estimates:
+        lines.append(
+            f"| {e['log']} | {e['observations']} | {e['nees_per_dof_without'][0]:.1f}, "
+            f"{e['nees_per_dof_without'][1]:.1f} | {e['iact'][0]:.1f}, {e['iact'][1]:.1f} "
+            f"| {e['sigma_m']:.3f} | {e['sigma_deg']:.2f} |"
+        )
+    lines += [
+        "",
+        "| log | estimator | terms | ANEES [95 % region] | RMSE median (m) |",
+        "|---|---|---|---|---|",
+    ]
+    for s in summaries:
+        lines.append(
+            f"| {s['log']} | {s['estimator']} | {s['terms']} | {s['anees']:.1f} "
+            f"[{s['interval'][0]:.2f}, {s['interval'][1]:.2f}] | {s['rmse_median_m']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def _resolve(data: Path, names: list[str] | None) -> list[Path]:
+    folder = data / "carmen"
+    if not names:
+        return sorted(folder.glob("*-corrected.log*"))
+    out = []
+    for n in names:
+        hits = sorted(folder.glob(f"{n}*-corrected.log*"))
+        if not hits:
+            raise SystemExit(f"no CARMEN log {n!r} in {folder}")
+        out.append(hits[0])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--logs", nargs="*", help="names in --data/carmen (csail, intel…)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument(
+        "--estimators",
+        default="batch,batch+cauchy",
+        help="comma list of graph backends; NAME+KERNEL for a robust kernel",
+    )
+    ap.add_argument("--markdown", action="store_true")
+    args = ap.parse_args()
+    estimators = [e for e in args.estimators.split(",") if e]
+    estimates, summaries = [], []
+    for path in _resolve(args.data, args.logs):
+        row, _ = estimate_row(path)
+        estimates.append(row)
+        print(json.dumps({"estimate": row}), flush=True)
+        for s in summary(_runs(path, args.seeds, estimators)):
+            summaries.append(s)
+            print(json.dumps({"summary": s}), flush=True)
+    if args.markdown:
+        print(_markdown(estimates, summaries))
+
+
+if __name__ == "__main__":
+    main()
