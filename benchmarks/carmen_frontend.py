@@ -350,6 +350,12 @@ def main() -> None:
         help="JSON overrides of the EKF's options, e.g. "
         '\'{"data_association": {"map_method": "nn"}}\'',
     )
+    ap.add_argument(
+        "--line-model-error",
+        default="correlated",
+        choices=("correlated", "independent", "profile"),
+        help="CarmenOptions.line_model_error: where the line model-error terms come from",
+    )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
     estimators = [e for e in args.estimators.split(",") if e]
@@ -357,7 +363,12 @@ def main() -> None:
         ap.error("--estimators must start with ekf (the graph backends take its decisions)")
     summaries = []
     for path in _resolve(args.data, args.logs):
-        fulls = {s: load_carmen(path, options=CarmenOptions(seed=s)) for s in args.seeds}
+        fulls = {
+            s: load_carmen(
+                path, options=CarmenOptions(seed=s, line_model_error=args.line_model_error)
+            )
+            for s in args.seeds
+        }
         first = next(iter(fulls.values()))
         n_full = first.n_steps
         # The plan is built from the scans at the reference poses: one for every seed.

@@ -39,7 +39,7 @@ from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_wi
 from mapfuse_core.data.datasets.line_noise import LineModelError, estimate_line_model_error
 from mapfuse_core.perception.extraction import ExtractionParams
 
-SOURCES = ("profile", "estimated")
+SOURCES = ("profile", "independent", "correlated")
 """``CarmenOptions.line_model_error`` values compared."""
 
 
@@ -50,6 +50,7 @@ def estimate_row(path: Path) -> tuple[dict[str, Any], LineModelError]:
     )
     log = load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile"))
     est = estimate_line_model_error(log)
+    ind = estimate_line_model_error(log, correlated=False)
     return {
         "log": _name(path),
         "observations": est.observations,
@@ -57,6 +58,8 @@ def estimate_row(path: Path) -> tuple[dict[str, Any], LineModelError]:
         "iact": list(est.iact),
         "sigma_m": est.sigma_m,
         "sigma_deg": math.degrees(est.sigma_rad),
+        "independent_sigma_m": ind.sigma_m,
+        "independent_sigma_deg": math.degrees(ind.sigma_rad),
     }, est
 
 
@@ -130,14 +133,15 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def _markdown(estimates: list[dict[str, Any]], summaries: list[dict[str, Any]]) -> str:
     lines = [
         "| log | observations on plan walls | NEES/dof without terms (lateral, angle) "
-        "| τ (lateral, angle) | σ on ρ (m) | σ on α (°) |",
+        "| τ (lateral, angle) | σ on ρ (m), α (°): independent | correlated |",
         "|---|---|---|---|---|---|",
     ]
     for e in estimates:
         lines.append(
             f"| {e['log']} | {e['observations']} | {e['nees_per_dof_without'][0]:.1f}, "
             f"{e['nees_per_dof_without'][1]:.1f} | {e['iact'][0]:.1f}, {e['iact'][1]:.1f} "
-            f"| {e['sigma_m']:.3f} | {e['sigma_deg']:.2f} |"
+            f"| {e['independent_sigma_m']:.3f}, {e['independent_sigma_deg']:.2f} "
+            f"| {e['sigma_m']:.3f}, {e['sigma_deg']:.2f} |"
         )
     lines += [
         "",

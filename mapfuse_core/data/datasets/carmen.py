@@ -61,7 +61,7 @@ __all__ = [
 
 OdometryKind = Literal["auto", "raw", "corrected"]
 
-LineModelErrorSource = Literal["estimated", "profile"]
+LineModelErrorSource = Literal["correlated", "independent", "profile"]
 """Where a CARMEN log's line model-error terms come from
 (:attr:`CarmenOptions.line_model_error`)."""
 
@@ -131,12 +131,15 @@ class CarmenOptions:
     80 m.  Readings at or above it, or ≤ 0, are no return."""
     extraction: ExtractionParams = field(default_factory=ExtractionParams.indoor_sick)
     """Extraction thresholds (:meth:`ExtractionParams.indoor_sick`)."""
-    line_model_error: LineModelErrorSource = "estimated"
-    """``"estimated"``: a log with a reference trajectory gets line model-error terms
-    estimated from its own scans against its floor plan, with the correlation of
-    consecutive scans (:func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`),
-    in place of :attr:`extraction`'s ``line_model_sigma_m`` / ``line_model_sigma_rad``;
-    a log without one (raw odometry), or with too few observations on its plan, keeps
+    line_model_error: LineModelErrorSource = "correlated"
+    """Where the line model-error terms come from.  ``"correlated"`` and
+    ``"independent"``: a log with a reference trajectory gets terms estimated from its
+    own scans against its floor plan
+    (:func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`), in place
+    of :attr:`extraction`'s ``line_model_sigma_m`` / ``line_model_sigma_rad``;
+    ``"correlated"`` counts the correlation of consecutive scans (each observation worth
+    ``1/τ``), ``"independent"`` whitens each observation to 1.  A log without a
+    reference (raw odometry), or with too few observations on its plan, keeps
     :attr:`extraction`'s.  ``"profile"``: :attr:`extraction`'s terms on every log.  The
     log's metadata (``line_model_error``) says which were used."""
     extraction_max_range_m: float = 20.0
@@ -166,10 +169,10 @@ class CarmenOptions:
             raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
         if not isinstance(self.keep_scans, bool):
             raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
-        if self.line_model_error not in ("estimated", "profile"):
+        if self.line_model_error not in ("correlated", "independent", "profile"):
             raise ValueError(
-                "CarmenOptions.line_model_error must be 'estimated' or 'profile', "
-                f"got {self.line_model_error!r}"
+                "CarmenOptions.line_model_error must be 'correlated', 'independent' or "
+                f"'profile', got {self.line_model_error!r}"
             )
 
 
@@ -348,7 +351,7 @@ def load_carmen(
             odometry_cov[k] = opts.odometry_noise.cov(odometry[k])
         metadata["odometry"] = "raw"
 
-    estimate = opts.line_model_error == "estimated" and kind == "corrected"
+    estimate = opts.line_model_error != "profile" and kind == "corrected"
     extraction = opts.extraction
     if estimate:
         # Fitted covariances alone: the terms are estimated on them, then added.
@@ -400,7 +403,9 @@ def load_carmen(
         scan_bearings=scan_bearings,
         scan_ranges=scan_ranges,
     )
-    return _with_line_model_error(log, opts.extraction) if estimate else _profile_terms(log, opts)
+    if not estimate:
+        return _profile_terms(log, opts)
+    return _with_line_model_error(log, opts.extraction, opts.line_model_error == "correlated")
 
 
 def _profile_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
@@ -417,11 +422,13 @@ def _noted(log: MeasurementLog, e: ExtractionParams, why: str) -> MeasurementLog
     return replace(log, metadata={**log.metadata, "line_model_error": text})
 
 
-def _with_line_model_error(log: MeasurementLog, profile: ExtractionParams) -> MeasurementLog:
+def _with_line_model_error(
+    log: MeasurementLog, profile: ExtractionParams, correlated: bool
+) -> MeasurementLog:
     """``log`` (lines without model-error terms) with the terms estimated on it, or the
     profile's where it has too few observations on its floor plan."""
     try:
-        err = estimate_line_model_error(log)
+        err = estimate_line_model_error(log, correlated=correlated)
     except ValueError as exc:
         out = with_line_model_error(log, profile.line_model_sigma_m, profile.line_model_sigma_rad)
         return _noted(out, profile, str(exc))

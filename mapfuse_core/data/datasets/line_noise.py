@@ -91,11 +91,15 @@ class LineModelError:
     """Line observations on a plan wall the estimate rests on."""
     nees_without: tuple[float, float]
     """Mean whitened squared residual (lateral, angle) without the terms."""
+    correlated: bool = True
+    """Whether the terms count the correlation of consecutive scans (whitened
+    residuals at ``1/τ``) or whiten each observation to 1."""
 
     def summary(self) -> str:
         """One line for a log's metadata."""
+        how = "correlated" if self.correlated else "independent"
         return (
-            f"estimated from the log: {self.sigma_m:.3f} m, "
+            f"estimated from the log ({how}): {self.sigma_m:.3f} m, "
             f"{math.degrees(self.sigma_rad):.2f} deg (autocorrelation time "
             f"{self.iact[0]:.1f} / {self.iact[1]:.1f} scans, "
             f"{self.observations} observations on plan walls)"
@@ -200,9 +204,13 @@ def _iact(res: _Residuals, var_m: float, var_rad: float) -> tuple[float, float]:
 
 
 def estimate_line_model_error(
-    log: MeasurementLog, params: FloorPlanParams | None = None
+    log: MeasurementLog, params: FloorPlanParams | None = None, *, correlated: bool = True
 ) -> LineModelError:
     """The line model-error terms of ``log`` (module docstring).
+
+    ``correlated=False`` stops at step 1: each observation whitened to 1 as if
+    consecutive scans erred independently (``iact`` is still measured, with those
+    terms, and reported).
 
     ``log`` needs a reference trajectory, and its line covariances must hold no
     model-error term yet (extracted with ``line_model_sigma_m = line_model_sigma_rad
@@ -226,11 +234,11 @@ def estimate_line_model_error(
     z0 = res.whitened(0.0, 0.0)
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
     var_m, var_rad = _variances(res, (1.0, 1.0))
-    tau = (1.0, 1.0)
-    for _ in range(_MAX_ROUNDS):
+    tau = _iact(res, var_m, var_rad)
+    for _ in range(_MAX_ROUNDS if correlated else 0):
         # τ moves with the terms (they reweight the observations): to a fixed point.
-        last, tau = tau, _iact(res, var_m, var_rad)
         var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
+        last, tau = tau, _iact(res, var_m, var_rad)
         if max(abs(a - b) / b for a, b in zip(tau, last, strict=True)) < _TAU_TOL:
             break
     return LineModelError(
@@ -239,6 +247,7 @@ def estimate_line_model_error(
         iact=tau,
         observations=n,
         nees_without=without,
+        correlated=correlated,
     )
 
 

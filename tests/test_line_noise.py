@@ -1,0 +1,218 @@
+"""Line model-error terms estimated from a log's own scans (``data/datasets/line_noise.py``).
+
+Hand-made logs whose line errors are known: the fit's stated noise plus a model error
+of stated σ, drawn independently or correlated from scan to scan (AR(1) per wall).
+The estimate recovers the σ of independent errors, and for correlated ones the
+autocorrelation time of an AR(1) process and the σ that time calls for.  The shared
+covariance term is held equal to what the extractor adds, and the CARMEN loader's
+choice (estimated, the profile's, the fallback) is checked on snippets and, where the
+shared data is present, on all seven logs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfuse_core.data.datasets import CarmenOptions, load_carmen
+from mapfuse_core.data.datasets.common import empty_map
+from mapfuse_core.data.datasets.line_noise import (
+    MIN_OBSERVATIONS,
+    estimate_line_model_error,
+    with_line_model_error,
+)
+from mapfuse_core.geometry.features import FeatureKind, line_from_normal
+from mapfuse_core.geometry.se2 import FloatArray, relative
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.perception.extraction import ExtractionParams, extract_features
+from mapfuse_core.perception.extraction.noise import line_model_cov
+from mapfuse_core.sensor import LaserParams
+from mapfuse_core.sim.laser import simulate_scan
+from mapfuse_core.sim.world import WallSegment, World
+
+_WALLS: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (
+    ((-6.0, -4.0), (6.0, -4.0)),
+    ((6.0, -4.0), (6.0, 4.0)),
+    ((6.0, 4.0), (-6.0, 4.0)),
+    ((-6.0, 4.0), (-6.0, -4.0)),
+    ((-2.0, -1.0), (2.0, -1.5)),
+)
+"""A room with one slanted wall inside it (no two walls parallel and close)."""
+
+_FIT_SIGMA = (0.004, math.radians(0.15))
+"""Stated σ of the fit (ρ m, α rad): every observation's covariance says this."""
+
+
+def _poses(n: int) -> FloatArray:
+    """(n, 3) a slow loop around the room, 0.1 m a scan."""
+    s = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    out: FloatArray = np.c_[3.5 * np.cos(s), 2.5 * np.sin(s), s + math.pi / 2]
+    return out
+
+
+def _observe(
+    pose: FloatArray, p1: tuple[float, float], p2: tuple[float, float]
+) -> tuple[float, float, float, float]:
+    """Wall ``p1``–``p2`` seen from ``pose``: ``(ρ, α, t_mid, length)``, ρ ≥ 0."""
+    a = relative(pose, np.array([*p1, 0.0]))[0][:2]
+    b = relative(pose, np.array([*p2, 0.0]))[0][:2]
+    d = (b - a) / np.linalg.norm(b - a)
+    n = np.array([d[1], -d[0]])
+    rho = float(n @ a)
+    if rho < 0.0:
+        n, rho = -n, -rho
+    alpha = math.atan2(n[1], n[0])
+    tangent = np.array([-math.sin(alpha), math.cos(alpha)])
+    t_mid = float(tangent @ (0.5 * (a + b)))
+    return rho, alpha, t_mid, float(np.linalg.norm(b - a))
+
+
+def _log(sigma: tuple[float, float], phi: float, n: int = 400, seed: int = 0) -> MeasurementLog:
+    """A log of the walls seen from every pose: the fit's noise (as stated) plus a model
+    error of σ ``sigma`` (ρ m, α rad), AR(1) with coefficient ``phi`` per wall."""
+    rng = np.random.default_rng(seed)
+    poses = _poses(n)
+    e = np.zeros((len(_WALLS), 2))
+    steps, params, covs, extents = [], [], [], []
+    scale = np.array(sigma) * math.sqrt(1.0 - phi * phi)
+    for k, pose in enumerate(poses):
+        e = (
+            phi * e + scale * rng.standard_normal(e.shape)
+            if k
+            else np.array(sigma) * rng.standard_normal(e.shape)
+        )
+        for w, (p1, p2) in enumerate(_WALLS):
+            rho, alpha, t_mid, length = _observe(pose, p1, p2)
+            noise = np.array(_FIT_SIGMA) * rng.standard_normal(2)
+            line, J = line_from_normal(rho + noise[0] + e[w, 0], alpha + noise[1] + e[w, 1], t_mid)
+            C = np.diag([_FIT_SIGMA[0] ** 2, _FIT_SIGMA[1] ** 2, length * length / 12.0])
+            steps.append(k)
+            params.append(line)
+            covs.append(J @ C @ J.T)
+            extents.append((-0.5 * length, 0.5 * length))
+    m = len(steps)
+    inc = np.array([np.zeros(3)] + [relative(poses[k - 1], poses[k])[0] for k in range(1, n)])
+    return MeasurementLog(
+        scenario="line-noise",
+        seed=seed,
+        timestamps=np.arange(n, dtype=float),
+        odometry=inc,
+        odometry_cov=np.array([np.eye(3) * 1e-4] * n),
+        feat_step=np.array(steps, dtype=np.int64),
+        feat_kind=np.full(m, int(FeatureKind.LINE), dtype=np.int8),
+        feat_params=np.array(params),
+        feat_cov=np.array(covs),
+        feat_true_id=np.full(m, -1, dtype=np.int64),
+        feat_n_points=np.full(m, 50, dtype=np.int64),
+        feat_extent=np.array(extents),
+        known_map=empty_map(),
+        true_poses=poses,
+    )
+
+
+def test_independent_model_error_is_recovered() -> None:
+    sigma = (0.03, math.radians(0.6))
+    est = estimate_line_model_error(_log(sigma, phi=0.0))
+    # 2,000 observations: the σ of a variance estimate is about 3 %, so 10 % on σ²
+    # (5 % on σ) is over three standard errors.
+    assert est.sigma_m == pytest.approx(sigma[0], rel=0.05)
+    assert est.sigma_rad == pytest.approx(sigma[1], rel=0.05)
+    # Independent errors: lag-1 correlations are noise around 0.
+    assert est.iact[0] < 1.15
+    assert est.iact[1] < 1.15
+    assert est.observations == 400 * len(_WALLS)
+    assert est.nees_without[0] > 10.0  # the fit's σ alone is far too small
+
+
+def test_honest_covariances_need_no_term() -> None:
+    est = estimate_line_model_error(_log((0.0, 0.0), phi=0.0))
+    # Whitened variances within sampling noise of 1 (±0.1 is over three standard
+    # errors of a mean of 2,000 χ²₁), so any term found is small against the fit's σ:
+    # under half of it adds under a quarter of its variance.
+    assert est.nees_without[0] == pytest.approx(1.0, abs=0.1)
+    assert est.nees_without[1] == pytest.approx(1.0, abs=0.1)
+    assert est.sigma_m < 0.5 * _FIT_SIGMA[0]
+    assert est.sigma_rad < 0.5 * _FIT_SIGMA[1]
+
+
+def test_correlated_model_error_gets_its_autocorrelation_time() -> None:
+    sigma, phi = (0.03, math.radians(0.6)), 0.6
+    est = estimate_line_model_error(_log(sigma, phi=phi, n=800))
+    # AR(1): τ = (1 + φ)/(1 − φ) = 4 for the model error alone; the fit's independent
+    # share (3 % of the lateral variance) and the sum's cut where the correlation
+    # falls to 0.05 (lag 6) bring it to about 3.7.
+    for tau in est.iact:
+        assert 3.2 < tau < 4.3
+    # Each observation is worth 1/τ: σ² ≈ τ (σ_model² + σ_fit²) − σ_fit².
+    want = math.sqrt(est.iact[0] * (sigma[0] ** 2 + _FIT_SIGMA[0] ** 2) - _FIT_SIGMA[0] ** 2)
+    assert est.sigma_m == pytest.approx(want, rel=0.15)
+
+
+def test_applied_terms_are_self_consistent() -> None:
+    log = _log((0.03, math.radians(0.6)), phi=0.6, n=800)
+    est = estimate_line_model_error(log)
+    again = estimate_line_model_error(with_line_model_error(log, est.sigma_m, est.sigma_rad))
+    assert again.sigma_m < 1e-3
+    assert again.sigma_rad < math.radians(0.01)
+    for nees, tau in zip(again.nees_without, again.iact, strict=True):
+        assert nees * tau == pytest.approx(1.0, abs=0.03)
+
+
+def test_bad_input_is_named() -> None:
+    log = _log((0.03, 0.01), phi=0.0, n=20)
+    with pytest.raises(ValueError, match="reference trajectory"):
+        estimate_line_model_error(dataclasses.replace(log, true_poses=None))
+    with pytest.raises(ValueError, match=f"needs at least {MIN_OBSERVATIONS}"):
+        estimate_line_model_error(log.head(5))
+    for bad in (-0.01, math.nan, math.inf):
+        with pytest.raises(ValueError, match="sigma_m must be finite and >= 0"):
+            with_line_model_error(log, bad, 0.0)
+
+
+def test_added_term_equals_the_extractors() -> None:
+    world = World(tuple(WallSegment(i + 1, p1, p2) for i, (p1, p2) in enumerate(_WALLS)), ())
+    laser = LaserParams()
+    scan = simulate_scan(world, np.array([1.0, 0.5, 0.3]), laser, np.random.default_rng(3))
+    with_terms = ExtractionParams(line_model_sigma_m=0.03, line_model_sigma_rad=0.01)
+    bare = extract_features(scan, laser, ExtractionParams())
+    full = extract_features(scan, laser, with_terms)
+    assert len(bare.features) == len(full.features) >= 2
+    for a, b in zip(bare.features, full.features, strict=True):
+        np.testing.assert_array_equal(a.params, b.params)
+        np.testing.assert_allclose(a.cov + line_model_cov(a.params, 0.03, 0.01), b.cov, atol=1e-15)
+
+
+# --------------------------------------------------------------------------- the CARMEN loader
+
+_LOGS = ("acapulco", "belgioioso", "csail", "fhw", "freiburg-101", "intel", "seattle")
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+@pytest.mark.parametrize("name", _LOGS)
+def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None:
+    path = data_dir / "carmen" / f"{name}-corrected.log.gz"
+    if not path.is_file():
+        pytest.skip(f"CARMEN log not found ({path})")
+    log = load_carmen(path)
+    assert log.metadata["line_model_error"].startswith("estimated from the log (correlated):")
+    # The terms it carries whiten its residuals to 1/τ: estimating again adds nothing.
+    again = estimate_line_model_error(log)
+    assert again.sigma_m < 0.002
+    assert again.sigma_rad < math.radians(0.03)
+    for nees, tau in zip(again.nees_without, again.iact, strict=True):
+        assert nees * tau == pytest.approx(1.0, abs=0.05)
+    profile = load_carmen(path, options=CarmenOptions(line_model_error="profile"))
+    assert profile.metadata["line_model_error"] == (
+        "extraction profile's (as asked): 0.020 m, 0.80 deg"
+    )
+    np.testing.assert_array_equal(profile.feat_params, log.feat_params)
+
+
+def test_options_name_a_bad_choice() -> None:
+    with pytest.raises(ValueError, match="line_model_error must be 'correlated', 'independent' or"):
+        CarmenOptions(line_model_error="guess")  # type: ignore[arg-type]
