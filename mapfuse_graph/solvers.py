@@ -29,7 +29,9 @@ re-exports their public names.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -54,7 +56,7 @@ from mapfuse_graph.isam2 import _newest_last as _newest_last
 from mapfuse_graph.isam2 import _newest_pose_marginal as _newest_pose_marginal
 from mapfuse_graph.marginals import body_to_abs_cov, tree_marginals
 from mapfuse_graph.options import ASSOCIATIONS, AssociationName, GraphOptions
-from mapfuse_graph.results import GraphDetails, JointPoseCovariance, LMReport
+from mapfuse_graph.results import GraphDetails, JointPoseCovariance, LMReport, _Solved
 from mapfuse_graph.threads import single_threaded_blas
 
 __all__ = [
@@ -156,10 +158,31 @@ def run_graph(
             raise ValueError("init 'given' needs init_poses")
         start = None if init == "odometry" or init_poses is None else init_poses[:n]
         out = _run_batch(builder, lm, start, marginals, progress, joint_stride)
-    elif backend == "fixedlag":
-        out = _run_fixedlag(builder, fl, isam2, marginals, progress)
     else:
-        out = _run_isam2(builder, isam2, marginals, progress)
+
+        def incremental(options: ISAM2Options | None, b: GraphBuilder) -> _Solved:
+            if backend == "fixedlag":
+                return _run_fixedlag(b, fl, options, marginals, progress)
+            return _run_isam2(b, options, marginals, progress)
+
+        try:
+            out = incremental(isam2, builder)
+        except RuntimeError as err:
+            first = isam2 or ISAM2Options()
+            if not _indeterminate(err) or first.factorization == "QR":
+                raise
+            warnings.warn(
+                f"{backend}: Cholesky elimination found the linear system indeterminate "
+                "(a variable tied by factors of very different weights, such as the "
+                "anchor's loose prior and its ties); solved again with QR factorization",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            builder = _builder(
+                log, backend, opts, fusion, association, decisions, fixedlag, isam2, steps
+            )
+            out = incremental(replace(first, factorization="QR"), builder)
+            out.extra["factorization"] = "QR (Cholesky found the system indeterminate)"
     filtered = None
     if out.filtered_poses is not None and out.filtered_covs is not None:
         filtered = PoseTrack(out.filtered_poses, out.filtered_covs)
@@ -206,6 +229,12 @@ def run_graph(
             initial=out.initial,
         ),
     )
+
+
+def _indeterminate(err: RuntimeError) -> bool:
+    """Whether ``err`` is GTSAM's IndeterminateLinearSystemException (raised to Python
+    as a ``RuntimeError`` with this text)."""
+    return "Indeterminate linear system" in str(err)
 
 
 def _builder(
