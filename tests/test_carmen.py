@@ -306,6 +306,7 @@ _MIN_LINES_PER_SCAN = {"intel": 3.5, "csail": 3.0}
 """Lower bounds on lines per scan, about 10 % under the measured values in
 ``docs/results/carmen.md`` (a margin for platform round-off in split decisions)."""
 
+
 @pytest.mark.realdata
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["intel", "csail"])

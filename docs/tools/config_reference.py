@@ -293,6 +293,8 @@ EVIDENCE: dict[str, str] = {
     "victoria-park-calibration.md#the-tracking-fit)",
     "CarmenOptions.extraction": f"[CARMEN]({_R}carmen.md"
     "#the-indoor_sick-profiles-model-error-terms)",
+    "CarmenOptions.line_model_error": f"[CARMEN]({_R}carmen.md"
+    "#line-model-error-estimated-from-each-log)",
     "IncrementNoise.trans_frac": f"[CARMEN]({_R}carmen.md#odometry-evidence-on-the-seven-logs)",
     "FloorPlanParams.min_parallel_separation_m": f"[CARMEN]({_R}carmen.md#measured-figures)",
 }

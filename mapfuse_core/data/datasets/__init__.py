@@ -20,6 +20,7 @@ park's pole detector), :mod:`~mapfuse_core.data.datasets.gps` (GPS reference lab
 (the two loaders and their options), :mod:`~mapfuse_core.data.datasets.carmen_format` and
 :mod:`~mapfuse_core.data.datasets.carmen` (CARMEN indoor laser logs, ``docs/real-data.md``),
 :mod:`~mapfuse_core.data.datasets.floorplan` (a wall map from scans at reference poses),
+:mod:`~mapfuse_core.data.datasets.line_noise` (a log's line model error, from its scans),
 :mod:`~mapfuse_core.data.datasets.files` (checked file reading) and
 :mod:`~mapfuse_core.data.datasets.common` (error type, log builder).
 
@@ -48,6 +49,11 @@ from mapfuse_core.data.datasets.floorplan import (
     same_wall,
 )
 from mapfuse_core.data.datasets.gps import gps_reference_labels
+from mapfuse_core.data.datasets.line_noise import (
+    LineModelError,
+    estimate_line_model_error,
+    with_line_model_error,
+)
 from mapfuse_core.data.datasets.odometry import (
     CarGeometry,
     OdometryNoise,
@@ -75,6 +81,7 @@ __all__ = [
     "FloorPlan",
     "FloorPlanParams",
     "IncrementNoise",
+    "LineModelError",
     "OdometryNoise",
     "VictoriaParkOptions",
     "build_floor_plan",
@@ -82,6 +89,7 @@ __all__ = [
     "dead_reckoning",
     "detect_odometry_kind",
     "detect_reflector_poles",
+    "estimate_line_model_error",
     "gps_reference_labels",
     "integrate_odometry",
     "label_with_plan",
@@ -93,4 +101,5 @@ __all__ = [
     "rear_axle_speed",
     "reference_labels",
     "same_wall",
+    "with_line_model_error",
 ]
