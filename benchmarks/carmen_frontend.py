@@ -313,7 +313,9 @@ def _markdown(summaries: list[dict[str, Any]], estimators: list[str]) -> str:
     return "\n".join(lines)
 
 
-def _resolve(data: Path, names: list[str] | None) -> list[Path]:
+def resolve_logs(data: Path, names: list[str] | None) -> list[Path]:
+    """The CARMEN logs named (files, or names in ``data``/carmen), every corrected one
+    there when none is named."""
     folder = data / "carmen"
     if not names:
         return sorted(folder.glob("*-corrected.log*"))
@@ -362,7 +364,7 @@ def main() -> None:
     if estimators[0] != "ekf":
         ap.error("--estimators must start with ekf (the graph backends take its decisions)")
     summaries = []
-    for path in _resolve(args.data, args.logs):
+    for path in resolve_logs(args.data, args.logs):
         fulls = {
             s: load_carmen(
                 path, options=CarmenOptions(seed=s, line_model_error=args.line_model_error)

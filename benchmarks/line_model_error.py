@@ -34,6 +34,7 @@ from typing import Any
 
 from scipy.stats import chi2
 
+from benchmarks.carmen_frontend import resolve_logs
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
 from mapfuse_core.data.datasets.line_noise import LineModelError, estimate_line_model_error
@@ -156,19 +157,6 @@ def _markdown(estimates: list[dict[str, Any]], summaries: list[dict[str, Any]]) 
     return "\n".join(lines)
 
 
-def _resolve(data: Path, names: list[str] | None) -> list[Path]:
-    folder = data / "carmen"
-    if not names:
-        return sorted(folder.glob("*-corrected.log*"))
-    out = []
-    for n in names:
-        hits = sorted(folder.glob(f"{n}*-corrected.log*"))
-        if not hits:
-            raise SystemExit(f"no CARMEN log {n!r} in {folder}")
-        out.append(hits[0])
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
@@ -183,7 +171,7 @@ def main() -> None:
     args = ap.parse_args()
     estimators = [e for e in args.estimators.split(",") if e]
     estimates, summaries = [], []
-    for path in _resolve(args.data, args.logs):
+    for path in resolve_logs(args.data, args.logs):
         row, _ = estimate_row(path)
         estimates.append(row)
         print(json.dumps({"estimate": row}), flush=True)
