@@ -107,7 +107,10 @@ class ISAM2Options:
       keeps its NEES lower (measured in ``docs/results/fixedlag.md``)."""
 
     factorization: str = "CHOLESKY"
-    """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning)."""
+    """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning).  A Cholesky
+    run that GTSAM finds indeterminate (the anchor's loose prior beside its ties can
+    make a pivot vanish in round-off) is solved again from the start with QR, with a
+    ``RuntimeWarning`` and ``details.extra["factorization"]`` saying so."""
     final_updates: int = 5
     """Extra empty updates at the end, each checking for relinearisation whatever
     :attr:`relinearize_skip`.  With the partial check they relinearise only what the
