@@ -354,7 +354,7 @@ def main() -> None:
     )
     ap.add_argument(
         "--line-model-error",
-        default="correlated",
+        default="profile",
         choices=("correlated", "independent", "profile"),
         help="CarmenOptions.line_model_error: where the line model-error terms come from",
     )

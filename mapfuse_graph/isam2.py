@@ -110,7 +110,8 @@ class ISAM2Options:
     """``"CHOLESKY"`` (faster) or ``"QR"`` (more robust to ill conditioning).  A Cholesky
     run that GTSAM finds indeterminate (the anchor's loose prior beside its ties can
     make a pivot vanish in round-off) is solved again from the start with QR, with a
-    ``RuntimeWarning`` and ``details.extra["factorization"]`` saying so."""
+    ``RuntimeWarning`` and ``details.extra["factorization"]`` saying so (``isam2`` and
+    ``fixedlag`` runs; not the iSAM2 pass of ``batch`` with ``association="own"``)."""
     final_updates: int = 5
     """Extra empty updates at the end, each checking for relinearisation whatever
     :attr:`relinearize_skip`.  With the partial check they relinearise only what the

@@ -176,7 +176,7 @@ def run_graph(
                 "(a variable tied by factors of very different weights, such as the "
                 "anchor's loose prior and its ties); solved again with QR factorization",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,  # past single_threaded_blas's wrapper, to the caller
             )
             builder = _builder(
                 log, backend, opts, fusion, association, decisions, fixedlag, isam2, steps

@@ -23,6 +23,7 @@ from mapfuse_core.data.datasets.common import DatasetError
 from mapfuse_core.data.datasets.floorplan import (
     build_floor_plan,
     label_with_plan,
+    line_nees,
     same_wall,
 )
 from mapfuse_core.measlog import load_log, save_log
@@ -306,22 +307,26 @@ _MIN_LINES_PER_SCAN = {"intel": 3.5, "csail": 3.0}
 """Lower bounds on lines per scan, about 10 % under the measured values in
 ``docs/results/carmen.md`` (a margin for platform round-off in split decisions)."""
 
+_NEES_RANGE = (0.6, 1.25)
+"""Accepted mean line NEES per dof against the plan without its survey σ: the
+profile's model-error terms are set on Intel (mean near 1); CSAIL's smoother walls come
+out lower (``docs/results/carmen.md``)."""
+
 
 @pytest.mark.realdata
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["intel", "csail"])
-def test_real_log_lines_per_scan(data_dir: Path, name: str) -> None:
-    # The line covariances against the plan: tests/test_line_noise.py.
+def test_real_log_lines_per_scan_and_line_nees_against_the_plan(data_dir: Path, name: str) -> None:
+    from mapfuse_core.data.datasets.floorplan import FloorPlanParams
+
     log = load_carmen(_carmen_file(data_dir, name))
     assert log.metadata["odometry"] == "simulated from reference"
     assert log.true_poses is not None
     assert log.n_features / log.n_steps >= _MIN_LINES_PER_SCAN[name]
+    bare = build_floor_plan(log, FloorPlanParams(survey_sigma_m=1e-6, survey_sigma_rad=1e-8))
+    nees = line_nees(log, bare) / 2.0
+    assert _NEES_RANGE[0] <= nees.mean() <= _NEES_RANGE[1]
 
-
-_WRONG_JUDGED = {"intel": 1, "csail": 0}
-"""Judged pairings that are wrong over :data:`_SEEDS` (``docs/results/carmen.md``): on
-Intel seed 0 one landmark's observations lie on walls 15 (3) and 21 (2), two pieces 5°
-apart, and CCDA pairs it with 21; the majority label says 15."""
 
 _SEEDS = range(4)
 """Seeds of the simulated odometry the CCDA and fusion checks run over."""
@@ -341,7 +346,7 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
     path = _carmen_file(data_dir, name)
     assoc = carmen_association()
     plan = None
-    accepted, anchor_m, anchor_rad, rmse_plan, rmse_none, wrong = 0, [], [], [], [], 0
+    accepted, anchor_m, anchor_rad, rmse_plan, rmse_none = 0, [], [], [], []
     for seed in _SEEDS:
         raw = load_carmen(path, options=CarmenOptions(seed=seed))
         assert raw.true_poses is not None
@@ -357,7 +362,7 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
         accepted += 1
         judged = [same_wall(plan, a, b) for a, b in r_plan.anchor.pairings if a >= 0]
         assert len(judged) >= 10
-        wrong += judged.count(False)
+        assert all(judged), f"seed {seed}: {r_plan.anchor.pairings}"
         err = relative(anchor_truth(raw.true_poses), r_plan.anchor.x_Wknown_Wglobal)[0]
         anchor_m.append(math.hypot(err[0], err[1]))
         anchor_rad.append(abs(err[2]))
@@ -367,7 +372,6 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
     # map 3 m adrift); the median RMSE with the plan is 0.31 against 2.12 m (Intel) and
     # 1.32 against 1.75 m (CSAIL).  The medians' bounds leave about half as much again.
     assert accepted >= 3
-    assert wrong <= _WRONG_JUDGED[name]
     assert float(np.median(anchor_m)) < 0.5
     assert float(np.median(anchor_rad)) < math.radians(2.0)
     assert max(anchor_m) < 2.0

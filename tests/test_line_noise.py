@@ -195,7 +195,19 @@ def test_added_term_equals_the_extractors() -> None:
     assert len(bare.features) == len(full.features) >= 2
     for a, b in zip(bare.features, full.features, strict=True):
         np.testing.assert_array_equal(a.params, b.params)
-        np.testing.assert_allclose(a.cov + line_model_cov(a.params, 0.03, 0.01), b.cov, atol=1e-15)
+        np.testing.assert_allclose(
+            a.cov + line_model_cov(a.params, 0.03, 0.01), b.cov, rtol=1e-12, atol=1e-18
+        )
+
+
+def test_added_term_is_the_normal_forms_variance_propagated() -> None:
+    # Closed form: σ² on (ρ, α) through ∂(x, y, θ)/∂(ρ, α) of line_from_normal.
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        rho, alpha, t = rng.uniform(0.0, 20.0), rng.uniform(-4.0, 4.0), rng.uniform(-10.0, 10.0)
+        line, J = line_from_normal(rho, alpha, t)
+        want = J[:, :2] @ np.diag([0.03**2, 0.01**2]) @ J[:, :2].T
+        np.testing.assert_allclose(line_model_cov(line, 0.03, 0.01), want, rtol=1e-9, atol=1e-15)
 
 
 # --------------------------------------------------------------------------- the CARMEN loader
@@ -210,7 +222,7 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
     path = data_dir / "carmen" / f"{name}-corrected.log.gz"
     if not path.is_file():
         pytest.skip(f"CARMEN log not found ({path})")
-    log = load_carmen(path)
+    log = load_carmen(path, options=CarmenOptions(line_model_error="correlated"))
     assert log.metadata["line_model_error"].startswith("estimated from the log (correlated):")
     bare = ExtractionParams.indoor_sick()
     bare = dataclasses.replace(bare, line_model_sigma_m=0.0, line_model_sigma_rad=0.0)
@@ -225,7 +237,7 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
     assert again.sigma_rad**2 <= 0.05 * first.sigma_rad**2 + 1e-10
     for nees, tau in zip(again.nees_without, again.iact, strict=True):
         assert nees * tau == pytest.approx(1.0, abs=0.05)
-    profile = load_carmen(path, options=CarmenOptions(line_model_error="profile"))
+    profile = load_carmen(path)  # the default: the extraction profile's terms
     assert profile.metadata["line_model_error"] == (
         "extraction profile's (as asked): 0.020 m, 0.80 deg"
     )

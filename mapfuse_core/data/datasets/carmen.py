@@ -131,8 +131,9 @@ class CarmenOptions:
     80 m.  Readings at or above it, or ≤ 0, are no return."""
     extraction: ExtractionParams = field(default_factory=ExtractionParams.indoor_sick)
     """Extraction thresholds (:meth:`ExtractionParams.indoor_sick`)."""
-    line_model_error: LineModelErrorSource = "correlated"
-    """Where the line model-error terms come from.  ``"correlated"`` and
+    line_model_error: LineModelErrorSource = "profile"
+    """Where the line model-error terms come from.  ``"profile"``: :attr:`extraction`'s
+    terms on every log.  ``"correlated"`` and
     ``"independent"``: a log with a reference trajectory gets terms estimated from its
     own scans against its floor plan
     (:func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`), in place
@@ -140,8 +141,9 @@ class CarmenOptions:
     ``"correlated"`` counts the correlation of consecutive scans (each observation worth
     ``1/τ``), ``"independent"`` whitens each observation to 1.  A log without a
     reference (raw odometry), or with too few observations on its plan, keeps
-    :attr:`extraction`'s.  ``"profile"``: :attr:`extraction`'s terms on every log.  The
-    log's metadata (``line_model_error``) says which were used."""
+    :attr:`extraction`'s.  The estimates are not the default: how they depend on where
+    the lateral residual is measured is open (``docs/gaps.md``).  The log's metadata
+    (``line_model_error``) says which were used."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""

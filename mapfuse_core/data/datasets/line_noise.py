@@ -26,10 +26,14 @@ observation's own covariance plus the wall's.  Then, per degree of freedom:
    moves ``τ`` a little): the ``τ`` reported is that of the residuals whitened with
    the terms reported.
 
-The angle's σ is solved first (the lateral offset depends on both terms, through the
-distance from the normal's foot to the observed segment).  The tail of the residuals
-is heavy (mixed-up walls, furniture); the mean counts it, as a run's NEES does.
-Measured on the seven CARMEN logs in ``docs/results/carmen.md``.
+The lateral offset is that of the wall's midpoint from the observed line, as
+:func:`~mapfuse_core.data.datasets.floorplan.line_nees` measures it; the angle's σ is
+solved first (the lateral offset depends on both terms, the angle's through the
+distance from the foot of the observed line's normal to that midpoint).  The
+estimators' factors measure the offset at the observation instead, where the σ comes
+out larger on some logs (``docs/gaps.md``).  The tail of the residuals is heavy
+(mixed-up walls, furniture); the mean counts it, as a run's NEES does.  Measured on the
+seven CARMEN logs in ``docs/results/carmen.md``.
 """
 
 from __future__ import annotations
@@ -150,6 +154,8 @@ def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
 
 def _solve(f: Callable[[float], float], target: float) -> float:
     """Smallest ``v ≥ 0`` with ``f(v) ≤ target`` for a decreasing ``f`` (bisection)."""
+    if not math.isfinite(f(0.0)):
+        raise ValueError("the line residuals' whitened mean square is not finite")
     if f(0.0) <= target:
         return 0.0
     hi = 1e-4
