@@ -350,14 +350,25 @@ def _wall_interval(line: FloatArray, extent: FloatArray) -> tuple[float, float, 
     return float(rho), float(alpha), s[0], s[1]
 
 
-def _d2(log: MeasurementLog, i: int, walls: KnownMapArrays, w: int) -> float:
-    """Squared Mahalanobis distance of line observation ``i`` to wall ``w`` at the
-    reference pose (observation and wall covariances)."""
+def wall_residual(
+    log: MeasurementLog, i: int, walls: KnownMapArrays, w: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Line observation ``i`` against wall ``w`` at the reference pose: the residual
+    :func:`~mapfuse_core.models.dispatch.line_pairing` (observation first; lateral
+    offset of the wall's midpoint from the observed line, angle), its covariance (the
+    observation's plus the wall's, propagated) and ``∂r/∂(observation)``."""
     assert log.true_poses is not None
     pred, _, Jf = express_line_in(log.true_poses[log.feat_step[i]], walls.params[w])
     r, Jz, Jp = line_pairing(log.feat_params[i], pred)
     Jw = Jp @ Jf
     S = Jz @ log.feat_cov[i] @ Jz.T + Jw @ walls.covs[w] @ Jw.T
+    return r, S, Jz
+
+
+def _d2(log: MeasurementLog, i: int, walls: KnownMapArrays, w: int) -> float:
+    """Squared Mahalanobis distance of line observation ``i`` to wall ``w`` at the
+    reference pose (:func:`wall_residual`)."""
+    r, S, _ = wall_residual(log, i, walls, w)
     return float(r @ np.linalg.solve(S, r))
 
 

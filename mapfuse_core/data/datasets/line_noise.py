@@ -44,11 +44,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mapfuse_core.data.datasets.floorplan import FloorPlan, FloorPlanParams, build_floor_plan
-from mapfuse_core.geometry.features import FeatureKind, express_line_in
+from mapfuse_core.data.datasets.floorplan import (
+    FloorPlan,
+    FloorPlanParams,
+    build_floor_plan,
+    wall_residual,
+)
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.models import line_pairing
 from mapfuse_core.perception.extraction.noise import line_model_cov
 
 __all__ = [
@@ -141,12 +145,9 @@ def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
     var = np.empty((idx.size, 2))
     gain = np.empty((idx.size, 2, 2))
     for n, i in enumerate(idx.tolist()):
-        w = int(plan.obs_wall[i])
         z = log.feat_params[i]
-        pred, _, Jf = express_line_in(log.true_poses[log.feat_step[i]], plan.walls.params[w])
-        r[n], Jz, Jp = line_pairing(z, pred)
-        Jw = Jp @ Jf
-        var[n] = np.diag(Jz @ log.feat_cov[i] @ Jz.T + Jw @ plan.walls.covs[w] @ Jw.T)
+        r[n], S, Jz = wall_residual(log, i, plan.walls, int(plan.obs_wall[i]))
+        var[n] = np.diag(S)
         for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
             gain[n, :, k] = np.diag(Jz @ line_model_cov(z, *unit) @ Jz.T)
     return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain)
