@@ -53,6 +53,7 @@ from mapfuse_core.data.datasets.floorplan import (
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
+from mapfuse_core.measlog.log import IntArray
 from mapfuse_core.perception.extraction.noise import line_model_cov
 
 __all__ = [
@@ -186,20 +187,31 @@ def _variances(res: _Residuals, target: tuple[float, float]) -> tuple[float, flo
     return var_m, var_rad
 
 
-def _iact(res: _Residuals, var_m: float, var_rad: float) -> tuple[float, float]:
-    """τ per dof of the whitened residuals of one wall ``L`` scans apart."""
-    z = res.whitened(var_m, var_rad)
+def _lag_pairs(res: _Residuals) -> list[tuple[IntArray, IntArray]]:
+    """For each lag ``L`` = 1…:data:`_MAX_LAG`, the observations ``(j, k)`` of one wall
+    ``L`` scans apart: they do not depend on the terms, so they are found once."""
     index = {(int(w), int(k)): j for j, (w, k) in enumerate(zip(res.wall, res.step, strict=True))}
+    out = []
+    for lag in range(1, _MAX_LAG + 1):
+        later = np.array(
+            [index.get((int(w), int(k) + lag), -1) for w, k in zip(res.wall, res.step, strict=True)]
+        )
+        first = np.flatnonzero(later >= 0)
+        out.append((first, later[first]))
+    return out
+
+
+def _iact(
+    res: _Residuals, pairs: list[tuple[IntArray, IntArray]], var_m: float, var_rad: float
+) -> tuple[float, float]:
+    """τ per dof of the whitened residuals of one wall ``L`` scans apart (``pairs``:
+    :func:`_lag_pairs`)."""
+    z = res.whitened(var_m, var_rad)
     taus = []
     for d in range(2):
         tau = 1.0
-        for lag in range(1, _MAX_LAG + 1):
-            later = [
-                index.get((int(w), int(k) + lag), -1)
-                for w, k in zip(res.wall, res.step, strict=True)
-            ]
-            j = np.array(later)
-            a, b = z[j >= 0, d], z[j[j >= 0], d]
+        for first, later in pairs:
+            a, b = z[first, d], z[later, d]
             if a.size < 2 or np.std(a) == 0.0 or np.std(b) == 0.0:
                 break
             rho = float(np.corrcoef(a, b)[0, 1])
@@ -240,12 +252,13 @@ def estimate_line_model_error(
         )
     z0 = res.whitened(0.0, 0.0)
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
+    pairs = _lag_pairs(res)
     var_m, var_rad = _variances(res, (1.0, 1.0))
-    tau = _iact(res, var_m, var_rad)
+    tau = _iact(res, pairs, var_m, var_rad)
     for _ in range(_MAX_ROUNDS if correlated else 0):
         # τ moves with the terms (they reweight the observations): to a fixed point.
         var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
-        last, tau = tau, _iact(res, var_m, var_rad)
+        last, tau = tau, _iact(res, pairs, var_m, var_rad)
         if max(abs(a - b) / b for a, b in zip(tau, last, strict=True)) < _TAU_TOL:
             break
     return LineModelError(
