@@ -37,14 +37,14 @@ from scipy.stats import chi2
 from benchmarks.carmen_frontend import resolve_logs
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
-from mapfuse_core.data.datasets.line_noise import LineModelError, estimate_line_model_error
+from mapfuse_core.data.datasets.line_noise import estimate_line_model_error
 from mapfuse_core.perception.extraction import ExtractionParams
 
 SOURCES = ("profile", "independent", "correlated")
 """``CarmenOptions.line_model_error`` values compared."""
 
 
-def estimate_row(path: Path) -> tuple[dict[str, Any], LineModelError]:
+def estimate_row(path: Path) -> dict[str, Any]:
     """The estimate on ``path`` extracted without model-error terms, as a JSON row."""
     bare = dataclasses.replace(
         ExtractionParams.indoor_sick(), line_model_sigma_m=0.0, line_model_sigma_rad=0.0
@@ -61,7 +61,7 @@ def estimate_row(path: Path) -> tuple[dict[str, Any], LineModelError]:
         "sigma_deg": math.degrees(est.sigma_rad),
         "independent_sigma_m": ind.sigma_m,
         "independent_sigma_deg": math.degrees(ind.sigma_rad),
-    }, est
+    }
 
 
 def _name(path: Path) -> str:
@@ -172,7 +172,7 @@ def main() -> None:
     estimators = [e for e in args.estimators.split(",") if e]
     estimates, summaries = [], []
     for path in resolve_logs(args.data, args.logs):
-        row, _ = estimate_row(path)
+        row = estimate_row(path)
         estimates.append(row)
         print(json.dumps({"estimate": row}), flush=True)
         for s in summary(_runs(path, args.seeds, estimators)):

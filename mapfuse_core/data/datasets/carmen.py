@@ -407,7 +407,7 @@ def load_carmen(
     )
     if not estimate:
         return _profile_terms(log, opts)
-    return _with_line_model_error(log, opts.extraction, opts.line_model_error == "correlated")
+    return _estimated_terms(log, opts.extraction, opts.line_model_error == "correlated")
 
 
 def _profile_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
@@ -417,6 +417,7 @@ def _profile_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
 
 
 def _noted(log: MeasurementLog, e: ExtractionParams, why: str) -> MeasurementLog:
+    """``log`` with ``metadata["line_model_error"]`` naming ``e``'s terms and ``why``."""
     text = (
         f"extraction profile's ({why}): {e.line_model_sigma_m:.3f} m, "
         f"{math.degrees(e.line_model_sigma_rad):.2f} deg"
@@ -424,7 +425,7 @@ def _noted(log: MeasurementLog, e: ExtractionParams, why: str) -> MeasurementLog
     return replace(log, metadata={**log.metadata, "line_model_error": text})
 
 
-def _with_line_model_error(
+def _estimated_terms(
     log: MeasurementLog, profile: ExtractionParams, correlated: bool
 ) -> MeasurementLog:
     """``log`` (lines without model-error terms) with the terms estimated on it, or the
