@@ -23,15 +23,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from mapfuse_core.geometry.features import (
-    FeatureKind,
-    express_line_in,
-    line_from_normal,
-    line_to_normal,
-    transform_line,
-)
-from mapfuse_core.geometry.se2 import FloatArray, wrap_scalar
+from mapfuse_core.geometry.features import FeatureKind, canonical_line, express_line_in
+from mapfuse_core.geometry.se2 import FloatArray, compose, rot2, wrap_angle_half
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
+from mapfuse_core.measlog.log import IntArray
 from mapfuse_core.models import line_pairing
 
 __all__ = [
@@ -42,6 +37,7 @@ __all__ = [
     "line_nees",
     "reference_labels",
     "same_wall",
+    "survey_cov",
 ]
 
 
@@ -59,10 +55,11 @@ class FloorPlanParams:
     """A wall is kept only when this many observations joined it (clutter, people and
     doors that moved are seen a few times)."""
     survey_sigma_m: float = 0.02
-    """σ (m) added to every wall's ρ and to its reference point along the wall: a plan
-    drawn from a survey is no better than a few centimetres."""
+    """σ (m) added to the position of every wall's midpoint, across the wall and along
+    it: a plan drawn from a survey is no better than a few centimetres
+    (:func:`survey_cov`)."""
     survey_sigma_rad: float = math.radians(0.3)
-    """σ (rad) added to every wall's direction."""
+    """σ (rad) added to every wall's direction, a rotation about its midpoint."""
     min_parallel_separation_m: float = 0.5
     """Walls with a parallel, same-facing wall nearer than this (m) beside them are left
     out of the plan (a recess, a cupboard front before a wall): a match with the known
@@ -97,18 +94,114 @@ class FloorPlan:
     """(W,) int64 observations per wall."""
 
 
-def _world_normal(
-    pose: FloatArray, line: FloatArray, extent: FloatArray
-) -> tuple[float, float, float, float]:
-    """``(ρ, α, s0, s1)`` of a sensor-frame line seen from ``pose``: normal form in ``W``
-    and the segment's interval along the wall (tangent ``α + π/2``)."""
-    w, _, _ = transform_line(pose, line)
-    (rho, alpha), _ = line_to_normal(w)
-    t = np.array([-math.sin(alpha), math.cos(alpha)])
-    th = float(w[2])
-    ends = [w[:2] + e * np.array([math.cos(th), math.sin(th)]) for e in extent]
-    s = sorted(float(p @ t) for p in ends)
-    return float(rho), float(alpha), s[0], s[1]
+@dataclass(frozen=True)
+class _Segments:
+    """Line segments in ``W``, each the SPmap frame of its line at the segment's
+    midpoint (x axis along it) with its extent along that axis."""
+
+    lines: FloatArray
+    """(N, 3) ``(x, y, θ)``."""
+    extents: FloatArray
+    """(N, 2) ends along the line, from the midpoint (m)."""
+
+    def take(self, sel: IntArray) -> _Segments:
+        return _Segments(self.lines[sel], self.extents[sel])
+
+
+def _world_segments(log: MeasurementLog, idx: IntArray) -> _Segments:
+    """The line observations ``idx`` of ``log`` placed in ``W`` at their reference poses."""
+    assert log.true_poses is not None
+    poses = log.true_poses[log.feat_step[idx]]
+    lines = [compose(x, z) for x, z in zip(poses, log.feat_params[idx], strict=True)]
+    return _Segments(np.asarray(lines).reshape(-1, 3), log.feat_extent[idx].reshape(-1, 2))
+
+
+def _in_frame(
+    ref: FloatArray, lines: FloatArray, extents: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Segments seen from the frame of a line ``ref`` (arrays broadcast over their
+    leading axes): their midpoints ``(x, y)`` (``y`` the offset from ``ref``'s line),
+    their angle to it modulo π in ``(−π/2, π/2]``, and their ends' interval
+    ``(s0, s1)`` along it.
+
+    Nothing here refers to ``W``'s origin: two walls are compared where they are, so
+    the plan is the same wherever the reference trajectory starts.
+    """
+    c, s = np.cos(ref[..., 2]), np.sin(ref[..., 2])
+    dx, dy = lines[..., 0] - ref[..., 0], lines[..., 1] - ref[..., 1]
+    x = c * dx + s * dy
+    y = -s * dx + c * dy
+    turn = lines[..., 2] - ref[..., 2]
+    u = np.cos(turn)
+    e0, e1 = x + extents[..., 0] * u, x + extents[..., 1] * u
+    return x, y, wrap_angle_half(turn), np.minimum(e0, e1), np.maximum(e0, e1)
+
+
+def _one_wall(
+    a: FloatArray,
+    ea: FloatArray,
+    b: FloatArray,
+    eb: FloatArray,
+    rho_tol: float,
+    alpha_tol: float,
+    gap: float,
+) -> np.ndarray:
+    """Whether segment ``a`` and each segment ``b`` (lines at their midpoints,
+    extents; ``b`` and ``eb`` may be stacked) lie on one wall: directions within
+    ``alpha_tol`` (modulo π), each midpoint within ``rho_tol`` of the other's line, and
+    the extents at most ``gap`` apart."""
+    _, y, phi, s0, s1 = _in_frame(a, b, eb)
+    _, y_back, _, _, _ = _in_frame(b, a, ea)
+    out: np.ndarray = (
+        (np.abs(phi) <= alpha_tol)
+        & (np.maximum(np.abs(y), np.abs(y_back)) <= rho_tol)
+        & (s0 <= ea[1] + gap)
+        & (s1 >= ea[0] - gap)
+    )
+    return out
+
+
+@dataclass(frozen=True)
+class _Wall:
+    """The mean of a cluster's segments."""
+
+    line: FloatArray
+    """(3,) at the middle of the members' extent."""
+    cov: FloatArray
+    """(3, 3) the standard error of the mean (the members' scatter over their number)."""
+    extent: FloatArray
+    """(2,) the union of the members' extents."""
+
+
+def _mean_wall(ref: FloatArray, members: _Segments) -> _Wall:
+    """The mean wall of ``members`` (its covariance zero for one member), averaged in
+    the frame of ``ref`` (a member near them): each member's offset from ``ref``'s line
+    at ``ref``'s midpoint and its angle to it."""
+    x, y, phi, s0, s1 = _in_frame(ref, members.lines, members.extents)
+    y0 = y - x * np.tan(phi)
+    m_y, m_phi = float(y0.mean()), float(phi.mean())
+    scatter = np.cov(np.vstack((y0, phi))) / y0.size if y0.size > 1 else np.zeros((2, 2))
+    lo, hi = float(s0.min()), float(s1.max())
+    x_mid = 0.5 * (lo + hi)
+    t = math.tan(m_phi)
+    local = np.array([x_mid, m_y + x_mid * t, m_phi])
+    # ∂(x, y, θ)/∂(offset at ref's midpoint, angle) in ref's frame, then turned into W.
+    J = np.array([[0.0, 0.0], [1.0, x_mid * (1.0 + t * t)], [0.0, 1.0]])
+    R = np.eye(3)
+    R[:2, :2] = rot2(float(ref[2]))
+    JR = R @ J
+    half = 0.5 * (hi - lo) / math.cos(m_phi)
+    line = canonical_line(compose(ref, local))
+    return _Wall(line, JR @ scatter @ JR.T, np.array([-half, half]))
+
+
+def survey_cov(sigma_m: float, sigma_rad: float) -> FloatArray:
+    """(3, 3) covariance a survey tolerance adds to a wall ``(x, y, θ)`` given at its
+    midpoint: ``sigma_m`` on the midpoint's position in every direction (across the
+    wall and along it) and ``sigma_rad`` on the direction, a rotation about the
+    midpoint.  It is the same in every frame the plan is expressed in: a wall far
+    from the frame's origin is no less certain than one beside it."""
+    return np.diag([sigma_m * sigma_m, sigma_m * sigma_m, sigma_rad * sigma_rad])
 
 
 def build_floor_plan(log: MeasurementLog, params: FloorPlanParams | None = None) -> FloorPlan:
@@ -117,112 +210,99 @@ def build_floor_plan(log: MeasurementLog, params: FloorPlanParams | None = None)
     if log.true_poses is None:
         raise ValueError("build_floor_plan needs a log with a reference trajectory (true_poses)")
     lines = np.flatnonzero(log.feat_kind == FeatureKind.LINE)
-    obs = np.array(
-        [
-            _world_normal(log.true_poses[log.feat_step[i]], log.feat_params[i], log.feat_extent[i])
-            for i in lines
-        ]
-    ).reshape(-1, 4)
-    order = np.argsort(-(obs[:, 3] - obs[:, 2]), kind="stable")
-    # Running cluster state: ρ, α of the first (longest) member, extent union.
-    c_rho: list[float] = []
-    c_alpha: list[float] = []
-    c_ext: list[list[float]] = []
-    member = np.full(lines.size, -1, dtype=np.int64)
-    for j in order:
-        rho, alpha, s0, s1 = obs[j]
-        best, best_d = -1, math.inf
-        for c in range(len(c_rho)):
-            da = abs(wrap_scalar(alpha - c_alpha[c]))
-            dr = abs(rho - c_rho[c])
-            if da > p.alpha_tol_rad or dr > p.rho_tol_m:
-                continue
-            if s0 > c_ext[c][1] + p.gap_m or s1 < c_ext[c][0] - p.gap_m:
-                continue
-            d = (dr / p.rho_tol_m) ** 2 + (da / p.alpha_tol_rad) ** 2
-            if d < best_d:
-                best, best_d = c, d
-        if best < 0:
-            c_rho.append(float(rho))
-            c_alpha.append(float(alpha))
-            c_ext.append([float(s0), float(s1)])
-            best = len(c_rho) - 1
-        else:
-            c_ext[best][0] = min(c_ext[best][0], float(s0))
-            c_ext[best][1] = max(c_ext[best][1], float(s1))
-        member[j] = best
-    _merge_clusters(member, c_rho, c_alpha, c_ext, obs, p)
-
-    ids: list[int] = []
-    params_out: list[FloatArray] = []
-    covs: list[FloatArray] = []
-    extents: list[tuple[float, float]] = []
-    counts: list[int] = []
+    seg = _world_segments(log, lines)
+    member, refs = _cluster(seg, p)
+    _merge_clusters(member, refs, seg, p)
+    kept = [c for c in range(len(refs)) if np.count_nonzero(member == c) >= p.min_observations]
+    means = {c: _mean_wall(seg.lines[refs[c]], seg.take(np.flatnonzero(member == c))) for c in kept}
+    counts = {c: int(np.count_nonzero(member == c)) for c in kept}
+    survey = survey_cov(p.survey_sigma_m, p.survey_sigma_rad)
+    walls_out: list[_Wall] = []
+    n_obs: list[int] = []
     obs_wall = np.full(log.n_features, -1, dtype=np.int64)
-    kept = [c for c in range(len(c_rho)) if np.count_nonzero(member == c) >= p.min_observations]
-    for c in _unambiguous(kept, member, c_alpha, c_ext, obs, p):
-        sel = np.flatnonzero(member == c)
-        rho_m = obs[sel, 0]
-        a_m = c_alpha[c] + np.array([wrap_scalar(a - c_alpha[c]) for a in obs[sel, 1]])
-        rho, alpha = float(rho_m.mean()), float(a_m.mean())
-        # Re-express the members' intervals about the mean direction's foot point.
-        lo = float(obs[sel, 2].min())
-        hi = float(obs[sel, 3].max())
-        scatter = np.cov(np.vstack((rho_m, a_m))) / sel.size
-        C = np.zeros((3, 3))
-        C[:2, :2] = scatter
-        C[0, 0] += p.survey_sigma_m**2
-        C[1, 1] += p.survey_sigma_rad**2
-        C[2, 2] = p.survey_sigma_m**2
-        t_mid = 0.5 * (lo + hi)
-        line, J = line_from_normal(rho, alpha, t_mid)
-        cov = J @ C @ J.T
-        wid = len(ids)
-        ids.append(wid)
-        params_out.append(line)
-        covs.append(0.5 * (cov + cov.T))
-        extents.append((lo - t_mid, hi - t_mid))
-        counts.append(int(sel.size))
-        obs_wall[lines[sel]] = wid
-    w = len(ids)
+    for c in _unambiguous(kept, means, counts, p):
+        obs_wall[lines[member == c]] = len(walls_out)
+        walls_out.append(means[c])
+        n_obs.append(counts[c])
+    w = len(walls_out)
     walls = KnownMapArrays(
-        ids=np.asarray(ids, dtype=np.int64).reshape(w),
+        ids=np.arange(w, dtype=np.int64),
         kinds=np.full(w, int(FeatureKind.LINE), dtype=np.int8),
-        params=np.asarray(params_out, dtype=np.float64).reshape(w, 3),
-        covs=np.asarray(covs, dtype=np.float64).reshape(w, 3, 3),
-        extents=np.asarray(extents, dtype=np.float64).reshape(w, 2),
+        params=np.asarray([m.line for m in walls_out], dtype=np.float64).reshape(w, 3),
+        covs=np.asarray([_sym(m.cov + survey) for m in walls_out], dtype=np.float64).reshape(
+            w, 3, 3
+        ),
+        extents=np.asarray([m.extent for m in walls_out], dtype=np.float64).reshape(w, 2),
     )
-    return FloorPlan(walls=walls, obs_wall=obs_wall, n_obs=np.asarray(counts, dtype=np.int64))
+    return FloorPlan(walls=walls, obs_wall=obs_wall, n_obs=np.asarray(n_obs, dtype=np.int64))
+
+
+def _sym(c: FloatArray) -> FloatArray:
+    out: FloatArray = 0.5 * (c + c.T)
+    return out
+
+
+def _cluster(seg: _Segments, p: FloorPlanParams) -> tuple[IntArray, list[int]]:
+    """Greedy clusters of the segments, longest first: each joins the cluster whose
+    first member's line it lies on (:class:`FloorPlanParams` tolerances, measured in
+    that member's frame) and whose extent it overlaps or nears within ``gap_m``, the
+    nearest in ``(offset, angle)`` of those.  Returns each segment's cluster and each
+    cluster's first member."""
+    order = np.argsort(-(seg.extents[:, 1] - seg.extents[:, 0]), kind="stable")
+    member = np.full(seg.lines.shape[0], -1, dtype=np.int64)
+    refs: list[int] = []
+    ext = np.empty((0, 2))
+    for j in order.tolist():
+        best = -1
+        if refs:
+            _, y, phi, s0, s1 = _in_frame(seg.lines[refs], seg.lines[j], seg.extents[j])
+            ok = (
+                (np.abs(phi) <= p.alpha_tol_rad)
+                & (np.abs(y) <= p.rho_tol_m)
+                & (s0 <= ext[:, 1] + p.gap_m)
+                & (s1 >= ext[:, 0] - p.gap_m)
+            )
+            if ok.any():
+                d = np.where(ok, (y / p.rho_tol_m) ** 2 + (phi / p.alpha_tol_rad) ** 2, np.inf)
+                best = int(np.argmin(d))
+                ext[best] = (min(ext[best, 0], float(s0[best])), max(ext[best, 1], float(s1[best])))
+        if best < 0:
+            refs.append(j)
+            e = seg.extents[j]
+            ext = np.vstack((ext, [min(e), max(e)]))
+            best = len(refs) - 1
+        member[j] = best
+    return member, refs
 
 
 def _unambiguous(
-    kept: list[int],
-    member: np.ndarray,
-    c_alpha: list[float],
-    c_ext: list[list[float]],
-    obs: FloatArray,
-    p: FloorPlanParams,
+    kept: list[int], means: dict[int, _Wall], counts: dict[int, int], p: FloorPlanParams
 ) -> list[int]:
-    """The clusters of ``kept`` without a parallel, same-facing wall closer than
-    ``min_parallel_separation_m`` whose extent overlaps theirs (within ``gap_m``).
+    """The clusters of ``kept`` without a parallel wall closer than
+    ``min_parallel_separation_m`` beside them whose extent overlaps theirs (within
+    ``gap_m``), unless theirs has more observations.
 
     A wall face and a recess or cupboard front 10–30 cm in front of it are told apart
     only by a map match already better than that; pairing a landmark with the wrong
     one of them biases the match by their separation, so both are left out.
     """
-    rho = {c: float(obs[member == c, 0].mean()) for c in kept}
-    n_obs = {c: int(np.count_nonzero(member == c)) for c in kept}
     out = []
     for a in kept:
+        wa = means[a]
         clash = False
         for b in kept:
-            if b == a or (n_obs[b], -b) < (n_obs[a], -a):
+            if b == a or (counts[b], -b) < (counts[a], -a):
                 continue
-            if abs(wrap_scalar(c_alpha[a] - c_alpha[b])) > 2.0 * p.alpha_tol_rad:
-                continue
-            if abs(rho[a] - rho[b]) >= p.min_parallel_separation_m:
-                continue
-            if c_ext[a][0] <= c_ext[b][1] + p.gap_m and c_ext[b][0] <= c_ext[a][1] + p.gap_m:
+            wb = means[b]
+            if _one_wall(
+                wa.line,
+                wa.extent,
+                wb.line,
+                wb.extent,
+                p.min_parallel_separation_m,
+                2.0 * p.alpha_tol_rad,
+                p.gap_m,
+            ):
                 clash = True
                 break
         if not clash:
@@ -230,58 +310,38 @@ def _unambiguous(
     return out
 
 
-def _compatible(
-    a: tuple[float, float, float, float], b: tuple[float, float, float, float], p: FloorPlanParams
-) -> bool:
-    """Whether two walls ``(ρ, α, s0, s1)`` are one: close in ``(ρ, α)``, extents near."""
-    return (
-        abs(a[0] - b[0]) <= p.rho_tol_m
-        and abs(wrap_scalar(a[1] - b[1])) <= p.alpha_tol_rad
-        and a[2] <= b[3] + p.gap_m
-        and b[2] <= a[3] + p.gap_m
-    )
-
-
-def _merge_clusters(
-    member: np.ndarray,
-    c_rho: list[float],
-    c_alpha: list[float],
-    c_ext: list[list[float]],
-    obs: FloatArray,
-    p: FloorPlanParams,
-) -> None:
+def _merge_clusters(member: IntArray, refs: list[int], seg: _Segments, p: FloorPlanParams) -> None:
     """Merge clusters whose mean walls are one wall (``member`` relabelled in place).
 
-    The greedy pass compares each observation with a cluster's first member; a wall
-    seen in pieces from far apart can end up in two clusters whose means agree.
+    The greedy pass compares each segment with a cluster's first member; a wall
+    seen in pieces from far apart can end up in two clusters whose means agree.  The
+    earliest cluster takes the first later one it agrees with, and the scan restarts
+    (its mean moved).
     """
 
-    def mean(c: int) -> tuple[float, float, float, float]:
-        sel = member == c
-        a0 = c_alpha[c]
-        da = np.array([wrap_scalar(a - a0) for a in obs[sel, 1]])
-        return (
-            float(obs[sel, 0].mean()),
-            wrap_scalar(a0 + float(da.mean())),
-            c_ext[c][0],
-            c_ext[c][1],
-        )
+    def mean(c: int) -> _Wall:
+        return _mean_wall(seg.lines[refs[c]], seg.take(np.flatnonzero(member == c)))
 
     alive = sorted(set(int(c) for c in member if c >= 0))
-    merged = True
-    while merged:
-        merged = False
-        means = {c: mean(c) for c in alive}
-        for i, a in enumerate(alive):
-            for b in alive[i + 1 :]:
-                if _compatible(means[a], means[b], p):
-                    member[member == b] = a
-                    c_ext[a] = [min(c_ext[a][0], c_ext[b][0]), max(c_ext[a][1], c_ext[b][1])]
-                    alive.remove(b)
-                    merged = True
-                    break
-            if merged:
-                break
+    means = {c: mean(c) for c in alive}
+    i = 0
+    while i < len(alive) - 1:
+        a, rest = alive[i], alive[i + 1 :]
+        wa = means[a]
+        lines = np.array([means[b].line for b in rest])
+        extents = np.array([means[b].extent for b in rest])
+        hit = np.flatnonzero(
+            _one_wall(wa.line, wa.extent, lines, extents, p.rho_tol_m, p.alpha_tol_rad, p.gap_m)
+        )
+        if hit.size == 0:
+            i += 1
+            continue
+        b = rest[int(hit[0])]
+        member[member == b] = a
+        alive.remove(b)
+        del means[b]
+        means[a] = mean(a)
+        i = 0
 
 
 def same_wall(
@@ -305,49 +365,16 @@ def same_wall(
     if a == b:
         return True
     ext = _extents(plan)
-    wa, wb = (_wall_interval(plan.walls.params[w], ext[w]) for w in (a, b))
-    wb = _facing(wb, wa[1])
-    if abs(wrap_scalar(wa[1] - wb[1])) > p.alpha_tol_rad:
-        return False
-    if max(_offset_at_midpoint(wa, wb), _offset_at_midpoint(wb, wa)) > p.rho_tol_m:
-        return False
-    return wa[2] <= wb[3] + p.gap_m and wb[2] <= wa[3] + p.gap_m
-
-
-def _facing(
-    w: tuple[float, float, float, float], alpha: float
-) -> tuple[float, float, float, float]:
-    """Wall ``w`` ``(ρ, α, s0, s1)`` written with its normal within 90° of ``alpha``:
-    ``(−ρ, α + π, −s1, −s0)`` when it points the other way.  The normal form takes
-    ``ρ ≥ 0``, so two pieces of one line on either side of the origin's foot point
-    can differ by π in ``α``."""
-    if abs(wrap_scalar(w[1] - alpha)) <= math.pi / 2:
-        return w
-    return -w[0], wrap_scalar(w[1] + math.pi), -w[3], -w[2]
-
-
-def _offset_at_midpoint(
-    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
-) -> float:
-    """Distance (m) from the midpoint of wall ``a`` ``(ρ, α, s0, s1)`` to ``b``'s line."""
-    n = np.array([math.cos(a[1]), math.sin(a[1])])
-    t = np.array([-n[1], n[0]])
-    mid = a[0] * n + 0.5 * (a[2] + a[3]) * t
-    return abs(float(mid @ np.array([math.cos(b[1]), math.sin(b[1])])) - b[0])
+    lines = plan.walls.params
+    return bool(
+        _one_wall(lines[a], ext[a], lines[b], ext[b], p.rho_tol_m, p.alpha_tol_rad, p.gap_m)
+    )
 
 
 def _extents(plan: FloorPlan) -> FloatArray:
     if plan.walls.extents is None:
         raise ValueError("the floor plan's walls have no extents")
     return plan.walls.extents
-
-
-def _wall_interval(line: FloatArray, extent: FloatArray) -> tuple[float, float, float, float]:
-    (rho, alpha), _ = line_to_normal(line)
-    t = np.array([-math.sin(alpha), math.cos(alpha)])
-    u = np.array([math.cos(float(line[2])), math.sin(float(line[2]))])
-    s = sorted(float((line[:2] + e * u) @ t) for e in extent)
-    return float(rho), float(alpha), s[0], s[1]
 
 
 def wall_residual(
@@ -378,10 +405,10 @@ def reference_labels(
     """(M,) int64 wall of every line observation judged at the reference pose, −1 for none.
 
     The wall nearest in Mahalanobis distance among those within the χ²(2) 99.9 % gate
-    whose extent overlaps the observed segment (within ``gap_m``); walls far in
-    ``(ρ, α)`` are ruled out first.  Unlike :attr:`FloorPlan.obs_wall` (cluster
-    membership) this labels observations of walls left out of the plan with a wall
-    of the plan they lie on.
+    whose extent overlaps the observed segment (within ``gap_m``); walls far from the
+    segment (its midpoint's offset, its angle) are ruled out first.  Unlike
+    :attr:`FloorPlan.obs_wall` (cluster membership) this labels observations of walls
+    left out of the plan with a wall of the plan they lie on.
     """
     p = FloorPlanParams() if params is None else params
     if log.true_poses is None:
@@ -389,19 +416,16 @@ def reference_labels(
     gate = float(chi2_dist.ppf(0.999, 2))
     walls = plan.walls
     ext = _extents(plan)
-    wi = np.array([_wall_interval(walls.params[w], ext[w]) for w in range(len(walls))])
-    wi = wi.reshape(-1, 4)
     out = np.full(log.n_features, -1, dtype=np.int64)
-    for i in np.flatnonzero(log.feat_kind == FeatureKind.LINE):
-        rho, alpha, s0, s1 = _world_normal(
-            log.true_poses[log.feat_step[i]], log.feat_params[i], log.feat_extent[i]
-        )
-        da = np.abs(np.remainder(wi[:, 1] - alpha + math.pi, 2.0 * math.pi) - math.pi)
+    lines = np.flatnonzero(log.feat_kind == FeatureKind.LINE)
+    seg = _world_segments(log, lines)
+    for n, i in enumerate(lines.tolist()):
+        _, y, phi, s0, s1 = _in_frame(walls.params, seg.lines[n], seg.extents[n])
         cand = np.flatnonzero(
-            (da <= 3.0 * p.alpha_tol_rad)
-            & (np.abs(wi[:, 0] - rho) <= 3.0 * p.rho_tol_m)
-            & (wi[:, 2] <= s1 + p.gap_m)
-            & (s0 <= wi[:, 3] + p.gap_m)
+            (np.abs(phi) <= 3.0 * p.alpha_tol_rad)
+            & (np.abs(y) <= 3.0 * p.rho_tol_m)
+            & (s0 <= ext[:, 1] + p.gap_m)
+            & (s1 >= ext[:, 0] - p.gap_m)
         )
         best, best_d2 = -1, gate
         for w in cand:
