@@ -15,7 +15,12 @@ import math
 import numpy as np
 import pytest
 
-from mapfuse_core.data.datasets.floorplan import build_floor_plan, survey_cov
+from mapfuse_core.data.datasets.floorplan import (
+    build_floor_plan,
+    reference_labels,
+    same_wall,
+    survey_cov,
+)
 from mapfuse_core.geometry.se2 import compose, rot2, wrap_scalar_half
 from tests.test_line_noise import _log
 
@@ -58,6 +63,22 @@ def test_moving_the_reference_frame_moves_the_walls_and_keeps_their_covariances(
         np.testing.assert_allclose(
             _in_wall_frame(th, ca), _in_wall_frame(th + move[2], cb), atol=1e-12
         )
+
+
+@pytest.mark.parametrize("move", _MOVES)
+def test_labels_and_verdicts_do_not_move_with_the_frame(move: tuple[float, float, float]) -> None:
+    log = _log((0.01, math.radians(0.3)), 0.0, n=200)
+    assert log.true_poses is not None
+    G = np.array(move)
+    moved = dataclasses.replace(log, true_poses=np.array([compose(G, p) for p in log.true_poses]))
+    here, there = build_floor_plan(log), build_floor_plan(moved)
+    labels = reference_labels(log, here)
+    assert np.count_nonzero(labels >= 0) >= 0.9 * labels.size
+    np.testing.assert_array_equal(labels, reference_labels(moved, there))
+    n = len(here.walls)
+    for a in range(n):
+        for b in range(n):
+            assert same_wall(here, a, b) == same_wall(there, a, b) == (a == b)
 
 
 def test_survey_term_is_isotropic_in_position_and_a_rotation_about_the_midpoint() -> None:

@@ -1,15 +1,18 @@
 """A floor plan (wall map) built from every scan at the reference poses (``docs/real-data.md``).
 
 Each line observation of a log with a reference trajectory is put in the reference
-frame ``W`` at its step's reference pose, in normal form ``(ρ, α)`` with its world
-segment.  Observations are clustered greedily, longest first: one joins the wall
-whose ``(ρ, α)`` is within ``rho_tol_m`` / ``alpha_tol_rad`` and whose extent along the
-wall overlaps its segment or lies within ``gap_m`` of it.  A wall is kept when it has
-at least ``min_observations`` observations and no parallel wall closer than
-``min_parallel_separation_m`` beside it.  Its ``(ρ, α)`` is the mean of its
-members', its covariance the members' scatter divided by their number (the standard
-error of the mean, which includes the walls' real roughness) plus a stated survey
-σ; its extent the union of its members' segments.
+frame ``W`` at its step's reference pose: the line through its segment's midpoint and
+the segment's interval along it.  Observations are clustered greedily, longest first:
+one joins the wall whose first member's line passes within ``rho_tol_m`` of its
+midpoint, at most ``alpha_tol_rad`` from its direction (modulo π), and whose extent
+overlaps its segment or lies within ``gap_m`` of it.  A wall is kept when it has at
+least ``min_observations`` observations and no parallel wall closer than
+``min_parallel_separation_m`` beside it.  It is the mean of its members (offset and
+angle in its first member's frame), its covariance the members' scatter divided by
+their number (the standard error of the mean, which includes the walls' real
+roughness) plus a stated survey σ about its midpoint; its extent the union of its
+members' segments.  Every test is made where the walls are, never on a normal's
+distance from ``W``'s origin, so the plan does not depend on where the log starts.
 
 :func:`line_nees` measures each labelled observation against its wall at the
 reference pose: how honest the extracted line covariances are.
@@ -46,9 +49,11 @@ class FloorPlanParams:
     """Thresholds of :func:`build_floor_plan`."""
 
     rho_tol_m: float = 0.10
-    """An observation joins a wall only if their ρ (in ``W``) differ by at most this (m)."""
+    """An observation joins a wall only if its segment's midpoint lies within this (m)
+    of the wall's line."""
     alpha_tol_rad: float = math.radians(3.0)
-    """… and their α by at most this (rad); a wall's two faces differ by π and stay apart."""
+    """… and its direction is within this (rad) of the wall's, modulo π (a line has no
+    face: the two faces of a thin wall are one wall, or a parallel pair left out)."""
     gap_m: float = 0.3
     """… and the gap between its segment and the wall's extent is at most this (m)."""
     min_observations: int = 5
@@ -61,7 +66,7 @@ class FloorPlanParams:
     survey_sigma_rad: float = math.radians(0.3)
     """σ (rad) added to every wall's direction, a rotation about its midpoint."""
     min_parallel_separation_m: float = 0.5
-    """Walls with a parallel, same-facing wall nearer than this (m) beside them are left
+    """Walls with a parallel wall nearer than this (m) beside them are left
     out of the plan (a recess, a cupboard front before a wall): a match with the known
     map cannot tell the two apart until it is better than their separation."""
 
