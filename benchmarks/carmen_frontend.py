@@ -13,8 +13,9 @@ prefix of the log mimics a shorter log) and every seed of the simulated odometry
 * **association** (EKF, with and without the plan; ``--ekf`` overrides its options):
   the wrong re-observations, and those of them a join made
   (:func:`wrong_reobservations` defines them);
-* **estimators** (``--estimators``; EKF, batch, iSAM2 on the EKF's decisions, a graph
-  backend with a robust kernel as ``batch+huber``) with and without the plan:
+* **estimators** (``--estimators``; EKF, batch, iSAM2 on the EKF's decisions with the
+  ``carmen:`` profile's Cauchy kernel, another kernel as ``batch+huber``, none as
+  ``batch+gauss``) with and without the plan:
   position RMSE and max against the reference, mean pose NEES with its two-sided
   95 % acceptance region, run time.
 
@@ -210,7 +211,7 @@ def _one(
         ekf = None
         for est in estimators:
             name, _, kernel = est.partition("+")
-            kw: dict[str, Any] = {"graph": {"robust": kernel}} if kernel else {}
+            kw: dict[str, Any] = {"graph": {"robust": _kernel(kernel)}} if kernel else {}
             if est == "ekf":
                 kw = ekf_options
             c0 = time.process_time()
@@ -221,6 +222,11 @@ def _one(
                 ekf = r.result
                 row[f"ekf_{key}"].update(_ekf_extras(r.result, log, plan))
     return row
+
+
+def _kernel(name: str) -> str | None:
+    """The robust kernel of ``NAME+KERNEL``: ``gauss`` for none (the profile's is Cauchy)."""
+    return None if name == "gauss" else name
 
 
 def _anees(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
@@ -342,8 +348,8 @@ def main() -> None:
     ap.add_argument(
         "--estimators",
         default="ekf",
-        help="comma list: ekf,batch,isam2; NAME+KERNEL for a graph backend with a robust "
-        "kernel (batch+huber)",
+        help="comma list: ekf,batch,isam2; NAME+KERNEL for a graph backend with another "
+        "robust kernel than the profile's (batch+huber; batch+gauss for none)",
     )
     ap.add_argument(
         "--ekf",

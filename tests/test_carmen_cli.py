@@ -204,6 +204,8 @@ def test_carmen_profile_applies_to_every_carmen_log_and_only_to_them() -> None:
         est = get(name)
         assert default_options(est, carmen).graph.data_association == carmen_association()
         assert default_options(est, plain).graph.data_association != carmen_association()
+        assert default_options(est, carmen).graph.robust == "cauchy"
+        assert default_options(est, plain).graph.robust is None
     assert carmen_association().line_gap_m == 1.0
 
 
@@ -224,7 +226,7 @@ def test_an_override_of_a_nested_option_keeps_the_profiles_other_settings() -> N
     assert ekf.data_association.line_gap_m == 2.0
     assert ekf.data_association.ccda == carmen_association().ccda
     # A whole dataclass replaces the profile's value, and the warning names what it drops.
-    with pytest.warns(UserWarning, match=r"batch\.graph: .* profile's data_association"):
+    with pytest.warns(UserWarning, match=r"batch\.graph: .* profile's .*data_association"):
         whole = make_options("batch", carmen, graph=GraphOptions(ccda_every=20))
     assert whole.graph.data_association.line_gap_m != profile_gap
     with pytest.raises(ValueError, match=r"the batch\.graph options have no field gap"):
