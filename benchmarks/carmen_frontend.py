@@ -210,8 +210,7 @@ def _one(
         key = "plan" if fusion else "none"
         ekf = None
         for est in estimators:
-            name, _, kernel = est.partition("+")
-            kw: dict[str, Any] = {"graph": {"robust": _kernel(kernel)}} if kernel else {}
+            name, kw = backend_and_kernel(est)
             if est == "ekf":
                 kw = ekf_options
             c0 = time.process_time()
@@ -224,9 +223,13 @@ def _one(
     return row
 
 
-def _kernel(name: str) -> str | None:
-    """The robust kernel of ``NAME+KERNEL``: ``gauss`` for none (the profile's is Cauchy)."""
-    return None if name == "gauss" else name
+def backend_and_kernel(est: str) -> tuple[str, dict[str, Any]]:
+    """``NAME`` or ``NAME+KERNEL`` → the estimator's name and the override of its
+    options the kernel makes (``gauss``: no kernel; without one, the profile's)."""
+    name, _, kernel = est.partition("+")
+    if not kernel:
+        return name, {}
+    return name, {"graph": {"robust": None if kernel == "gauss" else kernel}}
 
 
 def _anees(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:

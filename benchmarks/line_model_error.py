@@ -10,7 +10,8 @@ For every corrected log given (``--logs``; default every ``*-corrected.log*`` in
 * **what it does to the estimators** with the association taken from the reference
   labels (``association="truth"``) and no known map, so that only the line noise model
   differs: for every seed of the simulated odometry and every ``--estimators`` entry
-  (a graph backend, ``NAME+KERNEL`` for a robust kernel), the log loaded with the
+  (a graph backend with the ``carmen:`` profile's Cauchy kernel, ``NAME+KERNEL`` for
+  another, ``NAME+gauss`` for none), the log loaded with the
   profile's terms and with the estimated ones: position RMSE and mean pose NEES.
 
 One JSON line per (log, seed, terms, estimator) and, after every log, a summary line
@@ -34,7 +35,7 @@ from typing import Any
 
 from scipy.stats import chi2
 
-from benchmarks.carmen_frontend import resolve_logs
+from benchmarks.carmen_frontend import backend_and_kernel, resolve_logs
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
 from mapfuse_core.data.datasets.line_noise import estimate_line_model_error
@@ -80,8 +81,7 @@ def _runs(path: Path, seeds: list[int], estimators: list[str]) -> list[dict[str,
             plan = build_floor_plan(raw) if plan is None else plan
             log = label_with_plan(raw, plan)
             for est in estimators:
-                name, _, kernel = est.partition("+")
-                kw: dict[str, Any] = {"graph": {"robust": kernel}} if kernel else {}
+                name, kw = backend_and_kernel(est)
                 c0 = time.process_time()
                 r = run(log, name, fusion=False, association="truth", **kw)
                 m = r.metrics
@@ -164,8 +164,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument(
         "--estimators",
-        default="batch,batch+cauchy",
-        help="comma list of graph backends; NAME+KERNEL for a robust kernel",
+        default="batch+gauss,batch",
+        help="comma list of graph backends (the carmen: profile's Cauchy kernel); "
+        "NAME+KERNEL for another kernel, NAME+gauss for none",
     )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
