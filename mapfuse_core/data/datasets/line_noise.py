@@ -189,13 +189,20 @@ def _variances(res: _Residuals, target: tuple[float, float]) -> tuple[float, flo
 
 def _lag_pairs(res: _Residuals) -> list[tuple[IntArray, IntArray]]:
     """For each lag ``L`` = 1…:data:`_MAX_LAG`, the observations ``(j, k)`` of one wall
-    ``L`` scans apart: they do not depend on the terms, so they are found once."""
-    index = {(int(w), int(k)): j for j, (w, k) in enumerate(zip(res.wall, res.step, strict=True))}
+    ``L`` scans apart: they do not depend on the terms, so they are found once.
+
+    A wall seen in two pieces in one scan (a door between them) has no single
+    observation at that scan: its pieces err apart, and pairing one of them with the
+    next scan's would read as a correlation lost in one scan.  Such (wall, scan) keys
+    take no part in the sum.
+    """
+    keys = list(zip(res.wall.tolist(), res.step.tolist(), strict=True))
+    seen: dict[tuple[int, int], int] = {}
+    for j, key in enumerate(keys):
+        seen[key] = -1 if key in seen else j
     out = []
     for lag in range(1, _MAX_LAG + 1):
-        later = np.array(
-            [index.get((int(w), int(k) + lag), -1) for w, k in zip(res.wall, res.step, strict=True)]
-        )
+        later = np.array([seen.get((w, k + lag), -1) if seen[(w, k)] >= 0 else -1 for w, k in keys])
         first = np.flatnonzero(later >= 0)
         out.append((first, later[first]))
     return out
