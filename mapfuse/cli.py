@@ -114,6 +114,8 @@ def _check_graph_flags(
     given = {f: getattr(args, f) for f in _OPTION_FLAGS if getattr(args, f) is not None}
     if not given:
         return {}
+    if given.get("robust") == "none":
+        given["robust"] = None  # stated: no kernel, whatever the dataset's profile says
     out: dict[str, dict[str, Any]] = {}
     for flag, value in given.items():
         takers = [b for b in estimators if _has_option(b, _OPTION_FLAGS[flag])]
@@ -407,8 +409,8 @@ def _add_graph_flags(p: argparse.ArgumentParser) -> None:
         "--robust",
         default=None,
         metavar="KERNEL",
-        help="graph backends only: robust kernel on observations, huber[:k] or cauchy[:k] "
-        "(default: none)",
+        help="graph backends only: robust kernel on observations, huber[:k], cauchy[:k] "
+        "or none (default: the dataset profile's: cauchy on CARMEN logs, else none)",
     )
 
 

@@ -265,6 +265,15 @@ def test_compare_options_choose_backends_fusion_association_robust(
     assert sorted(p.name for p in (out / "runs").iterdir()) == ["batch_no_fusion", "ekf_no_fusion"]
 
 
+def test_robust_none_states_no_kernel_over_a_profiles() -> None:
+    from mapfuse.cli import _check_graph_flags
+
+    args = argparse.Namespace(association=None, robust="none")
+    assert _check_graph_flags(args, ["ekf", "batch"]) == {"batch": {"graph": {"robust": None}}}
+    args = argparse.Namespace(association=None, robust="cauchy:2")
+    assert _check_graph_flags(args, ["isam2"]) == {"isam2": {"graph": {"robust": "cauchy:2"}}}
+
+
 def test_compare_stdout_is_json_alone(log_npz: Path, tmp_path: Path) -> None:
     out = tmp_path / "cmp"
     # With progress bars on: they go to stderr.
