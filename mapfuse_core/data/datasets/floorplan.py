@@ -66,9 +66,10 @@ class FloorPlanParams:
     survey_sigma_rad: float = math.radians(0.3)
     """σ (rad) added to every wall's direction, a rotation about its midpoint."""
     min_parallel_separation_m: float = 0.5
-    """Walls with a parallel wall nearer than this (m) beside them are left
-    out of the plan (a recess, a cupboard front before a wall): a match with the known
-    map cannot tell the two apart until it is better than their separation."""
+    """Of two parallel, overlapping walls nearer than this (m) to each other (a recess,
+    a cupboard front before a wall), the one seen less often is left out of the plan:
+    a match with the known map cannot tell the two apart until it is better than their
+    separation."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -283,13 +284,15 @@ def _cluster(seg: _Segments, p: FloorPlanParams) -> tuple[IntArray, list[int]]:
 def _unambiguous(
     kept: list[int], means: dict[int, _Wall], counts: dict[int, int], p: FloorPlanParams
 ) -> list[int]:
-    """The clusters of ``kept`` without a parallel wall closer than
-    ``min_parallel_separation_m`` beside them whose extent overlaps theirs (within
-    ``gap_m``), unless theirs has more observations.
+    """The clusters of ``kept`` without a parallel wall beside them, seen at least as
+    often (ties: the earlier cluster), whose extent overlaps theirs (within ``gap_m``)
+    and whose line passes within ``min_parallel_separation_m`` of their midpoint and
+    theirs of its midpoint (:func:`_one_wall`).
 
     A wall face and a recess or cupboard front 10–30 cm in front of it are told apart
     only by a map match already better than that; pairing a landmark with the wrong
-    one of them biases the match by their separation, so both are left out.
+    one of them biases the match by their separation, so the one seen less often is
+    left out.
     """
     out = []
     for a in kept:
