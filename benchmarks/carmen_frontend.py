@@ -340,11 +340,17 @@ def resolve_logs(data: Path, names: list[str] | None) -> list[Path]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_log_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--data``, ``--logs`` (:func:`resolve_logs`) and ``--seeds`` of the simulated
+    odometry: the arguments every CARMEN benchmark takes."""
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
     ap.add_argument("--logs", nargs="*", help="files, or names in --data/carmen (csail, intel…)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_log_arguments(ap)
     ap.add_argument(
         "--steps", type=int, nargs="+", default=[0], help="scans to run (0: the whole log)"
     )

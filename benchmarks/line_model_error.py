@@ -35,7 +35,7 @@ from typing import Any
 
 from scipy.stats import chi2
 
-from benchmarks.carmen_frontend import backend_and_kernel, resolve_logs
+from benchmarks.carmen_frontend import add_log_arguments, backend_and_kernel, resolve_logs
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
 from mapfuse_core.data.datasets.line_noise import estimate_line_model_error
@@ -159,9 +159,7 @@ def _markdown(estimates: list[dict[str, Any]], summaries: list[dict[str, Any]]) 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=Path("../shared/data"))
-    ap.add_argument("--logs", nargs="*", help="names in --data/carmen (csail, intel…)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    add_log_arguments(ap)
     ap.add_argument(
         "--estimators",
         default="batch+gauss,batch",
