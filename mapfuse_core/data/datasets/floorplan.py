@@ -218,10 +218,10 @@ def build_floor_plan(log: MeasurementLog, params: FloorPlanParams | None = None)
     lines = np.flatnonzero(log.feat_kind == FeatureKind.LINE)
     seg = _world_segments(log, lines)
     member, refs = _cluster(seg, p)
-    _merge_clusters(member, refs, seg, p)
-    kept = [c for c in range(len(refs)) if np.count_nonzero(member == c) >= p.min_observations]
-    means = {c: _mean_wall(seg.lines[refs[c]], seg.take(np.flatnonzero(member == c))) for c in kept}
-    counts = {c: int(np.count_nonzero(member == c)) for c in kept}
+    means = _merge_clusters(member, refs, seg, p)
+    n_members = np.bincount(member, minlength=len(refs))
+    kept = [c for c in sorted(means) if n_members[c] >= p.min_observations]
+    counts = {c: int(n_members[c]) for c in kept}
     survey = survey_cov(p.survey_sigma_m, p.survey_sigma_rad)
     walls_out: list[_Wall] = []
     n_obs: list[int] = []
@@ -318,8 +318,11 @@ def _unambiguous(
     return out
 
 
-def _merge_clusters(member: IntArray, refs: list[int], seg: _Segments, p: FloorPlanParams) -> None:
-    """Merge clusters whose mean walls are one wall (``member`` relabelled in place).
+def _merge_clusters(
+    member: IntArray, refs: list[int], seg: _Segments, p: FloorPlanParams
+) -> dict[int, _Wall]:
+    """Merge clusters whose mean walls are one wall (``member`` relabelled in place);
+    returns the mean wall of every cluster left.
 
     The greedy pass compares each segment with a cluster's first member; a wall
     seen in pieces from far apart can end up in two clusters whose means agree.  The
@@ -350,6 +353,7 @@ def _merge_clusters(member: IntArray, refs: list[int], seg: _Segments, p: FloorP
         del means[b]
         means[a] = mean(a)
         i = 0
+    return means
 
 
 def same_wall(
