@@ -19,7 +19,7 @@ from mapfuse.estimator import Estimator
 from mapfuse_core.data.datasets import VICTORIA_PARK_NAME
 from mapfuse_core.measlog import MeasurementLog
 
-__all__ = ["CARMEN_KERNEL", "PROFILES", "Profile", "default_options", "profile_of"]
+__all__ = ["PROFILES", "Profile", "default_options", "profile_of"]
 
 #: Field overrides of an estimator's options, made on demand (so that a profile of a
 #: graph backend imports gtsam only when that backend runs).
@@ -63,15 +63,12 @@ def _carmen_graph() -> Mapping[str, Any]:
     # Cauchy: a wrong re-observation of the EKF's decisions ties a landmark to a wall a
     # door width away; the kernel lowers the smoothers' ANEES on all seven logs
     # (docs/results/carmen.md#robust-kernel-on-the-ekfs-decisions).
-    return {"graph": GraphOptions(data_association=carmen_association(), robust=CARMEN_KERNEL)}
+    return {"graph": GraphOptions(data_association=carmen_association(), robust="cauchy")}
 
 
 def _victoria_park_graph() -> Mapping[str, Any]:
     return {"split_circles_where_exact": True}
 
-
-CARMEN_KERNEL = "cauchy"
-"""Robust kernel of the graph backends' observation factors on CARMEN logs."""
 
 #: Every dataset with its own defaults, by scenario name.
 PROFILES: Mapping[str, Profile] = {

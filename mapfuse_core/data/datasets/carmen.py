@@ -27,7 +27,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -171,10 +171,11 @@ class CarmenOptions:
             raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
         if not isinstance(self.keep_scans, bool):
             raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
-        if self.line_model_error not in ("correlated", "independent", "profile"):
+        choices = get_args(LineModelErrorSource)
+        if self.line_model_error not in choices:
+            named = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
             raise ValueError(
-                "CarmenOptions.line_model_error must be 'correlated', 'independent' or "
-                f"'profile', got {self.line_model_error!r}"
+                f"CarmenOptions.line_model_error must be {named}, got {self.line_model_error!r}"
             )
 
 
