@@ -153,16 +153,16 @@ def _one_wall(
     gap: float,
 ) -> np.ndarray:
     """Whether segment ``a`` and each segment ``b`` (lines at their midpoints,
-    extents; ``b`` and ``eb`` may be stacked) lie on one wall: directions within
-    ``alpha_tol`` (modulo π), each midpoint within ``rho_tol`` of the other's line, and
-    the extents at most ``gap`` apart."""
+    extents; either pair may be stacked, the other broadcast) lie on one wall:
+    directions within ``alpha_tol`` (modulo π), each midpoint within ``rho_tol`` of the
+    other's line, and the extents, measured along ``a``, at most ``gap`` apart."""
     _, y, phi, s0, s1 = _in_frame(a, b, eb)
     _, y_back, _, _, _ = _in_frame(b, a, ea)
     out: np.ndarray = (
         (np.abs(phi) <= alpha_tol)
         & (np.maximum(np.abs(y), np.abs(y_back)) <= rho_tol)
-        & (s0 <= ea[1] + gap)
-        & (s1 >= ea[0] - gap)
+        & (s0 <= ea[..., 1] + gap)
+        & (s1 >= ea[..., 0] - gap)
     )
     return out
 
@@ -326,8 +326,11 @@ def _merge_clusters(
 
     The greedy pass compares each segment with a cluster's first member; a wall
     seen in pieces from far apart can end up in two clusters whose means agree.  The
-    earliest cluster takes the first later one it agrees with, and the scan restarts
-    (its mean moved).
+    earliest cluster takes the first later one it agrees with.  No cluster before it
+    agrees with any after it, and only the merged cluster's mean moved, so the scan
+    goes on from the first earlier cluster that now agrees with the merged one (it
+    takes it), or else from the merged one itself: what a scan from the start would
+    do, without repeating the comparisons that cannot have changed.
     """
 
     def mean(c: int) -> _Wall:
@@ -352,7 +355,21 @@ def _merge_clusters(
         alive.remove(b)
         del means[b]
         means[a] = mean(a)
-        i = 0
+        if i:
+            before = alive[:i]
+            back = np.flatnonzero(
+                _one_wall(
+                    np.array([means[c].line for c in before]),
+                    np.array([means[c].extent for c in before]),
+                    means[a].line,
+                    means[a].extent,
+                    p.rho_tol_m,
+                    p.alpha_tol_rad,
+                    p.gap_m,
+                )
+            )
+            if back.size:
+                i = int(back[0])
     return means
 
 
