@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from mapfuse.campaign.cli import parse_world_args
+from mapfuse.campaign.spec import parse_world_args
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.models.line import line_residual, line_residual_cov
 from mapfuse_core.perception.extraction import ExtractionParams, extract_features
