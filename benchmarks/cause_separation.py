@@ -198,7 +198,8 @@ def _row(log: MeasurementLog, r: Any, seed: int, variant: str, fusion: bool, t0:
     _, nees = run_errors(r)
     anchor_nees = None
     if r.result.anchor is not None:
-        d = pose_errors(r.result.anchor.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None])
+        truth = anchor_truth(log.true_poses, log.known_frame)
+        d = pose_errors(r.result.anchor.x_Wknown_Wglobal[None], truth[None])
         anchor_nees = float(nees_series(d.dx, r.result.anchor.cov[None])[0])
     return {
         "seed": seed,

@@ -290,3 +290,27 @@ def test_campaign_runs_on_a_separate_scheduler_and_two_workers(tmp_path: Path) -
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def test_a_campaign_row_measures_the_anchor_in_the_known_maps_own_frame() -> None:
+    """The anchor's truth is ``⊖x^W_Wknown ⊕ x^W_R0``: with the known map in a frame of
+    its own the NEES is against that, not against the vehicle's start in ``W``."""
+    from mapfuse.campaign.task import anchor_nees_of
+    from mapfuse.metrics import anchor_block
+    from mapfuse_core.estimate import Anchor
+    from mapfuse_core.evaluation import anchor_truth
+    from mapfuse_core.geometry.se2 import compose, inverse
+
+    true_poses = np.array([[3.0, -2.0, 0.4], [4.0, -2.0, 0.4]])
+    frame = np.array([10.0, 5.0, 0.7])  # x^W_Wknown
+    truth = compose(inverse(frame), true_poses[0])
+    cov = np.diag([0.04, 0.09, 0.01])
+    err = np.array([0.2, -0.3, 0.1])
+    anchor = Anchor(x_Wknown_Wglobal=truth + err, cov=cov, accepted_at_step=1, pairings=())
+    nees = anchor_nees_of(anchor, anchor_block(anchor, true_poses, frame))
+    assert nees == pytest.approx(float(err @ np.linalg.solve(cov, err)), rel=1e-9)
+    # Against the start in W (the known frame ignored) it would be thousands.
+    wrong = anchor.x_Wknown_Wglobal - anchor_truth(true_poses)
+    assert float(wrong @ np.linalg.solve(cov, wrong)) > 1e3
+    assert anchor_nees_of(None, None) is None
+    assert anchor_nees_of(anchor, anchor_block(anchor, None, frame)) is None
