@@ -72,7 +72,7 @@ def log_row(log: MeasurementLog, seed: int, stride: int, draws: int) -> dict[str
         if a is None:
             anchor[name] = None
             continue
-        d = a.x_Wknown_Wglobal - anchor_truth(log.true_poses)
+        d = a.x_Wknown_Wglobal - anchor_truth(log.true_poses, log.known_frame)
         ea = np.random.default_rng(seed).multivariate_normal(np.zeros(3), a.cov, size=draws)
         miss = (np.hypot(ea[:, 0], ea[:, 1]) > 0.04) | (np.abs(ea[:, 2]) > 0.002)
         anchor[name] = {

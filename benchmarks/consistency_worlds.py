@@ -87,9 +87,8 @@ def _rows(log: MeasurementLog, seed: int, version: str, estimators: list[str]) -
             dx, nees = run_errors(r)
             anchor_nees = None
             if res.anchor is not None:
-                d = pose_errors(
-                    res.anchor.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None]
-                )
+                truth = anchor_truth(log.true_poses, log.known_frame)
+                d = pose_errors(res.anchor.x_Wknown_Wglobal[None], truth[None])
                 anchor_nees = float(nees_series(d.dx, res.anchor.cov[None])[0])
             out.append(
                 {

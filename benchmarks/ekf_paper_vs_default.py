@@ -151,7 +151,8 @@ def _run(log: MeasurementLog, name: str, changed: set[int]) -> dict[str, Any]:
     }
     a = res.anchor
     if a is not None:
-        e = pose_errors(a.x_Wknown_Wglobal[None], anchor_truth(log.true_poses)[None])
+        truth = anchor_truth(log.true_poses, log.known_frame)
+        e = pose_errors(a.x_Wknown_Wglobal[None], truth[None])
         row["anchor"] = {
             "step": a.accepted_at_step,
             "pairings": len(a.pairings),

@@ -107,7 +107,7 @@ def run_seed(seed: int, estimators: tuple[str, ...]) -> dict[str, Any]:
     scenario = load_scenario("loop600")
     log = simulate(scenario, seed=seed, workers=1).log
     assert log.true_poses is not None
-    truth = anchor_truth(log.true_poses)
+    truth = anchor_truth(log.true_poses, log.known_frame)
 
     def anchor_nees(a: Anchor | None) -> float | None:
         if a is None:
