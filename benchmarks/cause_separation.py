@@ -17,7 +17,8 @@ variant                   estimator  fusion  association   observations
 ``batch_truth_lines``     batch      off     true ids      lines redrawn, circles as extracted
 ``batch_lines_only``      batch      off     true ids      lines only, as extracted
 ``batch_circles_only``    batch      off     true ids      circles only, as extracted
-``ekf_redrawn``           EKF        off     its own       every one redrawn
+``ekf_redrawn``           EKF        on/off  its own       every one redrawn
+``ekf_lines``             EKF        on/off  its own       lines redrawn
 ``ekf_circles``           EKF        on/off  its own       circles redrawn
 ========================  =========  ======  ============  ==================================
 
@@ -33,7 +34,10 @@ remains of an excess there is the estimator's (linearisation, association).
 Output: one JSON line per seed and variant (``--out``, appended to; a seed already
 there is skipped), then a JSON summary on stdout: per variant and fusion the ANEES over
 the runs with its two-sided 95 % bounds, the fraction of steps inside them, the mean of
-the runs' mean NEES with its interval, and the anchor ANEES with its bounds.
+the runs' mean NEES with its interval, the anchor ANEES with its bounds, and for the
+fused EKF the mean NEES from its anchor on in the known map's frame and in ``Wglobal``
+(``--world`` takes any generator keywords: the dense regime of
+``benchmarks/consistency_regimes.py`` is where the fused EKF is pessimistic).
 
     PYTHONPATH=. python benchmarks/cause_separation.py --seeds 1 9 --out /tmp/cs.jsonl
 """
@@ -56,7 +60,7 @@ from mapfuse.figures import run_errors
 from mapfuse.runner import run
 from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind, express_in
-from mapfuse_core.geometry.se2 import wrap_scalar
+from mapfuse_core.geometry.se2 import compose, inverse, wrap_scalar
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.models.line import line_residual_cov
 from mapfuse_core.sim.scenario import load_scenario
@@ -180,9 +184,15 @@ VARIANTS: dict[
     ),
     "ekf_redrawn": (
         "ekf",
-        (False,),
+        (True, False),
         "own",
         lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
+    ),
+    "ekf_lines": (
+        "ekf",
+        (True, False),
+        "own",
+        lambda log, s: redrawn(log, s, (FeatureKind.LINE,)),
     ),
     "ekf_circles": (
         "ekf",
@@ -191,6 +201,22 @@ VARIANTS: dict[
         lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
     ),
 }
+
+
+def _nees_in_known(log: MeasurementLog, r: Any) -> list[float] | None:
+    """The fused EKF's NEES of its poses in the known map's frame, from the step of
+    its anchor on (``None`` for other runs)."""
+    details = r.result.details
+    poses = getattr(details, "poses_in_known", None)
+    if poses is None or log.true_poses is None:
+        return None
+    held = np.flatnonzero(np.all(np.isfinite(poses), axis=1))
+    if held.size == 0:
+        return None
+    to_known = inverse(np.zeros(3) if log.known_frame is None else log.known_frame)
+    truth = np.array([compose(to_known, x) for x in log.true_poses[held]])
+    d = pose_errors(poses[held], truth)
+    return [float(v) for v in nees_series(d.dx, details.covs_in_known[held])]
 
 
 def _row(log: MeasurementLog, r: Any, seed: int, variant: str, fusion: bool, t0: float) -> dict:
@@ -208,6 +234,7 @@ def _row(log: MeasurementLog, r: Any, seed: int, variant: str, fusion: bool, t0:
         "nees": nees.tolist(),
         "nees_mean": float(np.nanmean(nees)),
         "anchor_nees": anchor_nees,
+        "nees_known": _nees_in_known(log, r),
         "wall_s": round(time.perf_counter() - t0, 1),
     }
 
@@ -251,6 +278,8 @@ def summarise(rows: list[dict]) -> list[dict]:
             else [float(np.ravel(b)[0]) for b in anees_bounds(np.array([len(anchors)]), 3, 0.95)]
         )
         m = mean_interval([r["nees_mean"] for r in sel])
+        known = [v for r in sel for v in (r.get("nees_known") or [])]
+        after = [v for r in sel if r.get("nees_known") for v in r["nees"][-len(r["nees_known"]) :]]
         out.append(
             {
                 "variant": variant,
@@ -264,6 +293,10 @@ def summarise(rows: list[dict]) -> list[dict]:
                 "anchor_anees": round(float(np.mean(anchors)), 3) if anchors else None,
                 "anchor_bounds": [round(b, 3) for b in bounds],
                 "anchor_runs": len(anchors),
+                # From each fused EKF run's anchor on: its poses' mean NEES in the known
+                # map's frame and in Wglobal, over the same steps.
+                "nees_known_after_anchor": round(float(np.mean(known)), 3) if known else None,
+                "nees_global_after_anchor": round(float(np.nanmean(after)), 3) if after else None,
             }
         )
     return out

@@ -50,3 +50,24 @@ def test_only_keeps_the_observations_of_one_kind() -> None:
     assert np.all(lines.feat_kind == int(FeatureKind.LINE))
     assert lines.n_features == int(np.sum(log.feat_kind == int(FeatureKind.LINE)))
     assert lines.n_steps == log.n_steps
+
+
+def test_the_fused_ekf_row_holds_its_nees_in_the_known_frame_from_its_anchor_on() -> None:
+    bench, log = _log()
+    rows = bench.run_seed(log, 3, ["ekf"])
+    fused = next(r for r in rows if r["fusion"])
+    unfused = next(r for r in rows if not r["fusion"])
+    assert unfused["nees_known"] is None
+    known = np.array(fused["nees_known"])
+    # One value per step from the anchor to the end of the drive.
+    assert 0 < known.size < len(fused["nees"])
+    assert np.all(np.isfinite(known))
+    assert np.all(known >= 0.0)
+    summary = {(s["variant"], s["fusion"]): s for s in bench.summarise(rows)}
+    s = summary[("ekf", True)]
+    assert s["nees_known_after_anchor"] == round(float(known.mean()), 3)
+    after = np.array(fused["nees"][-known.size :])
+    assert s["nees_global_after_anchor"] == round(float(np.nanmean(after)), 3)
+    # A consistent run's mean NEES (3 dof) in either frame is of order 3, not 0 or 1e3:
+    # the frame change is right (the known map of loop600's worlds is in W).
+    assert 0.3 < known.mean() < 30.0
