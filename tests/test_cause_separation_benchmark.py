@@ -71,3 +71,13 @@ def test_the_fused_ekf_row_holds_its_nees_in_the_known_frame_from_its_anchor_on(
     # A consistent run's mean NEES (3 dof) in either frame is of order 3, not 0 or 1e3:
     # the frame change is right (the known map of loop600's worlds is in W).
     assert 0.3 < known.mean() < 30.0
+
+
+def test_the_anchor_at_fusion_is_found_again_on_the_log_cut_there() -> None:
+    bench, log = _log()
+    fused = next(r for r in bench.run_seed(log, 3, ["ekf"]) if r["fusion"])
+    # The cut run makes the same decisions up to the fusion step: its anchor is the
+    # anchor as it stood then, consistent on this small world (3 dof: not 0, not 1e3).
+    assert fused["anchor_nees_at_fusion"] is not None
+    assert 0.0 < fused["anchor_nees_at_fusion"] < 30.0
+    assert fused["anchor_nees_at_fusion"] != fused["anchor_nees"]
