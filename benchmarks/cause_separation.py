@@ -20,6 +20,7 @@ variant                   estimator  fusion  association   observations
 ``ekf_redrawn``           EKF        on/off  its own       every one redrawn
 ``ekf_lines``             EKF        on/off  its own       lines redrawn
 ``ekf_circles``           EKF        on/off  its own       circles redrawn
+``ekf_exact_map``         EKF        on      its own       as extracted; the known map exact
 ========================  =========  ======  ============  ==================================
 
 *Redrawn*: an observation of a world feature is replaced by the true feature in the
@@ -29,7 +30,9 @@ estimators use (:func:`mapfuse_core.models.line.line_residual_cov`), its midpoin
 where it was along the line and its covariance turned with it; a circle from its 3×3
 covariance (a draw with a radius ≤ 0 is drawn again).  Unlabelled detections are left
 as they are.  A redrawn log is exactly as the estimators' models assume, so what
-remains of an excess there is the estimator's (linearisation, association).
+remains of an excess there is the estimator's (linearisation, association).  *The known
+map exact*: the known features replaced by the true ones they were drawn around, stated
+to ``EXACT_MAP_SIGMA`` (the known map's share of the anchor's error and covariance gone).
 
 Output: one JSON line per seed and variant (``--out``, appended to; a seed already
 there is skipped), then a JSON summary on stdout: per variant and fusion the ANEES over
@@ -137,6 +140,30 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
     return dataclasses.replace(log, feat_params=params, feat_cov=covs)
 
 
+#: Standard deviation (m and rad) the exact known map states: small, not zero, so that
+#: every covariance stays invertible.
+EXACT_MAP_SIGMA = 1e-4
+
+
+def exact_known_map(log: MeasurementLog) -> MeasurementLog:
+    """``log`` with its known map replaced by the true features it was drawn around
+    (the world's, in the known map's frame), stated to ``EXACT_MAP_SIGMA``; the scans
+    and everything else unchanged (the known map never reaches the sensor)."""
+    assert log.world is not None
+    km = log.known_map
+    frame = np.zeros(3) if log.known_frame is None else log.known_frame
+    rows = [int(np.flatnonzero(log.world.ids == i)[0]) for i in km.ids.tolist()]
+    params = np.array(
+        [
+            express_in(FeatureKind(int(log.world.kinds[r])), frame, log.world.params[r])[0]
+            for r in rows
+        ]
+    ).reshape(-1, 3)
+    covs = np.broadcast_to(np.eye(3) * EXACT_MAP_SIGMA**2, (len(rows), 3, 3)).copy()
+    known = dataclasses.replace(km, params=params, covs=covs)
+    return dataclasses.replace(log, known_map=known)
+
+
 def only(log: MeasurementLog, kind: FeatureKind) -> MeasurementLog:
     """``log`` with the observations of ``kind`` only."""
     keep = log.feat_kind == int(kind)
@@ -202,6 +229,7 @@ VARIANTS: dict[
         "own",
         lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
     ),
+    "ekf_exact_map": ("ekf", (True,), "own", lambda log, s: exact_known_map(log)),
 }
 
 

@@ -81,3 +81,18 @@ def test_the_anchor_at_fusion_is_found_again_on_the_log_cut_there() -> None:
     assert fused["anchor_nees_at_fusion"] is not None
     assert 0.0 < fused["anchor_nees_at_fusion"] < 30.0
     assert fused["anchor_nees_at_fusion"] != fused["anchor_nees"]
+
+
+def test_the_exact_known_map_is_the_true_one_it_was_drawn_around() -> None:
+    bench, log = _log()
+    exact = bench.exact_known_map(log)
+    km, ex = log.known_map, exact.known_map
+    np.testing.assert_array_equal(ex.ids, km.ids)
+    np.testing.assert_array_equal(ex.kinds, km.kinds)
+    # The drawn map is off by its survey noise (0.1 m, 0.05 rad); the exact one is not.
+    assert np.abs(km.params - ex.params).max() > 0.01
+    for j, i in enumerate(km.ids.tolist()):
+        w = int(np.flatnonzero(log.world.ids == i)[0])
+        np.testing.assert_allclose(ex.params[j], log.world.params[w], atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(ex.covs[:, [0, 1, 2], [0, 1, 2]]), bench.EXACT_MAP_SIGMA)
+    np.testing.assert_array_equal(exact.feat_params, log.feat_params)
