@@ -63,7 +63,7 @@ from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
 from mapfuse.runner import run
-from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
+from mapfuse_core.evaluation import nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_scalar
 from mapfuse_core.measlog import MeasurementLog
@@ -256,22 +256,14 @@ def _anchor_nees_at_fusion(log: MeasurementLog, r: Any) -> float | None:
     if r.result.estimator != "ekf" or anchor is None:
         return None
     assert log.true_poses is not None
-    cut = run(log.head(anchor.accepted_at_step + 1), "ekf", fusion=True).result.anchor
-    if cut is None:
-        return None
-    truth = anchor_truth(log.true_poses, log.known_frame)
-    d = pose_errors(cut.x_Wknown_Wglobal[None], truth[None])
-    return float(nees_series(d.dx, cut.cov[None])[0])
+    cut = run(log.head(anchor.accepted_at_step + 1), "ekf", fusion=True).metrics.anchor
+    return None if cut is None else cut.nees
 
 
 def _row(log: MeasurementLog, r: Any, seed: int, variant: str, fusion: bool, t0: float) -> dict:
     assert log.true_poses is not None
     _, nees = run_errors(r)
-    anchor_nees = None
-    if r.result.anchor is not None:
-        truth = anchor_truth(log.true_poses, log.known_frame)
-        d = pose_errors(r.result.anchor.x_Wknown_Wglobal[None], truth[None])
-        anchor_nees = float(nees_series(d.dx, r.result.anchor.cov[None])[0])
+    anchor_nees = None if r.metrics.anchor is None else r.metrics.anchor.nees
     return {
         "seed": seed,
         "variant": variant,

@@ -35,7 +35,6 @@ from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
 from mapfuse.runner import run
-from mapfuse_core.evaluation import anchor_truth, nees_series, pose_errors
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse
 from mapfuse_core.measlog import MeasurementLog
@@ -83,13 +82,8 @@ def _rows(log: MeasurementLog, seed: int, version: str, estimators: list[str]) -
             r = run(log, name, fusion=fusion, **kw)
             if name == "ekf":
                 upstream = r.result
-            res = r.result
             dx, nees = run_errors(r)
-            anchor_nees = None
-            if res.anchor is not None:
-                truth = anchor_truth(log.true_poses, log.known_frame)
-                d = pose_errors(res.anchor.x_Wknown_Wglobal[None], truth[None])
-                anchor_nees = float(nees_series(d.dx, res.anchor.cov[None])[0])
+            anchor_nees = None if r.metrics.anchor is None else r.metrics.anchor.nees
             out.append(
                 {
                     "seed": seed,

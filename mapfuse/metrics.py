@@ -55,7 +55,9 @@ def anchor_block(
     if anchor is None:
         return None
     truth = anchor_truth(true_poses, known_frame) if true_poses is not None else None
-    return anchor_metrics(anchor.x_Wknown_Wglobal, truth, anchor.accepted_at_step, anchor.pairings)
+    return anchor_metrics(
+        anchor.x_Wknown_Wglobal, truth, anchor.accepted_at_step, anchor.pairings, anchor.cov
+    )
 
 
 def _known_gating(result: EstimatorResult) -> KnownMapGating | None:

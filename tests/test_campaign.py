@@ -294,8 +294,8 @@ def test_campaign_runs_on_a_separate_scheduler_and_two_workers(tmp_path: Path) -
 
 def test_a_campaign_row_measures_the_anchor_in_the_known_maps_own_frame() -> None:
     """The anchor's truth is ``⊖x^W_Wknown ⊕ x^W_R0``: with the known map in a frame of
-    its own the NEES is against that, not against the vehicle's start in ``W``."""
-    from mapfuse.campaign.task import anchor_nees_of
+    its own the NEES is against that, not against the vehicle's start in ``W``.  A
+    campaign row's ``anchor_nees`` is the run's ``metrics.anchor.nees``."""
     from mapfuse.metrics import anchor_block
     from mapfuse_core.estimate import Anchor
     from mapfuse_core.evaluation import anchor_truth
@@ -307,10 +307,13 @@ def test_a_campaign_row_measures_the_anchor_in_the_known_maps_own_frame() -> Non
     cov = np.diag([0.04, 0.09, 0.01])
     err = np.array([0.2, -0.3, 0.1])
     anchor = Anchor(x_Wknown_Wglobal=truth + err, cov=cov, accepted_at_step=1, pairings=())
-    nees = anchor_nees_of(anchor, anchor_block(anchor, true_poses, frame))
-    assert nees == pytest.approx(float(err @ np.linalg.solve(cov, err)), rel=1e-9)
+    metrics = anchor_block(anchor, true_poses, frame)
+    assert metrics is not None
+    assert metrics.nees == pytest.approx(float(err @ np.linalg.solve(cov, err)), rel=1e-9)
     # Against the start in W (the known frame ignored) it would be thousands.
     wrong = anchor.x_Wknown_Wglobal - anchor_truth(true_poses)
     assert float(wrong @ np.linalg.solve(cov, wrong)) > 1e3
-    assert anchor_nees_of(None, None) is None
-    assert anchor_nees_of(anchor, anchor_block(anchor, None, frame)) is None
+    assert anchor_block(None, true_poses, frame) is None
+    without_truth = anchor_block(anchor, None, frame)
+    assert without_truth is not None
+    assert without_truth.nees is None

@@ -27,8 +27,6 @@ from mapfuse.campaign.spec import CampaignSpec
 from mapfuse.metrics import run_metrics
 from mapfuse.plan import RunRequest, RunResult, execute, plan_runs
 from mapfuse.runner import Run, simulate
-from mapfuse_core.estimate import Anchor, AnchorMetrics
-from mapfuse_core.evaluation import nees_series, pose_errors
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 
@@ -110,16 +108,6 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def anchor_nees_of(anchor: Anchor | None, metrics: AnchorMetrics | None) -> float | None:
-    """NEES of a run's anchor against the truth its metrics hold (``None`` without an
-    anchor or truth).  The metrics' truth is in the log's known-map frame
-    (``MeasurementLog.known_frame``), which need not be the world's."""
-    if anchor is None or metrics is None or metrics.truth is None:
-        return None
-    d = pose_errors(anchor.x_Wknown_Wglobal[None], np.asarray(metrics.truth)[None])
-    return float(nees_series(d.dx, anchor.cov[None])[0])
-
-
 def _row_and_arrays(run: Run) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The table row and per-step arrays of one finished estimator run."""
     result, log, metrics = run.result, run.log, run.metrics
@@ -130,7 +118,6 @@ def _row_and_arrays(run: Run) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     pe, nm, head, a = metrics.position_error, metrics.nees, metrics.heading_error, metrics.anchor
     if pe is None or nm is None or head is None:
         raise ValueError(f"{result.estimator}: a campaign run needs errors against truth")
-    anchor_nees = anchor_nees_of(result.anchor, a)
     row: dict[str, Any] = {
         "status": "ok",
         "error": None,
@@ -145,7 +132,7 @@ def _row_and_arrays(run: Run) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         "anchor": a is not None,
         "anchor_m": None if a is None else a.position_error_m,
         "anchor_rad": None if a is None else a.heading_error_rad,
-        "anchor_nees": _finite(anchor_nees),
+        "anchor_nees": None if a is None else _finite(a.nees),
         "accepted_at_step": None if a is None else a.accepted_at_step,
         "pairings": None if a is None else a.pairings,
         "wrong_pairings": None if a is None else a.pairings - a.correct_pairings,

@@ -201,6 +201,9 @@ class AnchorMetrics:
     """Pairings of the match (or ties, for a graph backend)."""
     correct_pairings: int
     """Those whose estimated feature carries the known feature's true id."""
+    nees: float | None = None
+    """NEES of the estimate against the truth under the anchor's covariance (3 dof),
+    ``None`` without truth or covariance."""
 
 
 @dataclass(frozen=True)

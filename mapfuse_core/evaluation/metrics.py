@@ -291,8 +291,14 @@ def anchor_metrics(
     truth: FloatArray | None,
     accepted_at_step: int,
     pairings: list[tuple[int, int]] | tuple[tuple[int, int], ...],
+    cov: FloatArray | None = None,
 ) -> AnchorMetrics:
-    """The anchor's estimate of ``x^Wknown_Wglobal`` against truth."""
+    """The anchor's estimate of ``x^Wknown_Wglobal`` against truth (its NEES under
+    ``cov`` when given)."""
+    nees = None
+    if truth is not None and cov is not None:
+        d = pose_errors(np.asarray(estimate, dtype=float)[None], np.asarray(truth)[None])
+        nees = float(nees_series(d.dx, np.asarray(cov, dtype=float)[None])[0])
     return AnchorMetrics(
         estimate=tuple(float(v) for v in estimate),
         truth=None if truth is None else tuple(float(v) for v in truth),
@@ -301,6 +307,7 @@ def anchor_metrics(
         accepted_at_step=int(accepted_at_step),
         pairings=len(pairings),
         correct_pairings=sum(1 for t, k in pairings if t == k and t >= 0),
+        nees=nees,
     )
 
 
