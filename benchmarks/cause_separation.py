@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.world_runs import append_rows, read_rows, world_logs
 from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
@@ -68,9 +69,6 @@ from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.geometry.se2 import compose, inverse, wrap_scalar
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.models.line import line_residual_cov
-from mapfuse_core.sim.scenario import load_scenario
-from mapfuse_core.sim.simulate import simulate
-from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
 DEFAULT_WORLD = "shape=corridor,loop_length_m=583,walls=10,trees=45,laser_range_m=80"
 
@@ -357,22 +355,10 @@ def main() -> None:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
-    base = load_scenario("loop600")
-    try:
-        with open(args.out) as f:
-            rows = [json.loads(line) for line in f]
-    except FileNotFoundError:
-        rows = []
-    done = {r["seed"] for r in rows}
-    for seed in range(*args.seeds):
-        if seed in done:
-            continue
-        sc = generate_scenario(WorldParams(seed=seed, **world), base=base)
-        log = simulate(sc, seed=seed, workers=1).log
+    rows = read_rows(args.out)
+    for seed, log in world_logs(world, range(*args.seeds), {r["seed"] for r in rows}):
         new = run_seed(log, seed, variants)
-        with open(args.out, "a") as f:
-            for r in new:
-                f.write(json.dumps(r) + "\n")
+        append_rows(args.out, new)
         rows += new
     print(
         json.dumps(

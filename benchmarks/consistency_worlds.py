@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.world_runs import append_rows, read_rows, world_logs
 from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
@@ -38,9 +39,6 @@ from mapfuse.runner import run
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import compose, inverse
 from mapfuse_core.measlog import MeasurementLog
-from mapfuse_core.sim.scenario import load_scenario
-from mapfuse_core.sim.simulate import simulate
-from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
 DEFAULT_WORLD = "shape=figure8,laser_range_m=40,walls=22,trees=50,loop_length_m=400"
 
@@ -147,23 +145,11 @@ def main() -> None:
     args = p.parse_args()
     world = parse_world_args(args.world)
     estimators = args.estimators.split(",")
-    base = load_scenario("loop600")
-    try:
-        with open(args.out) as f:
-            rows = [json.loads(line) for line in f]
-    except FileNotFoundError:
-        rows = []
-    done = {r["seed"] for r in rows}
-    for seed in range(*args.seeds):
-        if seed in done:
-            continue
-        sc = generate_scenario(WorldParams(seed=seed, **world), base=base)
-        log = simulate(sc, seed=seed, workers=1).log
+    rows = read_rows(args.out)
+    for seed, log in world_logs(world, range(*args.seeds), {r["seed"] for r in rows}):
         new = _rows(log, seed, "as simulated", estimators)
         new += _rows(unbiased_circles(log, seed), seed, "circles unbiased", estimators)
-        with open(args.out, "a") as f:
-            for r in new:
-                f.write(json.dumps(r) + "\n")
+        append_rows(args.out, new)
         rows += new
     print(
         json.dumps(

@@ -24,7 +24,13 @@ import numpy as np
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle
-from mapfuse_core.matching import AssociationConfig, chi2_gate, drop_ambiguous, pregate
+from mapfuse_core.matching import (
+    AssociationConfig,
+    chi2_gate,
+    drop_ambiguous,
+    line_overhang,
+    pregate,
+)
 from mapfuse_core.matching import jcbb as jcbb_search
 from mapfuse_core.matching import nearest_neighbour as nn_search
 from mapfuse_core.models import pairing_cov, pairing_residual
@@ -45,7 +51,10 @@ __all__ = [
     "nearest_neighbour",
     "predict_all_targets",
     "predict_targets",
+    "prefilter",
+    "segment_end_sd",
     "targets_distinct",
+    "within_known_wall",
 ]
 
 
@@ -63,6 +72,10 @@ class Query:
     """Along-line extent of a line (NaN for circles)."""
     element: int = -1
     """Index of the map element this query is, or −1 for a measurement."""
+    end_sd: float = 0.0
+    """σ (m) of where a line's ends lie along it: a measured segment's
+    (:func:`segment_end_sd`), a map element's :attr:`~ekf_reference.state.Element.extent_sd`;
+    ``inf`` when unknown (no rule then relies on the ends)."""
     residual_at: Literal["observed", "target"] = "observed"
     """Where a line's lateral residual is measured
     (:func:`mapfuse_core.models.line.line_residual`'s ``at``): at this query's reference
@@ -224,14 +237,16 @@ def _mahalanobis(r: FloatArray, S: FloatArray) -> float:
     return float(y @ y)
 
 
-def _prefilter(
+def prefilter(
     q: Query,
     preds: FloatArray,
     targets: list[int],
     state: GaussianMap,
     config: AssociationConfig,
 ) -> list[int]:
-    """Targets worth a χ² test with ``q`` (:func:`mapfuse_core.matching.pregate`)."""
+    """Targets worth a χ² test with ``q``: :func:`mapfuse_core.matching.pregate`, and
+    with ``config.known_wall_ends`` no known wall that ``q`` overhangs
+    (:func:`within_known_wall`)."""
     if not targets:
         return []
     rows = pregate(
@@ -242,7 +257,52 @@ def _prefilter(
         lambda k: state.elements[targets[k]].extent,
         config,
     )
+    if config.known_wall_ends and q.kind == ElementKind.LINE:
+        rows = [k for k in rows if within_known_wall(state, q, targets[k], preds[k], config)]
     return [targets[k] for k in rows]
+
+
+def within_known_wall(
+    state: GaussianMap, q: Query, t: int, pred: FloatArray, config: AssociationConfig
+) -> bool:
+    """Whether line query ``q`` lies within target ``t``'s extent, when ``t`` is a known
+    wall with a surveyed one (any other target: ``True``).
+
+    ``pred`` is ``t`` in the working frame.  Each end of ``q`` may reach beyond ``t``'s
+    by the ``config.gate_prob`` quantile (one dof) of the σ of where ``t``'s ends lie
+    along it: the anchor's position covariance seen along the wall (the vehicle's
+    uncertainty in the known map's frame; the anchor's angle moves the ends across the
+    wall, not along it), the survey's own (:attr:`Element.extent_sd`) and the
+    segment's (:attr:`Query.end_sd`).
+    """
+    e = state.elements[t]
+    if e.role != Role.KNOWN or not all(math.isfinite(v) for v in (*q.extent, *e.extent)):
+        return True
+    overhang = line_overhang(q.params, q.extent, pred, e.extent)
+    if overhang == 0.0:
+        return True
+    a = state.find(Role.ANCHOR)
+    _, Ja, _ = transform_feature(FeatureKind.LINE, state.mean[a], state.mean[t])
+    u = np.array([math.cos(pred[2]), math.sin(pred[2])])
+    g = u @ Ja[:2]
+    var = float(g @ state.cov[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] @ g)
+    var += e.extent_sd**2 + q.end_sd**2
+    return overhang <= math.sqrt(chi2_gate(config.gate_prob, 1) * max(var, 0.0))
+
+
+def segment_end_sd(params: FloatArray, extent: tuple[float, float], beam_step: float) -> float:
+    """σ (m) of where a measured segment's ends lie along it: one beam's footprint,
+    ``beam_step`` (rad) times the range of its farther end.
+
+    The last return on a wall lies within a beam of its end, and the bearing noise
+    blurs a return across the beam by a fraction of that footprint; at a grazing view
+    both fall along the wall.  ``inf`` when the beam spacing is unknown.
+    """
+    if not math.isfinite(beam_step) or not all(math.isfinite(v) for v in extent):
+        return math.inf
+    c, s = math.cos(float(params[2])), math.sin(float(params[2]))
+    far = max(math.hypot(float(params[0]) + t * c, float(params[1]) + t * s) for t in extent)
+    return beam_step * far
 
 
 def individual_candidates(
@@ -255,7 +315,7 @@ def individual_candidates(
     """Individually compatible candidates of ``q``, best (smallest d²) first."""
     gate = chi2_gate(config.gate_prob, 2 if q.kind == ElementKind.LINE else 3)
     out = []
-    for t in _prefilter(q, preds, targets, state, config):
+    for t in prefilter(q, preds, targets, state, config):
         if t == q.element:
             continue
         c = evaluate(state, q, t)

@@ -266,7 +266,8 @@ class EKFConfig:
           measurements and at joins, one observation per trunk and scan.  *(choice)* So is the
           observation model of a local feature ([5]): a measured segment's lateral
           residual is taken at the segment (``docs/method.md``).
-        * ``data_association.line_gap_m``, ``data_association.ccda.extent_margin_m``,
+        * ``data_association.line_gap_m``, ``data_association.known_wall_ends``,
+          ``data_association.ccda.extent_margin_m``,
           ``data_association.ccda.extent_rule`` *(choice)*: the paper uses a line's
           along-line coordinate to disambiguate association (§2.2.1) and gives no
           threshold.
@@ -358,6 +359,9 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _DA + "prefilter_rad": _c("0.3 rad: a cheap pre-gate far wider than the χ² gate."),
         _DA + "line_gap_m": _c("4 m: §2.2.1 uses the along-line coordinate, no threshold."),
         _DA + "known_gap_m": _c("30 m: read by the factor graph's own association only."),
+        _DA + "known_wall_ends": _c(
+            "on: §2.2.1 uses the along-line coordinate; a segment lies within its wall."
+        ),
         _DA + "method": _c("nearest neighbour: the search is not described (ref. [5])."),
         _DA + "jcbb_max_nodes": _c("unused with nearest neighbour."),
         _DA + "map_method": _c(

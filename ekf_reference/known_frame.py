@@ -49,12 +49,21 @@ def known_element(
     out)."""
     kind = ElementKind.of_feature(int(known.kinds[j]))
     cov = known.covs[j]
-    if kind == ElementKind.LINE:
-        cov = bind_line_cov(known.params[j], cov)
     extent = (math.nan, math.nan)
-    if known.extents is not None and kind == ElementKind.LINE:
-        extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
+    extent_sd = 0.0
+    if kind == ElementKind.LINE:
+        u = np.array([math.cos(known.params[j, 2]), math.sin(known.params[j, 2])])
+        extent_sd = math.sqrt(max(float(u @ cov[:2, :2] @ u), 0.0))
+        cov = bind_line_cov(known.params[j], cov)
+        if known.extents is not None:
+            extent = (float(known.extents[j, 0]), float(known.extents[j, 1]))
     element = Element(
-        kind, Role.KNOWN, moving=False, track=track, extent=extent, true_id=int(known.ids[j])
+        kind,
+        Role.KNOWN,
+        moving=False,
+        track=track,
+        extent=extent,
+        extent_sd=extent_sd,
+        true_id=int(known.ids[j]),
     )
     return element, known.params[j], cov

@@ -15,8 +15,9 @@ inconsistent (``docs/change-detection.md`` says why this mechanism):
   sum grows linearly with ``n`` and the test fires after a few scans.
 * **Rejections.**  At a step where a known feature received no pairing but an
   observation or landmark of its kind lay inside the association's pre-gate of it
-  and was not paired with it (it failed its χ² test, or the search paired it with an
-  estimated landmark), the feature is *rejected* at that step (counted once per
+  (:func:`~ekf_reference.association.prefilter`) and was not paired with it (it
+  failed its χ² test, or the search paired it with an estimated landmark), the
+  feature is *rejected* at that step (counted once per
   step).  When, among its last ``window`` outcomes, there are at least
   ``max_rejections`` rejections and more rejections than acceptances, it is un-fused.
 
@@ -34,11 +35,11 @@ import numbers
 from collections import deque
 from dataclasses import dataclass
 
-from ekf_reference.association import Candidate, Query
+from ekf_reference.association import Candidate, Query, prefilter
 from ekf_reference.state import ElementKind, GaussianMap, Role
 from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
-from mapfuse_core.matching import AssociationConfig, chi2_gate, pregate
+from mapfuse_core.matching import AssociationConfig, chi2_gate
 
 __all__ = ["KnownGate", "KnownGatingParams", "KnownOutcomes", "known_outcomes"]
 
@@ -111,16 +112,8 @@ def known_outcomes(
         if not known_rows:
             continue
         known_t = [idx[r] for r in known_rows]
-        near = pregate(
-            q.kind.feature_kind(),
-            q.params,
-            q.extent,
-            preds[known_rows],
-            lambda r, ts=known_t: els[ts[r]].extent,  # type: ignore[misc]
-            association,
-        )
-        for r in near:
-            near_unpaired.setdefault(els[known_t[r]].true_id, None)
+        for t in prefilter(q, preds[known_rows], known_t, state, association):
+            near_unpaired.setdefault(els[t].true_id, None)
     return KnownOutcomes(accepted, list(near_unpaired))
 
 

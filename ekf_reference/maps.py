@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import block_diag
@@ -121,15 +121,7 @@ def new_local_map(
     moving = [global_map.elements[gi].role != Role.KNOWN for gi in shared]
     # Filled in one go: GaussianMap.add reallocates the covariance per element.
     loc.elements += [
-        Element(
-            e.kind,
-            e.role,
-            moving=mv,
-            track=e.track,
-            extent=e.extent,
-            true_id=e.true_id,
-            n_obs=e.n_obs if e.role == Role.FEATURE else 0,
-        )
+        replace(e, moving=mv, n_obs=e.n_obs if e.role == Role.FEATURE else 0, in_local=False)
         for e, mv in zip((global_map.elements[gi] for gi in shared), moving, strict=True)
     ]
     loc.mean = np.vstack([loc.mean, global_map.mean[shared]])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -28,6 +29,7 @@ from ekf_reference.association import (
     evaluate,
     individual_candidates,
     predict_all_targets,
+    segment_end_sd,
 )
 from ekf_reference.config import EKFConfig
 from ekf_reference.final_map import final_map
@@ -111,6 +113,14 @@ matching counters (attempts, reasons, refusals, undone anchors) are not among th
 call made before an anchor is undone was made."""
 
 
+def _beam_step(log: MeasurementLog) -> float:
+    """Median spacing of the log's beams (rad); ``inf`` when it keeps no raw scans."""
+    b = log.scan_bearings
+    if b is None or len(b) < 2:
+        return math.inf
+    return float(np.median(np.abs(np.diff(np.asarray(b, dtype=float)))))
+
+
 class _Run:
     def __init__(self, log: MeasurementLog, config: EKFConfig, fusion: bool = True) -> None:
         self.log = log
@@ -133,6 +143,9 @@ class _Run:
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
         self.innovation_chi2 = 0.0
+        self.beam_step = _beam_step(log)
+        """Spacing of the laser's beams (rad): sets how precisely a segment's ends are
+        known (:func:`~ekf_reference.association.segment_end_sd`)."""
         self.innovation_dof = 0
         self.gate: KnownGate | None = None
         if self.fusion and config.known_map_gating:
@@ -160,13 +173,17 @@ class _Run:
         queries = []
         for j in range(sl.start, sl.stop):
             kind = ElementKind.of_feature(int(log.feat_kind[j]))
-            ext = log.feat_extent[j]
+            ext = (float(log.feat_extent[j, 0]), float(log.feat_extent[j, 1]))
+            end_sd = 0.0
+            if kind == ElementKind.LINE:
+                end_sd = segment_end_sd(log.feat_params[j], ext, self.beam_step)
             queries.append(
                 Query(
                     kind=kind,
                     params=log.feat_params[j],
                     cov=log.feat_cov[j],
-                    extent=(float(ext[0]), float(ext[1])),
+                    extent=ext,
+                    end_sd=end_sd,
                 )
             )
         self.step = k
@@ -185,6 +202,7 @@ class _Run:
             e.n_obs += 1
             if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
                 e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
+                e.extent_sd = max(e.extent_sd, q.end_sd)
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
         self._apply_measurements(loc, [c for c in chosen if c is not None])
         born: list[int] = []
@@ -200,6 +218,7 @@ class _Run:
                 self.obs_track[j] = e.track
                 e.n_obs += 1
                 e.extent = merge_extent(loc.mean[twin.target], e.extent, q.params, q.extent)
+                e.extent_sd = max(e.extent_sd, q.end_sd)
                 self._apply_measurements(loc, [twin])
                 continue
             t = self.tracks.new()
@@ -213,6 +232,7 @@ class _Run:
                         moving=True,
                         track=t,
                         extent=q.extent,
+                        extent_sd=q.end_sd,
                         true_id=int(log.feat_true_id[j]),
                         n_obs=1,
                         in_local=True,
@@ -279,6 +299,7 @@ class _Run:
             e.extent,
             element=i,
             residual_at=self.config.line_tie_residual_at,
+            end_sd=e.extent_sd,
         )
 
     def _start_local_map(self, carry: list[int]) -> tuple[GaussianMap, CIContext | None]:
@@ -371,6 +392,7 @@ class _Run:
                 t.extent = merge_extent(
                     joint.mean[c.target], t.extent, joint.mean[q.element], f.extent
                 )
+                t.extent_sd = max(t.extent_sd, f.extent_sd)
         joint.remove([q.element for q, _ in pairs])
         for e in joint.elements:
             e.in_local = False

@@ -75,6 +75,10 @@ class Element:
     """Feature track id (estimated features), known-map id (known features), −1 otherwise."""
     extent: tuple[float, float] = (math.nan, math.nan)
     """Along-line interval of the observed points relative to the reference point (lines)."""
+    extent_sd: float = 0.0
+    """σ (m) of where the extent's ends lie along the line: a known wall's survey (its
+    position σ in the wall's direction); an estimated line's, the largest of its
+    segments' (:attr:`~ekf_reference.association.Query.end_sd`)."""
     true_id: int = -1
     """World id of the observations (simulation, evaluation only: never used to associate)."""
     n_obs: int = 0

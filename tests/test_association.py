@@ -7,6 +7,7 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,17 +15,21 @@ from ekf_reference.association import (
     Candidate,
     IteratedUpdate,
     Query,
-    _prefilter,
     apply,
     apply_iterated,
     element_pairings,
     evaluate,
     predict_all_targets,
+    prefilter,
+    segment_end_sd,
+    within_known_wall,
 )
+from ekf_reference.known_frame import known_element
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
 from mapfuse_core.geometry.se2 import compose, compose_jacobians, wrap_angle
-from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.matching import AssociationConfig, chi2_gate
+from mapfuse_core.measlog import KnownMapArrays
 from mapfuse_core.models import pairing_residual
 from tests.jacobians import ATOL, RTOL, numerical_jacobian, poses
 
@@ -133,8 +138,108 @@ def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:
     q = _measurement(m, 40.0, 0.0, 0.1)
     targets, preds = predict_all_targets(m, lambda e: True)[ElementKind.LINE]
     assert targets == [1]
-    assert _prefilter(q, preds, targets, m, AssociationConfig(line_gap_m=math.inf)) == [1]
+    assert prefilter(q, preds, targets, m, AssociationConfig(line_gap_m=math.inf)) == [1]
     assert abs(evaluate(m, q, 1).residual[0]) < 1e-9
+
+
+def _surveyed_wall_map(extent_sd: float) -> GaussianMap:
+    """Anchor ``x^R_Wknown`` (σ 5 cm, 2 mrad) and a 13.2 m known wall through the known
+    frame's origin, along its x axis (so the anchor's angle slides no end along it)."""
+    m = GaussianMap()
+    m.add(
+        Element(ElementKind.POSE, Role.ANCHOR, moving=True, track=-1),
+        np.array([1.0, 2.0, 0.3]),
+        np.diag([0.05**2, 0.05**2, 0.002**2]),
+    )
+    wall = np.zeros(3)
+    m.add(
+        Element(
+            ElementKind.LINE,
+            Role.KNOWN,
+            moving=False,
+            track=0,
+            extent=(-6.6, 6.6),
+            extent_sd=extent_sd,
+        ),
+        wall,
+        bind_line_cov(wall, np.diag([0.1**2, 0.1**2, 0.05**2])),
+    )
+    return m
+
+
+def _segment(m: GaussianMap, lo: float, hi: float, angle: float = 0.0) -> Query:
+    """A measured segment from ``lo`` to ``hi`` along the known wall's line (in
+    ``Wknown``), turned by ``angle`` about its midpoint."""
+    mid = np.array([0.5 * (lo + hi), 0.0, angle])
+    z = transform_feature(FeatureKind.LINE, m.mean[0], mid)[0]
+    half = 0.5 * (hi - lo) / math.cos(angle)
+    return Query(ElementKind.LINE, z, _line_cov(z, PSEUDO), (-half, half))
+
+
+def test_a_segment_reaching_beyond_a_surveyed_wall_is_not_that_wall() -> None:
+    # Where the wall's ends lie is known to σ = √(0.05² + 0.1²) m along it (anchor,
+    # survey): each end of a segment may reach 3.29 σ = 0.368 m beyond them.
+    m = _surveyed_wall_map(extent_sd=0.1)
+    tol = math.sqrt(chi2_gate(0.999, 1) * (0.05**2 + 0.1**2))
+    assert tol == pytest.approx(0.3679, abs=1e-4)
+    targets, preds = predict_all_targets(m, lambda e: True)[ElementKind.LINE]
+    on, off = AssociationConfig(), AssociationConfig(known_wall_ends=False)
+    cases = {
+        (-5.0, 5.0, 0.0): True,  # inside
+        (-6.6 - 0.9 * tol, 3.0, 0.0): True,  # within the ends' uncertainty
+        (-4.0, 6.6 + 1.1 * tol, 0.0): False,
+        # The next wall, 7.7° off and beyond this one's end (a 12 m piece of it): it
+        # passes the line's χ² test, whose angle the survey knows to 0.05 rad.
+        (-20.0, -8.0, math.radians(7.7)): False,
+    }
+    for (lo, hi, ang), inside in cases.items():
+        q = _segment(m, lo, hi, ang)
+        assert within_known_wall(m, q, 1, preds[0], on) is inside, (lo, hi)
+        assert prefilter(q, preds, targets, m, on) == ([1] if inside else [])
+        assert prefilter(q, preds, targets, m, off) == [1]
+    # Without the survey's σ the tolerance is the anchor's alone (3.29 × 0.05 m).
+    bare = _surveyed_wall_map(extent_sd=0.0)
+    q = _segment(bare, -6.6 - 0.2, 3.0)
+    assert not within_known_wall(bare, q, 1, preds[0], on)
+    assert within_known_wall(bare, _segment(bare, -6.6 - 0.15, 3.0), 1, preds[0], on)
+
+
+def test_a_segments_end_sigma_is_a_beams_footprint_at_its_farther_end() -> None:
+    # Midpoint 30 m ahead, the segment across the view: ends at √(30² + 5²) m.
+    z = np.array([30.0, 0.0, math.pi / 2])
+    step = math.radians(0.5)
+    assert segment_end_sd(z, (-5.0, 5.0), step) == pytest.approx(step * math.hypot(30, 5))
+    assert segment_end_sd(z, (-1.0, 5.0), step) == pytest.approx(step * math.hypot(30, 5))
+    assert segment_end_sd(z, (-5.0, 5.0), math.inf) == math.inf
+    # An unknown σ admits any overhang: the rule does not apply.
+    m = _surveyed_wall_map(extent_sd=0.1)
+    _, preds = predict_all_targets(m, lambda e: True)[ElementKind.LINE]
+    far = _segment(m, -20.0, -8.0, math.radians(7.7))
+    assert not within_known_wall(m, far, 1, preds[0], AssociationConfig())
+    unknown = Query(far.kind, far.params, far.cov, far.extent, end_sd=math.inf)
+    assert within_known_wall(m, unknown, 1, preds[0], AssociationConfig())
+    # The segment's own σ widens the tolerance: 0.5 m over the end passes with 0.2 m.
+    over = _segment(m, -6.6 - 0.5, 3.0)
+    assert not within_known_wall(m, over, 1, preds[0], AssociationConfig())
+    wide = Query(over.kind, over.params, over.cov, over.extent, end_sd=0.2)
+    assert within_known_wall(m, wide, 1, preds[0], AssociationConfig())
+
+
+def test_a_known_wall_carries_its_surveys_sigma_along_it() -> None:
+    known = KnownMapArrays(
+        ids=np.array([7, 8, 9]),
+        kinds=np.array([int(FeatureKind.LINE), int(FeatureKind.LINE), int(FeatureKind.CIRCLE)]),
+        params=np.array([[0.0, 0.0, 0.0], [0.0, 0.0, math.pi / 2], [1.0, 1.0, 0.3]]),
+        covs=np.stack([np.diag([0.2**2, 0.05**2, 0.01**2])] * 3),
+        extents=np.array([[-1.0, 1.0], [-2.0, 2.0], [math.nan, math.nan]]),
+    )
+    along_x, _, _ = known_element(known, 0, 7)
+    along_y, _, _ = known_element(known, 1, 8)
+    circle, _, _ = known_element(known, 2, 9)
+    assert along_x.extent_sd == pytest.approx(0.2, abs=1e-12)
+    assert along_y.extent_sd == pytest.approx(0.05, abs=1e-12)
+    assert along_y.extent == (-2.0, 2.0)
+    assert circle.extent_sd == 0.0
 
 
 def _known_wall_residual(x: np.ndarray, z: np.ndarray) -> np.ndarray:

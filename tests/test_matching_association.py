@@ -20,6 +20,7 @@ from mapfuse_core.matching import (
     chi2_gate,
     jcbb,
     line_gap,
+    line_overhang,
     near,
     nearest_neighbour,
     pregate,
@@ -103,6 +104,25 @@ def test_line_gap_along_one_line() -> None:
     assert line_gap(q, (-7.0, -4.0), t, (0.0, 5.0)) == 0.0
     # The reference point alone (extent (0, 0)).
     assert line_gap(q, (0.0, 0.0), t, (0.0, 5.0)) == pytest.approx(5.0, abs=1e-12)
+
+
+def test_line_overhang_is_how_far_a_segment_reaches_beyond_the_target() -> None:
+    t = np.array([0.0, 0.0, 0.0])
+    # Target on [0, 5]; query reference point at x = 3.
+    q = np.array([3.0, 0.0, 0.0])
+    assert line_overhang(q, (-2.0, 1.0), t, (0.0, 5.0)) == 0.0  # [1, 4]: inside
+    assert line_overhang(q, (-4.0, 1.0), t, (0.0, 5.0)) == pytest.approx(1.0, abs=1e-12)
+    assert line_overhang(q, (-1.0, 3.5), t, (0.0, 5.0)) == pytest.approx(1.5, abs=1e-12)
+    # Both ends beyond: the larger; reversed direction: the same segment.
+    assert line_overhang(q, (-4.0, 4.0), t, (0.0, 5.0)) == pytest.approx(2.0, abs=1e-12)
+    q_rev = np.array([3.0, 0.0, math.pi])
+    assert line_overhang(q_rev, (-4.0, 4.0), t, (0.0, 5.0)) == pytest.approx(2.0, abs=1e-12)
+    # Entirely beyond the target's end, with a gap: the whole far end counts.
+    assert line_overhang(np.array([9.0, 0.0, 0.0]), (-1.0, 1.0), t, (0.0, 5.0)) == (
+        pytest.approx(5.0, abs=1e-12)
+    )
+    assert line_overhang(q, (math.nan, math.nan), t, (0.0, 5.0)) == 0.0
+    assert line_overhang(q, (-9.0, 9.0), t, (math.nan, math.nan)) == 0.0
 
 
 def test_line_gap_is_zero_when_an_extent_is_unknown() -> None:

@@ -198,6 +198,8 @@ EVIDENCE: dict[str, str] = {
     "LoopClosureParams.inlier_m": f"[calibration]({_R}victoria-park-calibration.md)",
     "AssociationConfig.method": f"[CARMEN]({_R}carmen.md#why-the-pose-nees-is-far-above-3)",
     "AssociationConfig.line_gap_m": f"[CARMEN]({_R}carmen.md#the-association-profile)",
+    "AssociationConfig.known_wall_ends": f"[association]({_R}association.md"
+    "#a-segment-lies-within-its-known-wall)",
     "AssociationConfig.map_method": f"[association]({_R}association.md"
     "#joins-joint-compatibility-and-ambiguous-features)",
     "AssociationConfig.map_ambiguity": f"[association]({_R}association.md"

@@ -11,7 +11,7 @@ numpy and scipy only.
 """
 
 from mapfuse_core.matching.config import MAP_AMBIGUITY, METHODS, AssociationConfig
-from mapfuse_core.matching.gating import chi2_gate, line_gap, near, pregate
+from mapfuse_core.matching.gating import chi2_gate, line_gap, line_overhang, near, pregate
 from mapfuse_core.matching.search import (
     Scored,
     ScoredPair,
@@ -30,6 +30,7 @@ __all__ = [
     "drop_ambiguous",
     "jcbb",
     "line_gap",
+    "line_overhang",
     "near",
     "nearest_neighbour",
     "pregate",

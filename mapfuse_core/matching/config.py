@@ -48,6 +48,17 @@ class AssociationConfig:
     """Two collinear line segments can be one wall only if their extents along the
     wall overlap or the gap between them is at most this (m): without it, collinear
     walls far apart (two sides of a street) pair up."""
+    known_wall_ends: bool = True
+    """A segment pairs with a known wall whose extent is surveyed only if it lies within
+    that extent: each of its ends at most the :attr:`gate_prob` quantile (one dof) of
+    the along-wall σ of where the ends lie (the anchor's uncertainty along the wall,
+    the survey's, and the segment's: a beam's footprint at its range) beyond it.  A
+    segment of a wall lies within that wall.
+    Without it, a wall that continues beyond a known one's end at a few degrees to it
+    (two walls side by side) passes the χ² test of the known wall's infinite line,
+    whose direction the survey knows only to its σ, and the known wall takes the other
+    wall's observations for the rest of the run
+    (``docs/results/association.md``).  Used by the EKF."""
     known_gap_m: float = 30.0
     """*(choice)* For a known wall with no extents: it can be a line landmark only if
     its reference point lies within this distance (m) of the segment the landmark was
@@ -161,6 +172,7 @@ class AssociationConfig:
             "one_observation_per_line",
             "match_joint_test",
             "match_pairing_test",
+            "known_wall_ends",
         ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")

@@ -19,7 +19,7 @@ from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, wrap_angle_half
 from mapfuse_core.matching.config import AssociationConfig
 
-__all__ = ["chi2_gate", "line_gap", "near", "pregate"]
+__all__ = ["chi2_gate", "line_gap", "line_overhang", "near", "pregate"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -44,6 +44,15 @@ def line_gap(
     """
     if not all(math.isfinite(v) for v in (*q_extent, *t_extent)):
         return 0.0
+    lo, hi = _projected(q_line, q_extent, t_line)
+    return max(lo - t_extent[1], t_extent[0] - hi, 0.0)
+
+
+def _projected(
+    q_line: FloatArray, q_extent: tuple[float, float], t_line: FloatArray
+) -> tuple[float, float]:
+    """Segment ``q``'s ends projected on line ``t``: ``(lo, hi)`` along ``t`` from its
+    reference point."""
     # Plain floats: this runs for every pre-gated pairing, where numpy's per-call
     # overhead on 2-vectors would be most of its time.
     qx, qy, qth = (float(v) for v in q_line)
@@ -51,8 +60,27 @@ def line_gap(
     cq, sq = math.cos(qth), math.sin(qth)
     ct, st = math.cos(tth), math.sin(tth)
     s0, s1 = ((qx + t * cq - tx) * ct + (qy + t * sq - ty) * st for t in q_extent)
-    lo, hi = min(s0, s1), max(s0, s1)
-    return max(lo - t_extent[1], t_extent[0] - hi, 0.0)
+    return min(s0, s1), max(s0, s1)
+
+
+def line_overhang(
+    q_line: FloatArray,
+    q_extent: tuple[float, float],
+    t_line: FloatArray,
+    t_extent: tuple[float, float],
+) -> float:
+    """How far (m) segment ``q`` reaches beyond segment ``t``'s ends, along ``t``'s line:
+    the larger of the two overhangs, 0 when ``q`` lies within ``t`` or when an extent is
+    unknown.
+
+    A segment of a wall lies within that wall: where ``t``'s extent is the wall's own
+    (a surveyed wall), an overhang larger than the uncertainty of where the ends lie
+    says ``q`` is another wall.  ``q``'s end points are projected on ``t``'s line.
+    """
+    if not all(math.isfinite(v) for v in (*q_extent, *t_extent)):
+        return 0.0
+    lo, hi = _projected(q_line, q_extent, t_line)
+    return max(t_extent[0] - lo, hi - t_extent[1], 0.0)
 
 
 def near(
