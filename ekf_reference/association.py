@@ -72,15 +72,15 @@ class Query:
     """Along-line extent of a line (NaN for circles)."""
     element: int = -1
     """Index of the map element this query is, or −1 for a measurement."""
-    end_sd: float = 0.0
-    """σ (m) of where a line's ends lie along it: a measured segment's
-    (:func:`segment_end_sd`), a map element's :attr:`~ekf_reference.state.Element.extent_sd`;
-    ``inf`` when unknown (no rule then relies on the ends)."""
     residual_at: Literal["observed", "target"] = "observed"
     """Where a line's lateral residual is measured
     (:func:`mapfuse_core.models.line.line_residual`'s ``at``): at this query's reference
     point, or at the target's (a map element tied to another:
     ``EKFConfig.line_tie_residual_at``; a measurement's is always its own)."""
+    end_sd: float = 0.0
+    """σ (m) of where a line's ends lie along it: a measured segment's
+    (:func:`segment_end_sd`), a map element's :attr:`~ekf_reference.state.Element.extent_sd`;
+    ``inf`` when unknown (no rule then relies on the ends)."""
 
 
 @dataclass(frozen=True)
