@@ -281,8 +281,7 @@ def within_known_wall(
     overhang = line_overhang(q.params, q.extent, pred, e.extent)
     if overhang == 0.0:
         return True
-    a = state.find(Role.ANCHOR)
-    _, Ja, _ = transform_feature(FeatureKind.LINE, state.mean[a], state.mean[t])
+    _, (a, _), (Ja, _) = _target_jacobian(state, t)
     u = np.array([math.cos(pred[2]), math.sin(pred[2])])
     g = u @ Ja[:2]
     var = float(g @ state.cov[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] @ g)
@@ -290,19 +289,19 @@ def within_known_wall(
     return overhang <= math.sqrt(chi2_gate(config.gate_prob, 1) * max(var, 0.0))
 
 
-def segment_end_sd(params: FloatArray, extent: tuple[float, float], beam_step: float) -> float:
+def segment_end_sd(params: FloatArray, extent: tuple[float, float], beam_spacing: float) -> float:
     """σ (m) of where a measured segment's ends lie along it: one beam's footprint,
-    ``beam_step`` (rad) times the range of its farther end.
+    ``beam_spacing`` (rad) times the range of its farther end.
 
     The last return on a wall lies within a beam of its end, and the bearing noise
     blurs a return across the beam by a fraction of that footprint; at a grazing view
     both fall along the wall.  ``inf`` when the beam spacing is unknown.
     """
-    if not math.isfinite(beam_step) or not all(math.isfinite(v) for v in extent):
+    if not math.isfinite(beam_spacing) or not all(math.isfinite(v) for v in extent):
         return math.inf
     c, s = math.cos(float(params[2])), math.sin(float(params[2]))
     far = max(math.hypot(float(params[0]) + t * c, float(params[1]) + t * s) for t in extent)
-    return beam_step * far
+    return beam_spacing * far
 
 
 def individual_candidates(

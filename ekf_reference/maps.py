@@ -349,18 +349,26 @@ def shared_in_global_frame(
     return vals, J, idx
 
 
-def merge_extent(
-    target: FloatArray, t_extent: tuple[float, float], q: FloatArray, q_extent: tuple[float, float]
-) -> tuple[float, float]:
-    """Union of a line's extent with another collinear segment's, in the line's frame."""
-    if not all(math.isfinite(v) for v in q_extent):
-        return t_extent
-    u = np.array([math.cos(target[2]), math.sin(target[2])])
-    uq = np.array([math.cos(q[2]), math.sin(q[2])])
-    s = [float((q[:2] + t * uq - target[:2]) @ u) for t in q_extent]
-    if not all(math.isfinite(v) for v in t_extent):
-        return (min(s), max(s))
-    return (min(t_extent[0], *s), max(t_extent[1], *s))
+def extend_line(
+    e: Element,
+    line: FloatArray,
+    seg: FloatArray,
+    seg_extent: tuple[float, float],
+    seg_end_sd: float,
+) -> None:
+    """Extend line element ``e`` (mean ``line``) by a collinear segment ``seg`` seen on
+    ``seg_extent``: its extent becomes the union of both, in the line's frame, and its
+    :attr:`~ekf_reference.state.Element.extent_sd` the larger of its own and
+    ``seg_end_sd``."""
+    if not all(math.isfinite(v) for v in seg_extent):
+        return
+    u = np.array([math.cos(line[2]), math.sin(line[2])])
+    uq = np.array([math.cos(seg[2]), math.sin(seg[2])])
+    s = [float((seg[:2] + t * uq - line[:2]) @ u) for t in seg_extent]
+    if all(math.isfinite(v) for v in e.extent):
+        s += list(e.extent)
+    e.extent = (min(s), max(s))
+    e.extent_sd = max(e.extent_sd, seg_end_sd)
 
 
 def tie_anchor_copy(joint: GaussianMap) -> None:

@@ -42,7 +42,7 @@ from ekf_reference.maps import (
     bind_line_cov,
     compose_into,
     copied_local_map,
-    merge_extent,
+    extend_line,
     new_global_map,
     new_local_map,
     predict,
@@ -113,7 +113,7 @@ matching counters (attempts, reasons, refusals, undone anchors) are not among th
 call made before an anchor is undone was made."""
 
 
-def _beam_step(log: MeasurementLog) -> float:
+def _beam_spacing(log: MeasurementLog) -> float:
     """Median spacing of the log's beams (rad); ``inf`` when it keeps no raw scans."""
     b = log.scan_bearings
     if b is None or len(b) < 2:
@@ -143,7 +143,7 @@ class _Run:
         self.anchor_pairings: list[tuple[int, int]] = []
         self.loop_closures: list[LoopClosure] = []
         self.innovation_chi2 = 0.0
-        self.beam_step = _beam_step(log)
+        self.beam_spacing = _beam_spacing(log)
         """Spacing of the laser's beams (rad): sets how precisely a segment's ends are
         known (:func:`~ekf_reference.association.segment_end_sd`)."""
         self.innovation_dof = 0
@@ -176,7 +176,7 @@ class _Run:
             ext = (float(log.feat_extent[j, 0]), float(log.feat_extent[j, 1]))
             end_sd = 0.0
             if kind == ElementKind.LINE:
-                end_sd = segment_end_sd(log.feat_params[j], ext, self.beam_step)
+                end_sd = segment_end_sd(log.feat_params[j], ext, self.beam_spacing)
             queries.append(
                 Query(
                     kind=kind,
@@ -201,8 +201,7 @@ class _Run:
             self.obs_track[j] = e.track
             e.n_obs += 1
             if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
-                e.extent = merge_extent(loc.mean[c.target], e.extent, q.params, q.extent)
-                e.extent_sd = max(e.extent_sd, q.end_sd)
+                extend_line(e, loc.mean[c.target], q.params, q.extent, q.end_sd)
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
         self._apply_measurements(loc, [c for c in chosen if c is not None])
         born: list[int] = []
@@ -217,8 +216,7 @@ class _Run:
                 e = loc.elements[twin.target]
                 self.obs_track[j] = e.track
                 e.n_obs += 1
-                e.extent = merge_extent(loc.mean[twin.target], e.extent, q.params, q.extent)
-                e.extent_sd = max(e.extent_sd, q.end_sd)
+                extend_line(e, loc.mean[twin.target], q.params, q.extent, q.end_sd)
                 self._apply_measurements(loc, [twin])
                 continue
             t = self.tracks.new()
@@ -389,10 +387,7 @@ class _Run:
             self.tracks.merge(f.track, t.track)
             t.n_obs += f.n_obs
             if t.role == Role.FEATURE and t.kind == ElementKind.LINE:
-                t.extent = merge_extent(
-                    joint.mean[c.target], t.extent, joint.mean[q.element], f.extent
-                )
-                t.extent_sd = max(t.extent_sd, f.extent_sd)
+                extend_line(t, joint.mean[c.target], joint.mean[q.element], f.extent, f.extent_sd)
         joint.remove([q.element for q, _ in pairs])
         for e in joint.elements:
             e.in_local = False
