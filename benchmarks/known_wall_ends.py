@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.consistency_regimes import REGIMES
 from benchmarks.world_runs import append_rows, read_rows, world_logs
 from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import mean_interval
@@ -34,7 +35,7 @@ from mapfuse.figures import run_errors
 from mapfuse.runner import run
 from mapfuse_core.measlog import MeasurementLog
 
-DEFAULT_WORLD = "walls=39,trees=58,tree_radius_min_m=0.27,tree_radius_max_m=1.0"
+DEFAULT_WORLD = REGIMES["dense"]
 SETTINGS = {"on": True, "off": False}
 
 
@@ -60,10 +61,12 @@ def run_seed(log: MeasurementLog, seed: int) -> dict[str, Any]:
     for name, on in SETTINGS.items():
         r = run(log, "ekf", fusion=True, data_association={"known_wall_ends": on})
         _, nees = run_errors(r)
-        gating = r.result.decisions.known_gating
+        decisions = r.result.decisions
+        assert decisions is not None  # the EKF always returns its decisions
+        gating = decisions.known_gating
         row[name] = {
             "nees_mean": float(np.nanmean(nees)),
-            **wrong_known_pairings(log, r.result.decisions.obs_known_id),
+            **wrong_known_pairings(log, decisions.obs_known_id),
             "rejections": 0 if gating is None else int(sum(gating.rejected.values())),
             "unfused": 0 if gating is None else len(gating.unfused),
         }
