@@ -40,7 +40,10 @@ the runs with its two-sided 95 % bounds, the fraction of steps inside them, the 
 the runs' mean NEES with its interval, the anchor ANEES with its bounds, and for the
 fused EKF the anchor ANEES as the anchors stood when fused (the EKF run again on the
 log up to that step) and the mean NEES from its anchor on in the known map's frame and
-in ``Wglobal``
+in ``Wglobal``; and per variant, fusion setting and stretch of steps (``--stretches``),
+the paired difference of the runs' mean NEES from the EKF's with its interval
+(:func:`paired_stretches`).  The summary covers the seeds of ``--seeds`` found in
+``--out``
 (``--world`` takes any generator keywords: the dense regime of
 ``benchmarks/consistency_regimes.py`` is where the fused EKF is pessimistic).
 
@@ -51,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import time
@@ -343,12 +347,61 @@ def summarise(rows: list[dict]) -> list[dict]:
     return out
 
 
+def paired_stretches(rows: list[dict], bounds: list[int]) -> list[dict]:
+    """Per variant and fusion setting other than the EKF's own, and per stretch of steps
+    ``bounds[i] … bounds[i+1]`` (the last runs to the end): the mean NEES of the EKF and
+    of the variant over the worlds both ran, and their paired difference (the EKF's
+    minus the variant's, per world) with its 95 % Student-t interval over the worlds.
+
+    A stretch shows where along the drive a difference arises: an excess that follows
+    the observations is there from the start, one of the filter's linearisation grows
+    with the distance driven and jumps where a loop closes."""
+    by_key = {(r["seed"], r["variant"], r["fusion"]): r for r in rows}
+    out = []
+    for variant, fusion in sorted({(r["variant"], r["fusion"]) for r in rows}):
+        if variant == "ekf":
+            continue
+        seeds = sorted(s for s, v, f in by_key if (v, f) == (variant, fusion))
+        seeds = [s for s in seeds if (s, "ekf", fusion) in by_key]
+        if not seeds:
+            continue
+        pairs = [
+            (by_key[(s, "ekf", fusion)]["nees"], by_key[(s, variant, fusion)]["nees"])
+            for s in seeds
+        ]
+        steps = min(min(len(a), len(b)) for a, b in pairs)
+        edges = [b for b in bounds if b < steps] + [steps]
+        for lo, hi in itertools.pairwise(edges):
+            e = np.array([np.nanmean(np.asarray(a[lo:hi], dtype=float)) for a, _ in pairs])
+            v = np.array([np.nanmean(np.asarray(b[lo:hi], dtype=float)) for _, b in pairs])
+            d = mean_interval(e - v)
+            out.append(
+                {
+                    "variant": variant,
+                    "fusion": fusion,
+                    "worlds": len(seeds),
+                    "steps": [lo, hi],
+                    "ekf": round(float(np.mean(e)), 3),
+                    "variant_nees": round(float(np.mean(v)), 3),
+                    "difference": [round(d.value, 3), round(d.low, 3), round(d.high, 3)],
+                }
+            )
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--seeds", type=int, nargs=2, default=(1, 9), help="first, end (exclusive)")
     p.add_argument("--world", default=DEFAULT_WORLD, help="generator keywords, key=value,...")
     p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated")
     p.add_argument("--out", required=True, help="JSON lines, appended to (resumes by seed)")
+    p.add_argument(
+        "--stretches",
+        type=lambda v: [int(x) for x in v.split(",")],
+        default=[0],
+        help="first steps of the stretches the paired differences are given for, e.g. "
+        "0,600,1600,2340 (default: the whole run)",
+    )
     args = p.parse_args()
     world = parse_world_args(args.world)
     variants = args.variants.split(",")
@@ -360,11 +413,15 @@ def main() -> None:
         new = run_seed(log, seed, variants)
         append_rows(args.out, new)
         rows += new
-    print(
-        json.dumps(
-            {"world": world, "seeds": list(range(*args.seeds)), "groups": summarise(rows)}, indent=1
-        )
-    )
+    wanted = set(range(*args.seeds))
+    rows = [r for r in rows if r["seed"] in wanted]
+    report = {
+        "world": world,
+        "seeds": sorted(wanted),
+        "groups": summarise(rows),
+        "paired": paired_stretches(rows, args.stretches),
+    }
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":

@@ -96,3 +96,28 @@ def test_the_exact_known_map_is_the_true_one_it_was_drawn_around() -> None:
         np.testing.assert_allclose(ex.params[j], log.world.params[w], atol=1e-12)
     np.testing.assert_allclose(np.sqrt(ex.covs[:, [0, 1, 2], [0, 1, 2]]), bench.EXACT_MAP_SIGMA)
     np.testing.assert_array_equal(exact.feat_params, log.feat_params)
+
+
+def test_paired_stretches_gives_each_stretch_the_worlds_paired_difference() -> None:
+    cs = load_benchmark("cause_separation")
+    rows = [
+        {"seed": 0, "variant": "ekf", "fusion": False, "nees": [1.0, 1.0, 5.0, 7.0]},
+        {"seed": 0, "variant": "batch", "fusion": False, "nees": [2.0, 2.0, 3.0, 3.0]},
+        {"seed": 1, "variant": "ekf", "fusion": False, "nees": [3.0, 3.0, 4.0, 4.0]},
+        {"seed": 1, "variant": "batch", "fusion": False, "nees": [2.0, 2.0, 3.0, 3.0]},
+        # A world the EKF did not run is left out of the pairing.
+        {"seed": 2, "variant": "batch", "fusion": False, "nees": [9.0, 9.0, 9.0, 9.0]},
+    ]
+    out = cs.paired_stretches(rows, [0, 2])
+    assert [(o["variant"], o["steps"], o["worlds"]) for o in out] == [
+        ("batch", [0, 2], 2),
+        ("batch", [2, 4], 2),
+    ]
+    # Steps 0-1: the EKF's means 1 and 3 against 2 and 2: differences -1 and +1.
+    assert out[0]["ekf"] == 2.0
+    assert out[0]["variant_nees"] == 2.0
+    assert out[0]["difference"][0] == 0.0
+    # Student-t, 1 dof: half-width 12.706 * sd(-1, 1) / sqrt(2) = 12.706.
+    assert math.isclose(out[0]["difference"][2], 12.706, abs_tol=1e-3)
+    # Steps 2-3: 6 and 4 against 3 and 3.
+    assert out[1]["difference"][0] == 2.0
