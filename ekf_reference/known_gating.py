@@ -13,12 +13,17 @@ inconsistent (``docs/change-detection.md`` says why this mechanism):
   ``window`` of them is tested against ``χ²_{n·m}(level)`` once ``n ≥ min_pairings``.
   A feature moved by a fraction of the gate biases every pairing the same way, so the
   sum grows linearly with ``n`` and the test fires after a few scans.
-* **Rejections.**  At a step where a known feature received no pairing but an
-  observation or landmark of its kind lay inside the association's pre-gate of it
-  (:func:`~ekf_reference.association.prefilter`) and was not paired with it (it
-  failed its χ² test, or the search paired it with an estimated landmark), the
-  feature is *rejected* at that step (counted once per
-  step).  When, among its last ``window`` outcomes, there are at least
+* **Rejections.**  At a step where a known feature received no pairing, it is
+  *rejected* (counted once per step) when, inside the association's pre-gate of it
+  (:func:`~ekf_reference.association.prefilter`), an observation of its kind failed
+  its χ² test with it and was not paired with a known feature, or a landmark of its
+  kind was not paired with it.  Each landmark counts once against a known feature:
+  its failed ties at later steps repeat the same evidence (the landmark is the same
+  observations, a few more each step), and counted per step they un-fused walls whose
+  own observations kept passing their tests while a local landmark of the same wall
+  sat 2 cm, four of its σ, from them (dense world 42).  An observation that passes
+  the test but goes to an estimated landmark nearer still is no evidence against
+  the known feature.  When, among its last ``window`` outcomes, there are at least
   ``max_rejections`` rejections and more rejections than acceptances, it is un-fused.
 
 An un-fused feature is removed from every target list from then on: its later
@@ -35,7 +40,7 @@ import numbers
 from collections import deque
 from dataclasses import dataclass
 
-from ekf_reference.association import Candidate, Query, prefilter
+from ekf_reference.association import Candidate, Query, evaluate, prefilter
 from ekf_reference.state import ElementKind, GaussianMap, Role
 from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
@@ -82,10 +87,13 @@ class KnownOutcomes:
 
     accepted: list[tuple[int, Candidate]]
     """``(known id, pairing)`` of every pairing with a known feature, in query order."""
-    near_unpaired: list[int]
-    """Known ids, in order of first appearance, lying inside the pre-gate of a query of
-    their kind that was not paired with a known feature (a refused pairing: the query
-    failed the χ² test with it, or was paired with an estimated landmark)."""
+    refused: list[tuple[int, int]]
+    """``(known id, source)`` of the refused pairings, each known id once, in order of
+    first appearance: the known feature lay inside the pre-gate of a query of its kind
+    that was not paired with a known feature and, for an observation, failed its χ²
+    test with it.  ``source`` is the landmark's track for a map element's query, −1
+    for an observation (an observation's refusal is listed first when there are
+    both)."""
 
 
 def known_outcomes(
@@ -103,7 +111,7 @@ def known_outcomes(
         for c in chosen
         if c is not None and els[c.target].role == Role.KNOWN
     ]
-    near_unpaired: dict[int, None] = {}
+    refused: dict[int, int] = {}
     for q, c in zip(queries, chosen, strict=True):
         if c is not None and els[c.target].role == Role.KNOWN:
             continue
@@ -112,9 +120,15 @@ def known_outcomes(
         if not known_rows:
             continue
         known_t = [idx[r] for r in known_rows]
+        source = -1 if q.element < 0 else els[q.element].track
+        gate = chi2_gate(association.gate_prob, 2 if q.kind == ElementKind.LINE else 3)
         for t in prefilter(q, preds[known_rows], known_t, state, association):
-            near_unpaired.setdefault(els[t].true_id, None)
-    return KnownOutcomes(accepted, list(near_unpaired))
+            if source < 0 and evaluate(state, q, t).d2 <= gate:
+                continue  # compatible: no evidence against the known feature
+            kid = els[t].true_id
+            if refused.get(kid, 0) >= 0:
+                refused[kid] = source if kid not in refused else min(source, refused[kid])
+    return KnownOutcomes(accepted, list(refused.items()))
 
 
 class KnownGate:
@@ -133,6 +147,8 @@ class KnownGate:
         self._step = -1
         self._touched: set[int] = set()
         self._rejected_now: set[int] = set()
+        self._landmarks_refused: set[tuple[int, int]] = set()
+        """``(known id, landmark track)`` already counted as a rejection."""
 
     # ------------------------------------------------------------------ targets
 
@@ -173,9 +189,13 @@ class KnownGate:
             self._touched.add(kid)
             self._push(kid, c.d2)
             self.accepted[kid] = self.accepted.get(kid, 0) + 1
-        for kid in out.near_unpaired:
+        for kid, source in out.refused:
             if kid in self._touched or kid in self._rejected_now:
                 continue
+            if source >= 0:
+                if (kid, source) in self._landmarks_refused:
+                    continue
+                self._landmarks_refused.add((kid, source))
             self._rejected_now.add(kid)
             self.rejected[kid] = self.rejected.get(kid, 0) + 1
             self._push(kid, math.nan)

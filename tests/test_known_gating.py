@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from ekf_reference import EKFConfig, run_ekf
-from ekf_reference.known_gating import KnownGate, KnownGatingParams
+from ekf_reference.association import Query, evaluate, predict_all_targets
+from ekf_reference.known_gating import KnownGate, KnownGatingParams, known_outcomes
+from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
 from mapfuse_core.estimate import (
     AssociationDecisions,
     EstimatorResult,
@@ -18,8 +20,8 @@ from mapfuse_core.estimate import (
     load_associations,
 )
 from mapfuse_core.geometry.features import FeatureKind, transform_feature
-from mapfuse_core.geometry.se2 import inverse
-from mapfuse_core.matching import AssociationConfig
+from mapfuse_core.geometry.se2 import compose, inverse
+from mapfuse_core.matching import AssociationConfig, chi2_gate
 from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 from tests.synthetic import ring_world, synthetic_log
 
@@ -254,3 +256,65 @@ def test_graph_adds_no_tie_for_a_feature_the_ekf_unfused():
     )
     assert {rows_of[k] for k in gone} <= tied_all
     assert tied == tied_all - {rows_of[k] for k in gone}
+
+
+def _anchor_and_known_wall() -> tuple[GaussianMap, np.ndarray]:
+    """An anchor ``x^R_Wknown`` at the origin (σ 5 cm, 2 mrad) and known wall 7, the
+    line y = 5 m (σ 2 cm, 1 mrad); returns the map and the wall seen from the robot."""
+    m = GaussianMap()
+    m.add(
+        Element(ElementKind.POSE, Role.ANCHOR, True, -1), np.zeros(3), np.diag([25e-4, 25e-4, 4e-6])
+    )
+    wall = np.array([0.0, 5.0, 0.0])
+    m.add(
+        Element(ElementKind.LINE, Role.KNOWN, False, 0, extent=(-10.0, 10.0), true_id=7),
+        wall,
+        bind_line_cov(wall, np.diag([4e-4, 4e-4, 1e-6])),
+    )
+    return m, transform_feature(FeatureKind.LINE, m.mean[0], m.mean[1])[0]
+
+
+def _segment(pred: np.ndarray, lateral: float) -> Query:
+    """A measured 4 m segment of the line ``pred`` moved ``lateral`` metres off it."""
+    z = compose(pred, np.array([0.0, lateral, 0.0]))
+    return Query(ElementKind.LINE, z, bind_line_cov(z, np.diag([100.0, 1e-4, 2.5e-5])), (-2.0, 2.0))
+
+
+def _targets(m: GaussianMap) -> dict:
+    return {k: v for k, v in predict_all_targets(m, lambda e: True).items()}
+
+
+def test_an_observation_passing_the_known_walls_test_is_no_rejection_of_it() -> None:
+    m, pred = _anchor_and_known_wall()
+    config = AssociationConfig()
+    near, far = _segment(pred, 0.05), _segment(pred, 0.8)  # d² ≈ 1 and ≈ 300
+    assert evaluate(m, near, 1).d2 < chi2_gate(config.gate_prob, 2) < evaluate(m, far, 1).d2
+    # Neither is paired with the known wall (the search sent them elsewhere).
+    out = known_outcomes(m, [near, far], [None, None], _targets(m), config)
+    assert out.refused == [(7, -1)]
+    out = known_outcomes(m, [near], [None], _targets(m), config)
+    assert out.refused == []
+
+
+def test_a_landmark_failing_its_tie_counts_once_against_a_known_feature() -> None:
+    m, pred = _anchor_and_known_wall()
+    config = AssociationConfig()
+    z = compose(pred, np.array([0.0, 0.8, 0.0]))
+    i = m.add(
+        Element(ElementKind.LINE, Role.FEATURE, True, 42, extent=(-2.0, 2.0)),
+        z,
+        np.diag([1e-4, 1e-4, 1e-6]),
+    )
+    tie = Query(ElementKind.LINE, m.mean[i], np.zeros((3, 3)), (-2.0, 2.0), element=i)
+    targets = {ElementKind.LINE: ([1], _targets(m)[ElementKind.LINE][1][[1]])}
+    assert known_outcomes(m, [tie], [None], targets, config).refused == [(7, 42)]
+    gate = KnownGate(KnownGatingParams(max_rejections=3), config)
+    for step in range(5):
+        gate.record(step, m, [tie], [None], targets)
+    assert gate.rejected == {7: 1}
+    assert gate.unfused == {}
+    # Observations failing the test count at every step.
+    for step in range(5, 8):
+        gate.record(step, m, [_segment(pred, 0.8)], [None], targets)
+    assert gate.rejected == {7: 4}
+    assert gate.unfused == {7: 6}
