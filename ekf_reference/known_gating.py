@@ -88,12 +88,11 @@ class KnownOutcomes:
     accepted: list[tuple[int, Candidate]]
     """``(known id, pairing)`` of every pairing with a known feature, in query order."""
     refused: list[tuple[int, int]]
-    """``(known id, source)`` of the refused pairings, each known id once, in order of
-    first appearance: the known feature lay inside the pre-gate of a query of its kind
-    that was not paired with a known feature and, for an observation, failed its χ²
-    test with it.  ``source`` is the landmark's track for a map element's query, −1
-    for an observation (an observation's refusal is listed first when there are
-    both)."""
+    """``(known id, source)`` of every refused pairing: the known feature lay inside the
+    pre-gate of a query of its kind that was not paired with a known feature and, for
+    an observation, failed its χ² test with it.  ``source`` is the landmark's track for
+    a map element's query, −1 for an observation; observations' refusals come first,
+    then the landmarks', each in query order."""
 
 
 def known_outcomes(
@@ -111,7 +110,7 @@ def known_outcomes(
         for c in chosen
         if c is not None and els[c.target].role == Role.KNOWN
     ]
-    refused: dict[int, int] = {}
+    refused: list[tuple[int, int]] = []
     for q, c in zip(queries, chosen, strict=True):
         if c is not None and els[c.target].role == Role.KNOWN:
             continue
@@ -125,10 +124,9 @@ def known_outcomes(
         for t in prefilter(q, preds[known_rows], known_t, state, association):
             if source < 0 and evaluate(state, q, t).d2 <= gate:
                 continue  # compatible: no evidence against the known feature
-            kid = els[t].true_id
-            if refused.get(kid, 0) >= 0:
-                refused[kid] = source if kid not in refused else min(source, refused[kid])
-    return KnownOutcomes(accepted, list(refused.items()))
+            refused.append((els[t].true_id, source))
+    refused.sort(key=lambda r: r[1] >= 0)  # stable: observations first
+    return KnownOutcomes(accepted, refused)
 
 
 class KnownGate:

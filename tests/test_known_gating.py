@@ -305,16 +305,27 @@ def test_a_landmark_failing_its_tie_counts_once_against_a_known_feature() -> Non
         z,
         np.diag([1e-4, 1e-4, 1e-6]),
     )
-    tie = Query(ElementKind.LINE, m.mean[i], np.zeros((3, 3)), (-2.0, 2.0), element=i)
-    targets = {ElementKind.LINE: ([1], _targets(m)[ElementKind.LINE][1][[1]])}
-    assert known_outcomes(m, [tie], [None], targets, config).refused == [(7, 42)]
+    j = m.add(
+        Element(ElementKind.LINE, Role.FEATURE, True, 43, extent=(-2.0, 2.0)),
+        compose(pred, np.array([1.0, 0.8, 0.0])),
+        np.diag([1e-4, 1e-4, 1e-6]),
+    )
+    ties = [
+        Query(ElementKind.LINE, m.mean[k], np.zeros((3, 3)), (-2.0, 2.0), element=k) for k in (i, j)
+    ]
+    known_row = _targets(m)[ElementKind.LINE][0].index(1)
+    targets = {ElementKind.LINE: ([1], _targets(m)[ElementKind.LINE][1][[known_row]])}
+    miss = _segment(pred, 0.8)
+    out = known_outcomes(m, [*ties, miss], [None, None, None], targets, config)
+    assert out.refused == [(7, -1), (7, 42), (7, 43)]  # the observation's first
     gate = KnownGate(KnownGatingParams(max_rejections=3), config)
     for step in range(5):
-        gate.record(step, m, [tie], [None], targets)
-    assert gate.rejected == {7: 1}
+        gate.record(step, m, ties, [None, None], targets)
+    # One rejection per landmark (one per step at most): steps 0 and 1.
+    assert gate.rejected == {7: 2}
     assert gate.unfused == {}
     # Observations failing the test count at every step.
-    for step in range(5, 8):
-        gate.record(step, m, [_segment(pred, 0.8)], [None], targets)
+    for step in range(5, 7):
+        gate.record(step, m, [miss], [None], targets)
     assert gate.rejected == {7: 4}
-    assert gate.unfused == {7: 6}
+    assert gate.unfused == {7: 5}
