@@ -18,12 +18,12 @@ inconsistent (``docs/change-detection.md`` says why this mechanism):
   (:func:`~ekf_reference.association.prefilter`), an observation of its kind failed
   its χ² test with it and was not paired with a known feature, or a landmark of its
   kind was not paired with it.  Each landmark counts once against a known feature:
-  its failed ties at later steps repeat the same evidence (the landmark is the same
-  observations, a few more each step), and counted per step they un-fused walls whose
-  own observations kept passing their tests while a local landmark of the same wall
-  sat 2 cm, four of its σ, from them (dense world 42).  An observation that passes
-  the test but goes to an estimated landmark nearer still is no evidence against
-  the known feature.  When, among its last ``window`` outcomes, there are at least
+  its failed ties at later steps repeat the same evidence (the same observations, a
+  few more each step).  Counted per step, a local landmark of a wall lying 2 cm (four
+  of its σ) from the known wall would un-fuse that wall while the wall's own
+  observations pass their tests (dense world 42).  An observation that passes the
+  test but goes to an estimated landmark nearer still is no evidence against the
+  known feature.  When, among its last ``window`` outcomes, there are at least
   ``max_rejections`` rejections and more rejections than acceptances, it is un-fused.
 
 An un-fused feature is removed from every target list from then on: its later
