@@ -11,7 +11,7 @@ import pytest
 
 from mapfuse_core.matching.ccda import CCDAParams, ccda_match
 from mapfuse_core.matching.ccda import clique as clique_mod
-from mapfuse_core.matching.ccda.inspect import correspondence_graph
+from mapfuse_core.matching.ccda.inspect import CorrespondenceGraph, correspondence_graph
 from mapfuse_core.matching.ccda.params import _check_params
 from mapfuse_core.matching.ccda.prepare import _prepare
 from mapfuse_core.matching.ccda.verification import _segments_overlap
@@ -199,3 +199,128 @@ def test_distinct_partner_counts_agree_between_the_table_and_the_hash(
 def test_a_negative_extent_margin_is_refused() -> None:
     with pytest.raises(ValueError, match="extent_margin_m"):
         _check_params(CCDAParams(extent_margin_m=-1.0))
+
+
+def corridor(extents: list[tuple[float, float]], T: np.ndarray | None = None) -> KnownMapArrays:
+    """Two parallel walls 2 m apart (along +x at y = 0 and y = 2, origins at x = 0),
+    with the given extents along x, moved by ``T``."""
+    T = np.zeros(3) if T is None else T
+    walls = [np.array([0.0, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])]
+    params = [move(LINE, T, w) for w in walls]
+    covs = [rotate_cov(LINE, T, line_cov(float(w[2]), S_LAT, S_TH)) for w in walls]
+    return KnownMapArrays(
+        ids=np.arange(2, dtype=np.int64),
+        kinds=np.full(2, LINE, dtype=np.int8),
+        params=np.array(params),
+        covs=np.array(covs),
+        extents=np.array(extents, dtype=float),
+    )
+
+
+@pytest.mark.parametrize(
+    "T",
+    [np.zeros(3), np.array([7.0, -3.0, 0.4]), np.array([-2.0, 5.0, math.pi])],
+    ids=["identity", "turned", "reversed"],
+)
+def test_parallel_walls_whose_segments_fit_one_shift_share_an_edge(T: np.ndarray) -> None:
+    # Both pieces of the local map lie on their walls at one shift along the corridor.
+    a = corridor([(0.0, 4.0), (10.0, 14.0)])
+    b = corridor([(-1.0, 5.0), (9.0, 16.0)], T)
+    # The same walls, each line stated in the opposite direction (angle + π, its
+    # extent mirrored): lines fix the rotation only modulo π.
+    assert b.extents is not None
+    flipped = dataclasses.replace(
+        b,
+        params=b.params + np.array([0.0, 0.0, math.pi]),
+        extents=-b.extents[:, ::-1],
+    )
+    for params in (OVERLAP, WITHIN):
+        assert has_edge(a, b, (0, 1), (0, 1), params)
+        assert has_edge(a, flipped, (0, 1), (0, 1), params)
+
+
+def test_parallel_walls_whose_segments_need_two_shifts_share_no_edge() -> None:
+    # A's pieces lie 10 m apart along the corridor, B's side by side: the first
+    # pairing needs a shift near 0, the second one near 10 m.  Only the angle and the
+    # distance between the walls agree, which once let pairings of walls along a
+    # corridor shifted by any length form large chance cliques.
+    a = corridor([(0.0, 4.0), (10.0, 14.0)])
+    b = corridor([(0.0, 4.0), (0.0, 4.0)], np.array([3.0, 1.0, 0.7]))
+    for params in (OVERLAP, WITHIN):
+        assert not has_edge(a, b, (0, 1), (0, 1), params)
+        assert has_edge(without_extents(a), without_extents(b), (0, 1), (0, 1), params)
+    # Overlapping within 0.5 m, the first pairing allows shifts of −4.5 to 4.5 m; the
+    # second, from 4.5 m less the lever of the angle noise (0.09 m) with A's piece at
+    # 9–13 m, from 4.8 m with it at 9.3–13 m.
+    d = corridor([(0.0, 4.0), (0.0, 4.0)])
+    assert has_edge(corridor([(0.0, 4.0), (9.0, 13.0)]), d, (0, 1), (0, 1), OVERLAP)
+    assert not has_edge(corridor([(0.0, 4.0), (9.3, 13.0)]), d, (0, 1), (0, 1), OVERLAP)
+
+
+def _walls_with_pieces(seed: int) -> tuple[KnownMapArrays, KnownMapArrays, set[tuple[int, int]]]:
+    """A known map of 8–20 walls (most of them axis-parallel, as in a building) and a
+    local map holding a piece of 60–90 % of them, moved by a random motion, each
+    piece's ends up to 0.3 m past its wall's (the drift along a wall).  Returns both
+    maps and the true pairings (local index, known index)."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(8, 21))
+    th = np.where(rng.random(n) < 0.8, rng.integers(0, 4, n) * math.pi / 2, rng.uniform(-3, 3, n))
+    known = np.column_stack([rng.uniform(-30.0, 30.0, (n, 2)), th])
+    length = rng.uniform(2.0, 30.0, n)
+    ext_b = np.column_stack([-rng.uniform(0.0, 1.0, n) * length, np.zeros(n)])
+    ext_b[:, 1] = ext_b[:, 0] + length
+    T = np.array([*rng.uniform(-20.0, 20.0, 2), rng.uniform(-math.pi, math.pi)])
+    seen = np.sort(rng.choice(n, size=int(rng.uniform(0.6, 0.9) * n), replace=False))
+    params, covs, ext_a = [], [], []
+    for j in seen.tolist():
+        lo, hi = ext_b[j]
+        a0, a1 = np.sort(rng.uniform(lo, hi, 2))
+        a1 = max(a1, min(a0 + 1.0, hi))
+        ext_a.append((a0 - rng.uniform(0.0, 0.3), a1 + rng.uniform(0.0, 0.3)))
+        params.append(move(LINE, T, known[j]))
+        covs.append(rotate_cov(LINE, T, line_cov(float(known[j, 2]), S_LAT, S_TH)))
+    cov_b = np.array([line_cov(float(t), S_LAT, S_TH) for t in th])
+    map_b = KnownMapArrays(
+        ids=np.arange(n, dtype=np.int64),
+        kinds=np.full(n, LINE, dtype=np.int8),
+        params=known,
+        covs=cov_b,
+        extents=ext_b,
+    )
+    map_a = KnownMapArrays(
+        ids=np.arange(seen.size, dtype=np.int64),
+        kinds=np.full(seen.size, LINE, dtype=np.int8),
+        params=np.array(params),
+        covs=np.array(covs),
+        extents=np.array(ext_a),
+    )
+    return map_a, map_b, {(i, int(j)) for i, j in enumerate(seen.tolist())}
+
+
+def _true_edges(
+    g: CorrespondenceGraph, truth: set[tuple[int, int]]
+) -> set[frozenset[tuple[int, int]]]:
+    """Edges of ``g`` between two true pairings, as pairs of pairings."""
+    node = list(zip(g.node_a.tolist(), g.node_b.tolist(), strict=True))
+    pairs = zip(g.edge_u.tolist(), g.edge_v.tolist(), strict=True)
+    return {
+        frozenset((node[u], node[v])) for u, v in pairs if node[u] in truth and node[v] in truth
+    }
+
+
+def test_the_segment_tests_never_cut_an_edge_between_true_pairings() -> None:
+    # On random buildings (parallel and perpendicular walls, pieces up to 0.3 m past
+    # their wall's ends), every pair of true pairings keeps its edge with extents;
+    # and the extents cut some edges between wrong pairings of parallel walls.
+    kept = cut = 0
+    for seed in range(30):
+        a, b, truth = _walls_with_pieces(seed)
+        for params in (OVERLAP, WITHIN):
+            bare = correspondence_graph(without_extents(a), without_extents(b), params)
+            full = correspondence_graph(a, b, params)
+            lost = _true_edges(bare, truth) - _true_edges(full, truth)
+            assert not lost, (seed, params.extent_rule, sorted(map(sorted, lost))[:3])
+            kept += len(_true_edges(full, truth))
+            cut += bare.edge_u.size - full.edge_u.size
+    assert kept > 2000
+    assert cut > 1000

@@ -25,6 +25,11 @@ The method, step by step:
      the unsigned lateral distance of the second line's origin from the first line,
      tested jointly with the angle (2 dof, with their correlation).
 
+   Where both maps give line extents, line–line edges also need the segments to
+   agree along the lines: from the intersection of non-parallel lines, and for
+   parallel ones through the single offset along them that one motion gives both
+   pairings (``graph._corners_overlap``, ``graph._parallel_overlap``).
+
    Lines enter only through their lateral offset and angle: every line covariance
    is first reduced to the 2×2 covariance of ``(e_lat, e_θ)``, the SPmap
    perturbation ``L ⊕ (0, e_lat, e_θ)``, so the along-line pseudo-variance is never

@@ -37,6 +37,12 @@ class _Pairs:
     unknown or the lines are parallel."""
     directed: FloatArray | None = None
     """Line pairs: (m,) directed angle ``θ_k − θ_i`` (not modulo π)."""
+    along: FloatArray | None = None
+    """Line pairs: (m, 5) segment intervals of ``i`` and ``k`` along ``i``'s direction
+    from ``i``'s origin, ``(lo_i, hi_i, lo_k, hi_k)``, and the largest distance of
+    ``k``'s segment from line ``i`` (its lever arm on ``i``'s angle); NaN where an
+    extent is unknown.  Used only for parallel pairs, whose intersection is at
+    infinity (:func:`_parallel_overlap`)."""
 
 
 def _pairs_cc(P: _Prep) -> _Pairs:
@@ -109,7 +115,27 @@ def _pairs_ll(P: _Prep, ordered: bool) -> _Pairs:
     S[:, 1, 1] = var_s
     S[:, 0, 1] = S[:, 1, 0] = cov_ds
     corner = _corners(P, i, k, ti, ni, nk, rel)
-    return _Pairs(i=i, k=k, g=g, S=S, corner=corner, directed=thk - thi)
+    along = _along(P, i, k, ti, ni, rel)
+    return _Pairs(i=i, k=k, g=g, S=S, corner=corner, directed=thk - thi, along=along)
+
+
+def _along(
+    P: _Prep, i: IntArray, k: IntArray, ti: FloatArray, ni: FloatArray, rel: FloatArray
+) -> FloatArray:
+    """Segment intervals of line pairs along the first line (see :attr:`_Pairs.along`)."""
+    out = np.full((i.size, 5), np.nan)
+    ok = np.all(np.isfinite(P.ext[i]), axis=1) & np.all(np.isfinite(P.ext[k]), axis=1)
+    if not np.any(ok):
+        return out
+    i, k, ti, ni, rel = i[ok], k[ok], ti[ok], ni[ok], rel[ok]
+    tk = np.stack([np.cos(P.th[k]), np.sin(P.th[k])], axis=1)
+    ends = rel[:, None, :] + P.ext[k][:, :, None] * tk[:, None, :]  # (m, 2 ends, xy)
+    proj = np.einsum("mei,mi->me", ends, ti)
+    out[ok, 0:2] = P.ext[i]
+    out[ok, 2] = proj.min(axis=1)
+    out[ok, 3] = proj.max(axis=1)
+    out[ok, 4] = np.abs(np.einsum("mei,mi->me", ends, ni)).max(axis=1)
+    return out
 
 
 def _corners(
@@ -267,6 +293,57 @@ def _corners_overlap(
     return out
 
 
+def _parallel_overlap(
+    pa: _Pairs, pb: _Pairs, ia: IntArray, ib: IntArray, gates: _Gates, params: CCDAParams
+) -> BoolArray:
+    """Whether the segments of two parallel line pairings can agree under one motion.
+
+    Parallel lines do not fix where along them the motion puts ``B``'s segments, but
+    it is one offset ``c`` for both pairings: along ``i``'s direction, an ``A``
+    coordinate is ``σ·b + c`` for a ``B`` coordinate ``b`` along ``j``'s direction
+    (``σ = ±1``: the rotation is known only modulo π from the lines).  Each pairing
+    allows an interval of ``c`` (its segments overlap, or with ``"within"`` the ``A``
+    one lies within the ``B`` one, within :attr:`CCDAParams.extent_margin_m` plus the
+    lever arm of each map's angle noise); the pairings can both hold when their
+    intervals meet, for either ``σ``.  Without this test, pairings of walls along a
+    corridor shifted by any length form large chance cliques.  Rows with an unknown
+    extent pass.
+    """
+    out = np.ones(ia.size, dtype=bool)
+    if pa.along is None or pb.along is None:
+        return out
+    a, b = pa.along[ia], pb.along[ib]
+    known = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+    if not np.any(known):
+        return out
+    a, b = a[known], b[known]
+    # The pair's angle variance (both lines') bounds that of line i's direction.
+    sd_a = np.sqrt(pa.S[ia[known], 0, 0])
+    sd_b = np.sqrt(pb.S[ib[known], 0, 0])
+    lever = np.sqrt(gates.g1) * (a[:, 4] * sd_a + b[:, 4] * sd_b)
+    m_first = np.full(a.shape[0], params.extent_margin_m)
+    m_second = params.extent_margin_m + lever
+    within = params.extent_rule == "within"
+
+    def offsets(
+        alo: FloatArray, ahi: FloatArray, blo: FloatArray, bhi: FloatArray, m: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        # Offsets c for which [alo, ahi] and [blo + c, bhi + c] agree.
+        if within:
+            return ahi - bhi - m, alo - blo + m
+        return alo - bhi - m, ahi - blo + m
+
+    ok = np.zeros(a.shape[0], dtype=bool)
+    for sg in (1.0, -1.0):
+        b1 = np.sort(sg * b[:, 0:2], axis=1)
+        b2 = np.sort(sg * b[:, 2:4], axis=1)
+        lo1, hi1 = offsets(a[:, 0], a[:, 1], b1[:, 0], b1[:, 1], m_first)
+        lo2, hi2 = offsets(a[:, 2], a[:, 3], b2[:, 0], b2[:, 1], m_second)
+        ok |= np.maximum(lo1, lo2) <= np.minimum(hi1, hi2)
+    out[known] = ok
+    return out
+
+
 def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit: _Emit) -> _Emit:
     """Wrap ``emit`` with the test of parallel line pairs: angle and distance jointly."""
 
@@ -285,6 +362,8 @@ def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit
             det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
             q = (S[:, 1, 1] * da * da - 2.0 * S[:, 0, 1] * da * dd + S[:, 0, 0] * dd * dd) / det
             ok[par] = q <= gates.g2
+            test = np.nonzero(par)[0][ok[par]]
+            ok[test] = _parallel_overlap(pa, pb, ia[test], ib[test], gates, params)
         if pa.corner is not None and pb.corner is not None and np.any(~par):
             ok[~par] = _corners_overlap(
                 pa.corner[ia[~par]],
