@@ -21,7 +21,13 @@ variant                   estimator  fusion  association   observations
 ``ekf_lines``             EKF        on/off  its own       lines redrawn
 ``ekf_circles``           EKF        on/off  its own       circles redrawn
 ``ekf_exact_map``         EKF        on      its own       as extracted; the known map exact
+``batch_redrawn``         batch      on/off  the EKF's     every one redrawn
+``batch_exact_map``       batch      on      the EKF's     as extracted; the known map exact
 ========================  =========  ======  ============  ==================================
+
+The batch variants on the EKF's association take its decisions (observation to
+landmark, and the match) from the EKF run on the log as extracted, so a redrawn or
+exact-map batch row differs from ``batch`` only in what it is given.
 
 *Redrawn*: an observation of a world feature is replaced by the true feature in the
 sensor frame plus noise drawn from the observation's own stated covariance (seeded by
@@ -232,6 +238,13 @@ VARIANTS: dict[
         lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
     ),
     "ekf_exact_map": ("ekf", (True,), "own", lambda log, s: exact_known_map(log)),
+    "batch_redrawn": (
+        "batch",
+        (True, False),
+        "ekf",
+        lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
+    ),
+    "batch_exact_map": ("batch", (True,), "ekf", lambda log, s: exact_known_map(log)),
 }
 
 

@@ -121,3 +121,28 @@ def test_paired_stretches_gives_each_stretch_the_worlds_paired_difference() -> N
     assert math.isclose(out[0]["difference"][2], 12.706, abs_tol=1e-3)
     # Steps 2-3: 6 and 4 against 3 and 3.
     assert out[1]["difference"][0] == 2.0
+
+
+def test_the_batch_variants_take_the_decisions_of_the_ekf_on_the_log_as_extracted(
+    monkeypatch,
+) -> None:
+    bench, log = _log()
+    seen: list[tuple[str, int]] = []
+    real_run = bench.run
+
+    def spy(vlog, est, **kw):  # type: ignore[no-untyped-def]
+        seen.append((est, id(vlog)))
+        return real_run(vlog, est, **kw)
+
+    monkeypatch.setattr(bench, "run", spy)
+    rows = bench.run_seed(log, 3, ["batch_redrawn", "batch_exact_map"])
+    assert [(r["variant"], r["fusion"]) for r in rows] == [
+        ("batch_redrawn", True),
+        ("batch_redrawn", False),
+        ("batch_exact_map", True),
+    ]
+    # The EKF runs once per fusion setting, on the log as extracted (not on the
+    # redrawn or exact-map copy), and every batch row uses those decisions.
+    ekf_logs = [i for est, i in seen if est == "ekf"]
+    assert ekf_logs[:2] == [id(log), id(log)]
+    assert all(np.isfinite(r["nees_mean"]) and r["nees_mean"] > 0.0 for r in rows)
