@@ -22,6 +22,8 @@ variant                   estimator  fusion  association   observations
 ``ekf_circles``           EKF        on/off  its own       circles redrawn
 ``ekf_exact_map``         EKF        on      its own       as extracted; the known map exact
 ``batch_redrawn``         batch      on/off  the EKF's     every one redrawn
+``batch_circles``         batch      on/off  the EKF's     circles redrawn
+``batch_lines``           batch      on/off  the EKF's     lines redrawn
 ``batch_exact_map``       batch      on      the EKF's     as extracted; the known map exact
 ========================  =========  ======  ============  ==================================
 
@@ -243,6 +245,18 @@ VARIANTS: dict[
         (True, False),
         "ekf",
         lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
+    ),
+    "batch_circles": (
+        "batch",
+        (True, False),
+        "ekf",
+        lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
+    ),
+    "batch_lines": (
+        "batch",
+        (True, False),
+        "ekf",
+        lambda log, s: redrawn(log, s, (FeatureKind.LINE,)),
     ),
     "batch_exact_map": ("batch", (True,), "ekf", lambda log, s: exact_known_map(log)),
 }
