@@ -189,31 +189,29 @@ def only(log: MeasurementLog, kind: FeatureKind) -> MeasurementLog:
     )
 
 
+def _redraw(*kinds: FeatureKind) -> Callable[[MeasurementLog, int], MeasurementLog]:
+    """The log of a variant whose observations of ``kinds`` are redrawn."""
+    return lambda log, s: redrawn(log, s, kinds)
+
+
+def _as_extracted(log: MeasurementLog, seed: int) -> MeasurementLog:
+    """The log of a variant that runs on the observations as extracted."""
+    return log
+
+
+_ALL = (FeatureKind.LINE, FeatureKind.CIRCLE)
+_BOTH = (True, False)
+
 #: variant → (estimator, fusion settings, association, the log it runs on).
 VARIANTS: dict[
     str, tuple[str, tuple[bool, ...], str, Callable[[MeasurementLog, int], MeasurementLog]]
 ] = {
-    "ekf": ("ekf", (True, False), "own", lambda log, s: log),
-    "batch": ("batch", (True, False), "ekf", lambda log, s: log),
-    "batch_truth": ("batch", (False,), "truth", lambda log, s: log),
-    "batch_truth_redrawn": (
-        "batch",
-        (False,),
-        "truth",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
-    ),
-    "batch_truth_circles": (
-        "batch",
-        (False,),
-        "truth",
-        lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
-    ),
-    "batch_truth_lines": (
-        "batch",
-        (False,),
-        "truth",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE,)),
-    ),
+    "ekf": ("ekf", _BOTH, "own", _as_extracted),
+    "batch": ("batch", _BOTH, "ekf", _as_extracted),
+    "batch_truth": ("batch", (False,), "truth", _as_extracted),
+    "batch_truth_redrawn": ("batch", (False,), "truth", _redraw(*_ALL)),
+    "batch_truth_circles": ("batch", (False,), "truth", _redraw(FeatureKind.CIRCLE)),
+    "batch_truth_lines": ("batch", (False,), "truth", _redraw(FeatureKind.LINE)),
     "batch_lines_only": ("batch", (False,), "truth", lambda log, s: only(log, FeatureKind.LINE)),
     "batch_circles_only": (
         "batch",
@@ -221,43 +219,13 @@ VARIANTS: dict[
         "truth",
         lambda log, s: only(log, FeatureKind.CIRCLE),
     ),
-    "ekf_redrawn": (
-        "ekf",
-        (True, False),
-        "own",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
-    ),
-    "ekf_lines": (
-        "ekf",
-        (True, False),
-        "own",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE,)),
-    ),
-    "ekf_circles": (
-        "ekf",
-        (True, False),
-        "own",
-        lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
-    ),
+    "ekf_redrawn": ("ekf", _BOTH, "own", _redraw(*_ALL)),
+    "ekf_lines": ("ekf", _BOTH, "own", _redraw(FeatureKind.LINE)),
+    "ekf_circles": ("ekf", _BOTH, "own", _redraw(FeatureKind.CIRCLE)),
     "ekf_exact_map": ("ekf", (True,), "own", lambda log, s: exact_known_map(log)),
-    "batch_redrawn": (
-        "batch",
-        (True, False),
-        "ekf",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE, FeatureKind.CIRCLE)),
-    ),
-    "batch_circles": (
-        "batch",
-        (True, False),
-        "ekf",
-        lambda log, s: redrawn(log, s, (FeatureKind.CIRCLE,)),
-    ),
-    "batch_lines": (
-        "batch",
-        (True, False),
-        "ekf",
-        lambda log, s: redrawn(log, s, (FeatureKind.LINE,)),
-    ),
+    "batch_redrawn": ("batch", _BOTH, "ekf", _redraw(*_ALL)),
+    "batch_circles": ("batch", _BOTH, "ekf", _redraw(FeatureKind.CIRCLE)),
+    "batch_lines": ("batch", _BOTH, "ekf", _redraw(FeatureKind.LINE)),
     "batch_exact_map": ("batch", (True,), "ekf", lambda log, s: exact_known_map(log)),
 }
 

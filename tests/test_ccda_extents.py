@@ -23,20 +23,27 @@ S_LAT, S_TH = 0.02, 0.005
 only the extents decide what these tests check."""
 
 
-def corner(extents: list[tuple[float, float]], T: np.ndarray | None = None) -> KnownMapArrays:
-    """Two perpendicular walls meeting at the origin (along +x and +y), with the
-    given extents from the origin, moved by ``T``."""
+def walls_map(
+    walls: list[np.ndarray], extents: list[tuple[float, float]], T: np.ndarray | None = None
+) -> KnownMapArrays:
+    """Lines ``walls`` (origin and angle) with the given extents from their origins,
+    moved by ``T``."""
     T = np.zeros(3) if T is None else T
-    walls = [np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, math.pi / 2])]
     params = [move(LINE, T, w) for w in walls]
     covs = [rotate_cov(LINE, T, line_cov(float(w[2]), S_LAT, S_TH)) for w in walls]
     return KnownMapArrays(
-        ids=np.arange(2, dtype=np.int64),
-        kinds=np.full(2, LINE, dtype=np.int8),
+        ids=np.arange(len(walls), dtype=np.int64),
+        kinds=np.full(len(walls), LINE, dtype=np.int8),
         params=np.array(params),
         covs=np.array(covs),
         extents=np.array(extents, dtype=float),
     )
+
+
+def corner(extents: list[tuple[float, float]], T: np.ndarray | None = None) -> KnownMapArrays:
+    """Two perpendicular walls meeting at the origin (along +x and +y), with the
+    given extents from the origin, moved by ``T``."""
+    return walls_map([np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, math.pi / 2])], extents, T)
 
 
 def without_extents(m: KnownMapArrays) -> KnownMapArrays:
@@ -71,12 +78,15 @@ OVERLAP = CCDAParams(extent_rule="overlap")
 WITHIN = CCDAParams(extent_rule="within")
 """``map_a``'s segments lie within ``map_b``'s walls (a known map of whole walls)."""
 
-
-@pytest.mark.parametrize(
+MOTIONS = pytest.mark.parametrize(
     "T",
     [np.zeros(3), np.array([7.0, -3.0, 0.4]), np.array([-2.0, 5.0, math.pi])],
     ids=["identity", "turned", "reversed"],
 )
+"""The motions between the maps: none, a turn, and a turn by π (every line reversed)."""
+
+
+@MOTIONS
 def test_perpendicular_walls_whose_segments_meet_alike_share_an_edge(T: np.ndarray) -> None:
     # A rigid motion keeps each segment's interval measured from the corner (a turn
     # by π reverses both lines' directions, which the test must allow).
@@ -204,24 +214,10 @@ def test_a_negative_extent_margin_is_refused() -> None:
 def corridor(extents: list[tuple[float, float]], T: np.ndarray | None = None) -> KnownMapArrays:
     """Two parallel walls 2 m apart (along +x at y = 0 and y = 2, origins at x = 0),
     with the given extents along x, moved by ``T``."""
-    T = np.zeros(3) if T is None else T
-    walls = [np.array([0.0, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])]
-    params = [move(LINE, T, w) for w in walls]
-    covs = [rotate_cov(LINE, T, line_cov(float(w[2]), S_LAT, S_TH)) for w in walls]
-    return KnownMapArrays(
-        ids=np.arange(2, dtype=np.int64),
-        kinds=np.full(2, LINE, dtype=np.int8),
-        params=np.array(params),
-        covs=np.array(covs),
-        extents=np.array(extents, dtype=float),
-    )
+    return walls_map([np.array([0.0, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])], extents, T)
 
 
-@pytest.mark.parametrize(
-    "T",
-    [np.zeros(3), np.array([7.0, -3.0, 0.4]), np.array([-2.0, 5.0, math.pi])],
-    ids=["identity", "turned", "reversed"],
-)
+@MOTIONS
 def test_parallel_walls_whose_segments_fit_one_shift_share_an_edge(T: np.ndarray) -> None:
     # Both pieces of the local map lie on their walls at one shift along the corridor.
     a = corridor([(0.0, 4.0), (10.0, 14.0)])
