@@ -16,7 +16,7 @@ from mapfuse_core.matching.ccda.params import _check_params
 from mapfuse_core.matching.ccda.prepare import _prepare
 from mapfuse_core.matching.ccda.verification import _segments_overlap
 from mapfuse_core.measlog import KnownMapArrays
-from tests.ccda_helpers import LINE, line_cov, move, random_overlap, rotate_cov
+from tests.ccda_helpers import LINE, line_cov, move, perturb, random_overlap, rotate_cov
 
 S_LAT, S_TH = 0.02, 0.005
 """Line noise of the hand-made maps: centimetres and a fraction of a degree, so that
@@ -249,48 +249,84 @@ def test_parallel_walls_whose_segments_need_two_shifts_share_no_edge() -> None:
     # second, from 4.5 m less the lever of the angle noise (0.09 m) with A's piece at
     # 9–13 m, from 4.8 m with it at 9.3–13 m.
     d = corridor([(0.0, 4.0), (0.0, 4.0)])
-    assert has_edge(corridor([(0.0, 4.0), (9.0, 13.0)]), d, (0, 1), (0, 1), OVERLAP)
+    assert has_edge(corridor([(0.0, 4.0), (9.05, 13.0)]), d, (0, 1), (0, 1), OVERLAP)
     assert not has_edge(corridor([(0.0, 4.0), (9.3, 13.0)]), d, (0, 1), (0, 1), OVERLAP)
+    # Within: A's pieces must lie inside B's at one shift; here the second needs a
+    # shift of −2 m and the first one near 0, though both pairings overlap at 0.
+    a = corridor([(0.0, 4.0), (0.0, 4.0)])
+    b = corridor([(0.0, 4.0), (2.0, 6.0)])
+    assert has_edge(a, b, (0, 1), (0, 1), OVERLAP)
+    assert not has_edge(a, b, (0, 1), (0, 1), WITHIN)
 
 
-def _walls_with_pieces(seed: int) -> tuple[KnownMapArrays, KnownMapArrays, set[tuple[int, int]]]:
-    """A known map of 8–20 walls (most of them axis-parallel, as in a building) and a
-    local map holding a piece of 60–90 % of them, moved by a random motion, each
-    piece's ends up to 0.3 m past its wall's (the drift along a wall).  Returns both
-    maps and the true pairings (local index, known index)."""
+def test_pieces_far_apart_on_one_wall_keep_their_edge_under_an_angle_error() -> None:
+    # One wall seen as two pieces 200 m apart; B's wall is turned by 0.06 rad about
+    # its middle, inside the angle gate of 0.02 rad of noise in each map, and each of
+    # B's pieces ends 0.49 m short of its partner (inside the 0.5 m margin) under the
+    # identity.  Along A's line B's coordinates shrink by cos 0.06, 0.36 m over the
+    # 200 m: the one offset must allow for that foreshortening.
+    eps, gap = 0.06, 0.49
+    c = math.cos(eps)
+    wall = np.array([100.0, 0.0, eps])
+    a = walls_map([np.zeros(3), np.array([200.0, 0.0, 0.0])], [(0.0, 4.0), (0.0, 4.0)])
+    b = walls_map(
+        [wall, wall],
+        [((-104.0 - gap) / c, (-100.0 - gap) / c), ((104.0 + gap) / c, (108.0 + gap) / c)],
+    )
+    noisy = [line_cov(float(w[2]), 0.05, 0.02) for w in (a.params[0], a.params[1])]
+    a = dataclasses.replace(a, covs=np.array(noisy))
+    b = dataclasses.replace(b, covs=np.array([line_cov(eps, 0.05, 0.02)] * 2))
+    assert has_edge(without_extents(a), without_extents(b), (0, 1), (0, 1), OVERLAP)
+    assert has_edge(a, b, (0, 1), (0, 1), OVERLAP)
+
+
+def _walls_with_pieces(
+    seed: int, s_th: float = 0.02
+) -> tuple[KnownMapArrays, KnownMapArrays, set[tuple[int, int]]]:
+    """A known map of 8–20 walls up to 120 m long (most of them axis-parallel, as in a
+    building) and a local map holding a piece of 60–90 % of them, moved by a random
+    motion, each piece's ends up to 0.49 m past its wall's (the drift along a wall,
+    just inside the 0.5 m margin).  Both maps are noisy (lateral 2 cm, angle ``s_th``)
+    and state some lines in the opposite direction (angle + π, extent mirrored).
+    Returns both maps and the true pairings (local index, known index)."""
     rng = np.random.default_rng(seed)
     n = int(rng.integers(8, 21))
     th = np.where(rng.random(n) < 0.8, rng.integers(0, 4, n) * math.pi / 2, rng.uniform(-3, 3, n))
-    known = np.column_stack([rng.uniform(-30.0, 30.0, (n, 2)), th])
-    length = rng.uniform(2.0, 30.0, n)
+    true_b = np.column_stack([rng.uniform(-60.0, 60.0, (n, 2)), th])
+    length = rng.uniform(2.0, 120.0, n)
     ext_b = np.column_stack([-rng.uniform(0.0, 1.0, n) * length, np.zeros(n)])
     ext_b[:, 1] = ext_b[:, 0] + length
     T = np.array([*rng.uniform(-20.0, 20.0, 2), rng.uniform(-math.pi, math.pi)])
     seen = np.sort(rng.choice(n, size=int(rng.uniform(0.6, 0.9) * n), replace=False))
-    params, covs, ext_a = [], [], []
+    ext_a = []
     for j in seen.tolist():
         lo, hi = ext_b[j]
         a0, a1 = np.sort(rng.uniform(lo, hi, 2))
         a1 = max(a1, min(a0 + 1.0, hi))
-        ext_a.append((a0 - rng.uniform(0.0, 0.3), a1 + rng.uniform(0.0, 0.3)))
-        params.append(move(LINE, T, known[j]))
-        covs.append(rotate_cov(LINE, T, line_cov(float(known[j, 2]), S_LAT, S_TH)))
-    cov_b = np.array([line_cov(float(t), S_LAT, S_TH) for t in th])
-    map_b = KnownMapArrays(
-        ids=np.arange(n, dtype=np.int64),
-        kinds=np.full(n, LINE, dtype=np.int8),
-        params=known,
-        covs=cov_b,
-        extents=ext_b,
-    )
-    map_a = KnownMapArrays(
-        ids=np.arange(seen.size, dtype=np.int64),
-        kinds=np.full(seen.size, LINE, dtype=np.int8),
-        params=np.array(params),
-        covs=np.array(covs),
-        extents=np.array(ext_a),
-    )
-    return map_a, map_b, {(i, int(j)) for i, j in enumerate(seen.tolist())}
+        ext_a.append((a0 - rng.uniform(0.0, 0.49), a1 + rng.uniform(0.0, 0.49)))
+
+    def noisy(lines: np.ndarray, extents: np.ndarray) -> KnownMapArrays:
+        params, covs = [], []
+        for f in lines:
+            S = line_cov(float(f[2]), S_LAT, s_th)
+            f2, S2 = perturb(rng, LINE, f, S, along_m=0.0)
+            params.append(f2)
+            covs.append(S2)
+        P, ext = np.array(params), np.array(extents, dtype=float)
+        flip = rng.random(len(P)) < 0.3
+        P[flip, 2] += math.pi
+        ext[flip] = -ext[flip, ::-1]
+        return KnownMapArrays(
+            ids=np.arange(len(P), dtype=np.int64),
+            kinds=np.full(len(P), LINE, dtype=np.int8),
+            params=P,
+            covs=np.array(covs),
+            extents=ext,
+        )
+
+    moved = np.array([move(LINE, T, true_b[j]) for j in seen.tolist()])
+    truth = {(i, int(j)) for i, j in enumerate(seen.tolist())}
+    return noisy(moved, np.array(ext_a)), noisy(true_b, ext_b), truth
 
 
 def _true_edges(
@@ -304,10 +340,37 @@ def _true_edges(
     }
 
 
+def _parallel_cut(
+    bare: CorrespondenceGraph, full: CorrespondenceGraph, a: KnownMapArrays, b: KnownMapArrays
+) -> int:
+    """Edges between pairings of two walls parallel in both maps that the extents cut."""
+
+    def edges(g: CorrespondenceGraph) -> set[frozenset[tuple[int, int]]]:
+        node = list(zip(g.node_a.tolist(), g.node_b.tolist(), strict=True))
+        return {
+            frozenset((node[u], node[v]))
+            for u, v in zip(g.edge_u.tolist(), g.edge_v.tolist(), strict=True)
+        }
+
+    def parallel(m: KnownMapArrays, f: int, g: int) -> bool:
+        d = (m.params[f, 2] - m.params[g, 2]) % math.pi
+        return bool(min(d, math.pi - d) < 0.05)
+
+    def both(e: frozenset[tuple[int, int]]) -> bool:
+        (i, j), (k, j2) = tuple(e)
+        return parallel(a, i, k) and parallel(b, j, j2)
+
+    nodes = set(zip(full.node_a.tolist(), full.node_b.tolist(), strict=True))
+    # Edges whose pairings are both nodes with extents (the unary length test of
+    # "within" removes nodes, and their edges with them).
+    return sum(1 for e in edges(bare) - edges(full) if both(e) and e <= nodes)
+
+
 def test_the_segment_tests_never_cut_an_edge_between_true_pairings() -> None:
-    # On random buildings (parallel and perpendicular walls, pieces up to 0.3 m past
-    # their wall's ends), every pair of true pairings keeps its edge with extents;
-    # and the extents cut some edges between wrong pairings of parallel walls.
+    # On random noisy buildings (parallel and perpendicular walls, some stated reversed,
+    # pieces up to 0.49 m past their wall's ends), every pair of true pairings keeps its
+    # edge with extents; and the extents cut edges between wrong pairings of parallel
+    # walls, which only the along-wall test does.
     kept = cut = 0
     for seed in range(30):
         a, b, truth = _walls_with_pieces(seed)
@@ -317,6 +380,6 @@ def test_the_segment_tests_never_cut_an_edge_between_true_pairings() -> None:
             lost = _true_edges(bare, truth) - _true_edges(full, truth)
             assert not lost, (seed, params.extent_rule, sorted(map(sorted, lost))[:3])
             kept += len(_true_edges(full, truth))
-            cut += bare.edge_u.size - full.edge_u.size
+            cut += _parallel_cut(bare, full, a, b)
     assert kept > 2000
     assert cut > 1000

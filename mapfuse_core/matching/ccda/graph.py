@@ -304,7 +304,8 @@ def _parallel_overlap(
     (``σ = ±1``: the rotation is known only modulo π from the lines).  Each pairing
     allows an interval of ``c`` (its segments overlap, or with ``"within"`` the ``A``
     one lies within the ``B`` one, within :attr:`CCDAParams.extent_margin_m` plus the
-    lever arm of each map's angle noise); the pairings can both hold when their
+    lever arm of each map's angle noise and the foreshortening an angle error within
+    the gate gives ``B``'s coordinates); the pairings can both hold when their
     intervals meet, for either ``σ``.  Without this test, pairings of walls along a
     corridor shifted by any length form large chance cliques.  Rows with an unknown
     extent pass.
@@ -321,8 +322,12 @@ def _parallel_overlap(
     sd_a = np.sqrt(pa.S[ia[known], 0, 0])
     sd_b = np.sqrt(pb.S[ib[known], 0, 0])
     lever = np.sqrt(gates.g1) * (a[:, 4] * sd_a + b[:, 4] * sd_b)
-    m_first = np.full(a.shape[0], params.extent_margin_m)
-    m_second = params.extent_margin_m + lever
+    # An angle error ε between the maps foreshortens B's coordinates by 1 − cos ε ≈ ε²/2,
+    # which the one offset cannot absorb across the span of B's two segments.
+    span = b[:, 0:4].max(axis=1) - b[:, 0:4].min(axis=1)
+    foreshortening = 0.5 * gates.g2 * (sd_a**2 + sd_b**2) * span
+    m_first = params.extent_margin_m + foreshortening
+    m_second = params.extent_margin_m + lever + foreshortening
     within = params.extent_rule == "within"
 
     def offsets(
