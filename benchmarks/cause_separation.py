@@ -71,7 +71,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.world_runs import append_rows, read_rows, world_logs
+from benchmarks.world_runs import append_rows, read_rows, truth_in_sensor, world_logs
 from mapfuse.campaign.spec import parse_world_args
 from mapfuse.campaign.stats import anees_bounds, anees_series, mean_interval
 from mapfuse.figures import run_errors
@@ -83,20 +83,6 @@ from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.models.line import line_residual_cov
 
 DEFAULT_WORLD = "shape=corridor,loop_length_m=583,walls=10,trees=45,laser_range_m=80"
-
-
-def _truth_in_sensor(log: MeasurementLog, j: int) -> np.ndarray | None:
-    """The world feature behind observation ``j`` in the sensor frame, or ``None``."""
-    assert log.world is not None
-    assert log.true_poses is not None
-    hit = np.flatnonzero(log.world.ids == log.feat_true_id[j])
-    if hit.size == 0 or int(log.world.kinds[hit[0]]) != int(log.feat_kind[j]):
-        return None
-    pose = log.true_poses[int(log.feat_step[j])]
-    out: np.ndarray = express_in(
-        FeatureKind(int(log.feat_kind[j])), pose, log.world.params[hit[0]]
-    )[0]
-    return out
 
 
 def _redrawn_line(
@@ -136,7 +122,7 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
         kind = FeatureKind(int(log.feat_kind[j]))
         if kind not in kinds:
             continue
-        truth = _truth_in_sensor(log, j)
+        truth = truth_in_sensor(log, j)
         if truth is None:
             continue
         cov = log.feat_cov[j]

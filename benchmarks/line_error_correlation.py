@@ -25,32 +25,26 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+from benchmarks.world_runs import truth_in_sensor, world_logs
 from mapfuse.campaign.spec import parse_world_args
-from mapfuse_core.geometry.features import FeatureKind, express_in
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.models.line import line_residual, line_residual_cov
-from mapfuse_core.sim.scenario import load_scenario
-from mapfuse_core.sim.simulate import simulate
-from mapfuse_core.sim.worldgen import WorldParams, generate_scenario
 
 DOFS = ("offset", "angle")
 
 
 def whitened_lines(log: MeasurementLog) -> list[tuple[int, int, np.ndarray, float]]:
     """``(step, wall id, whitened error, NEES)`` of every line observation of a wall."""
-    assert log.world is not None
-    assert log.true_poses is not None
     out = []
     for j in np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist():
-        hit = np.flatnonzero(log.world.ids == log.feat_true_id[j])
-        if hit.size == 0 or int(log.world.kinds[hit[0]]) != int(FeatureKind.LINE):
+        truth = truth_in_sensor(log, j)
+        if truth is None:
             continue
-        step = int(log.feat_step[j])
-        truth = express_in(FeatureKind.LINE, log.true_poses[step], log.world.params[hit[0]])[0]
         e = line_residual(truth, log.feat_params[j])[0]
         S = line_residual_cov(truth, log.feat_params[j], log.feat_cov[j])
         nees = float(e @ np.linalg.solve(S, e))
-        out.append((step, int(log.feat_true_id[j]), e / np.sqrt(np.diag(S)), nees))
+        out.append((int(log.feat_step[j]), int(log.feat_true_id[j]), e / np.sqrt(np.diag(S)), nees))
     return out
 
 
@@ -107,11 +101,7 @@ def main() -> None:
     args = p.parse_args()
     world = parse_world_args(args.world) if args.world else {}
     lags = [int(v) for v in args.lags.split(",") if v]
-    base = load_scenario("loop600")
-    drives = []
-    for seed in range(*args.seeds):
-        sc = generate_scenario(WorldParams(seed=seed, **world), base=base)
-        drives.append(whitened_lines(simulate(sc, seed=seed, workers=1).log))
+    drives = [whitened_lines(log) for _, log in world_logs(world, range(*args.seeds), set())]
     out = {"world": args.world, "seeds": list(range(*args.seeds)), **summarise(drives, lags)}
     print(json.dumps(out, indent=1))
 

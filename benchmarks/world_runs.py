@@ -9,6 +9,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from mapfuse_core.geometry.features import FeatureKind, express_in
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.sim.scenario import load_scenario
 from mapfuse_core.sim.simulate import simulate
@@ -46,3 +49,18 @@ def world_logs(
             continue
         sc = base if scenario else generate_scenario(WorldParams(seed=seed, **world), base=base)
         yield seed, simulate(sc, seed=seed, workers=1).log
+
+
+def truth_in_sensor(log: MeasurementLog, j: int) -> np.ndarray | None:
+    """The world feature behind observation ``j`` in the sensor frame at the true pose,
+    or ``None`` (no world feature, or one of another kind)."""
+    assert log.world is not None
+    assert log.true_poses is not None
+    hit = np.flatnonzero(log.world.ids == log.feat_true_id[j])
+    if hit.size == 0 or int(log.world.kinds[hit[0]]) != int(log.feat_kind[j]):
+        return None
+    pose = log.true_poses[int(log.feat_step[j])]
+    out: np.ndarray = express_in(
+        FeatureKind(int(log.feat_kind[j])), pose, log.world.params[hit[0]]
+    )[0]
+    return out

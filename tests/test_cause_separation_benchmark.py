@@ -27,7 +27,7 @@ def test_redrawn_lines_whiten_to_unit_variance_with_the_covariance_they_carry() 
     new = bench.redrawn(log, 3, (FeatureKind.LINE,))
     z = []
     for j in range(log.n_features):
-        truth = bench._truth_in_sensor(log, j)
+        truth = bench.truth_in_sensor(log, j)
         if truth is None or log.feat_kind[j] != int(FeatureKind.LINE):
             np.testing.assert_array_equal(new.feat_params[j], log.feat_params[j])
             continue
