@@ -32,3 +32,68 @@ def test_wrong_reobservations_tell_a_joins_merge_from_the_measurement_associatio
     # Without local tracks every error is the measurement association's.
     ro = bench.wrong_reobservations(landmark, labels, steps, plan)
     assert (ro.wrong, ro.wrong_at_join) == (3, 0)
+
+
+def _line_log(lines: list[tuple[float, float, float]], labels: list[int]):  # type: ignore[no-untyped-def]
+    """One line observation per scan, at the origin, of each ``(x, y, θ)`` in ``W``."""
+    from mapfuse_core.data.datasets.common import empty_map
+    from mapfuse_core.geometry.features import FeatureKind
+    from mapfuse_core.measlog import MeasurementLog
+
+    m = len(lines)
+    return MeasurementLog(
+        scenario="off-wall",
+        seed=0,
+        timestamps=np.arange(m, dtype=float),
+        odometry=np.zeros((m, 3)),
+        odometry_cov=np.array([np.eye(3) * 1e-4] * m),
+        feat_step=np.arange(m, dtype=np.int64),
+        feat_kind=np.full(m, int(FeatureKind.LINE), dtype=np.int8),
+        feat_params=np.array(lines, dtype=float),
+        # σ 1 cm across the line and 0.06° in angle; along it, where the segment lies.
+        feat_cov=np.tile(np.diag([0.25, 1e-4, 1e-6]), (m, 1, 1)),
+        feat_true_id=np.array(labels, dtype=np.int64),
+        feat_n_points=np.full(m, 50, dtype=np.int64),
+        feat_extent=np.tile([-0.5, 0.5], (m, 1)),
+        known_map=empty_map(),
+        true_poses=np.zeros((m, 3)),
+    )
+
+
+def test_off_wall_observations_count_unlabelled_segments_off_the_landmarks_wall(
+    bench,  # type: ignore[no-untyped-def]
+) -> None:
+    # Wall 0 along y = 2; wall 1 a recess 0.5 m behind it past its end; wall 2 the same
+    # line as wall 0 beyond a doorway.
+    plan = _plan([(0.0, 2.0, 0.0, 1.5), (3.0, 2.5, 0.0, 1.0), (5.0, 2.0, 0.0, 1.0)], FRAMES[0])
+    lines = [
+        (0.0, 2.0, 0.0),  # wall 0, labelled (three times: the majority)
+        (0.5, 2.0, 0.0),
+        (-0.5, 2.0, 0.0),
+        (5.0, 2.0, 0.0),  # wall 2, labelled: on wall 0's line, not off
+        (3.0, 2.5, 0.0),  # the recess, unlabelled: 0.5 m = 50 σ off wall 0's line
+        (1.8, 2.005, 0.0),  # unlabelled past wall 0's end, on its line: not off
+        (3.0, 2.5, 0.0),  # the recess, labelled: off
+        (0.0, 3.0, 0.0),  # landmark 6: unlabelled only, no majority, not judged
+    ]
+    log = _line_log(lines, [0, 0, 0, 2, -1, -1, 1, -1])
+    landmark = np.array([5, 5, 5, 5, 5, 5, 5, 6])
+    ow = bench.off_wall_observations(landmark, log, plan)
+    assert (ow.judged, ow.off, ow.landmarks) == (7, 2, 1)
+    # The labelled-only count sees the labelled recess alone.
+    ro = bench.wrong_reobservations(landmark, log.feat_true_id, log.feat_step, plan)
+    assert ro.wrong == 1
+
+
+def test_estimator_names_take_a_kernel_and_the_reference_association(
+    bench,  # type: ignore[no-untyped-def]
+) -> None:
+    assert bench.backend_and_kernel("batch") == ("batch", {})
+    assert bench.backend_and_kernel("batch+gauss") == ("batch", {"graph": {"robust": None}})
+    assert bench.backend_and_kernel("isam2@truth") == ("isam2", {"association": "truth"})
+    assert bench.backend_and_kernel("batch+huber@truth") == (
+        "batch",
+        {"association": "truth", "graph": {"robust": "huber"}},
+    )
+    with pytest.raises(ValueError, match="only @truth"):
+        bench.backend_and_kernel("batch@own")
