@@ -148,11 +148,19 @@ class OffWall:
     reference pose."""
     landmarks: int
     """Landmarks with at least one such observation."""
+    far: int
+    """Of the unlabelled ones off the wall, those beyond :data:`FAR_OFF_WALL`: past the
+    gate lies the tail of the line errors of segments that are on the wall but were
+    left unlabelled (a piece past the plan wall's end), far past it lie other
+    structures (a recess, a jog, the next wall)."""
 
 
 OFF_WALL_GATE = float(chi2.ppf(0.999, 2))
 """The gate of :func:`off_wall_observations`: the one reference labels are given with
 (:func:`~mapfuse_core.data.datasets.reference_labels`)."""
+FAR_OFF_WALL = 100.0
+"""Squared Mahalanobis distance (10 σ) beyond which an unlabelled observation counts
+as far off its landmark's wall (:attr:`OffWall.far`)."""
 
 
 def off_wall_observations(
@@ -176,7 +184,7 @@ def off_wall_observations(
     lines = (lm >= 0) & (log.feat_kind == FeatureKind.LINE)
     ids = sorted({int(v) for v in lm[lines].tolist()})
     majority = dict(zip(ids, landmark_labels(lm, labels, ids), strict=True))
-    judged = off = 0
+    judged = off = far = 0
     mixed: set[int] = set()
     for i in np.flatnonzero(lines).tolist():
         L = int(lm[i])
@@ -189,11 +197,13 @@ def off_wall_observations(
             bad = a != w and not same_wall(plan, a, w, gap_m=math.inf)
         else:
             r, S, _ = wall_residual(log, i, plan.walls, w)
-            bad = float(r @ np.linalg.solve(S, r)) > OFF_WALL_GATE
+            d2 = float(r @ np.linalg.solve(S, r))
+            bad = d2 > OFF_WALL_GATE
+            far += d2 > FAR_OFF_WALL
         if bad:
             off += 1
             mixed.add(L)
-    return OffWall(judged, off, len(mixed))
+    return OffWall(judged, off, len(mixed), far)
 
 
 def _line_nees(full: MeasurementLog, plan: FloorPlan) -> dict[str, float]:
@@ -244,7 +254,12 @@ def _ekf_extras(res: EstimatorResult, log: MeasurementLog, plan: FloorPlan) -> d
         "wrong_at_join": ro.wrong_at_join,
     }
     ow = off_wall_observations(res.decisions.obs_landmark, log, plan)
-    out["off_wall"] = {"judged": ow.judged, "off": ow.off, "landmarks": ow.landmarks}
+    out["off_wall"] = {
+        "judged": ow.judged,
+        "off": ow.off,
+        "landmarks": ow.landmarks,
+        "far": ow.far,
+    }
     if res.matching is not None:
         out["ccda"] = {"attempts": res.matching.attempts, **res.matching.reasons}
     if res.anchor is not None:
@@ -357,7 +372,9 @@ def _summary(rows: list[dict[str, Any]], estimators: list[str]) -> dict[str, Any
         out[f"wrong_reobs_strict_{key}_pct"] = 100.0 * s / j if j else math.nan
         oj = sum(r[f"ekf_{key}"]["off_wall"]["judged"] for r in rows)
         oo = sum(r[f"ekf_{key}"]["off_wall"]["off"] for r in rows)
+        of = sum(r[f"ekf_{key}"]["off_wall"].get("far", 0) for r in rows)
         out[f"off_wall_{key}_pct"] = 100.0 * oo / oj if oj else math.nan
+        out[f"far_off_wall_{key}_pct"] = 100.0 * of / oj if oj else math.nan
         for est in estimators:
             out[f"{est}_{key}"] = _anees(rows, f"{est}_{key}")
     return out
@@ -368,7 +385,7 @@ def _markdown(summaries: list[dict[str, Any]], estimators: list[str]) -> str:
         "| log | scans | lines/scan | line NEES/dof mean, median | CCDA attempts: outcomes "
         "| anchored runs | judged pairings correct | runs ending at budget "
         "| wrong re-obs % plan / none (strict) | of which at joins % plan / none "
-        "| off-wall obs % plan / none |",
+        "| off-wall obs % plan / none (far off) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in summaries:
@@ -381,7 +398,8 @@ def _markdown(summaries: list[dict[str, Any]], estimators: list[str]) -> str:
             f"| {s['wrong_reobs_plan_pct']:.1f} / {s['wrong_reobs_none_pct']:.1f} "
             f"({s['wrong_reobs_strict_plan_pct']:.1f} / {s['wrong_reobs_strict_none_pct']:.1f}) "
             f"| {s['wrong_reobs_at_join_plan_pct']:.1f} / {s['wrong_reobs_at_join_none_pct']:.1f} "
-            f"| {s['off_wall_plan_pct']:.1f} / {s['off_wall_none_pct']:.1f} |"
+            f"| {s['off_wall_plan_pct']:.1f} / {s['off_wall_none_pct']:.1f} "
+            f"({s['far_off_wall_plan_pct']:.2f} / {s['far_off_wall_none_pct']:.2f}) |"
         )
     lines += [
         "",

@@ -74,12 +74,14 @@ def test_off_wall_observations_count_unlabelled_segments_off_the_landmarks_wall(
         (3.0, 2.5, 0.0),  # the recess, unlabelled: 0.5 m = 50 σ off wall 0's line
         (1.8, 2.005, 0.0),  # unlabelled past wall 0's end, on its line: not off
         (3.0, 2.5, 0.0),  # the recess, labelled: off
+        (-1.0, 2.08, 0.0),  # unlabelled, 8 cm off: past the gate (d² 32), not far off
         (0.0, 3.0, 0.0),  # landmark 6: unlabelled only, no majority, not judged
     ]
-    log = _line_log(lines, [0, 0, 0, 2, -1, -1, 1, -1])
-    landmark = np.array([5, 5, 5, 5, 5, 5, 5, 6])
+    log = _line_log(lines, [0, 0, 0, 2, -1, -1, 1, -1, -1])
+    landmark = np.array([5, 5, 5, 5, 5, 5, 5, 5, 6])
     ow = bench.off_wall_observations(landmark, log, plan)
-    assert (ow.judged, ow.off, ow.landmarks) == (7, 2, 1)
+    # The recess seen unlabelled is far off (d² 1,250); the 8 cm piece is the tail.
+    assert (ow.judged, ow.off, ow.landmarks, ow.far) == (8, 3, 1, 1)
     # The labelled-only count sees the labelled recess alone.
     ro = bench.wrong_reobservations(landmark, log.feat_true_id, log.feat_step, plan)
     assert ro.wrong == 1
