@@ -17,7 +17,8 @@ prefix of the log mimics a shorter log) and every seed of the simulated odometry
 * **estimators** (``--estimators``; EKF, batch, iSAM2 on the EKF's decisions with the
   ``carmen:`` profile's Cauchy kernel, another kernel as ``batch+huber``, none as
   ``batch+gauss``; ``batch@truth`` pairs the observations by their reference labels
-  instead, the plan's walls included) with and without the plan:
+  instead, the plan's walls included, and ``isam2@own`` makes its own association and
+  map match) with and without the plan:
   position RMSE and max against the reference, mean pose NEES with its two-sided
   95 % acceptance region, run time.
 
@@ -295,7 +296,8 @@ def _one(
             if est == "ekf":
                 kw = ekf_options
             c0 = time.process_time()
-            r = run(log, name, fusion=fusion, upstream=None if est == "ekf" else ekf, **kw)
+            own = kw.get("association") == "own"
+            r = run(log, name, fusion=fusion, upstream=None if est == "ekf" or own else ekf, **kw)
             cpu = time.process_time() - c0
             row[f"{est}_{key}"] = _estimator_row(r, cpu)
             if est == "ekf":
@@ -305,15 +307,16 @@ def _one(
 
 
 def backend_and_kernel(est: str) -> tuple[str, dict[str, Any]]:
-    """``NAME``, ``NAME+KERNEL``, ``NAME@truth`` or ``NAME+KERNEL@truth`` → the
-    estimator's name and the override of its options: the kernel's (``gauss``: no
-    kernel; without one, the profile's) and, with ``@truth``, the association by
-    reference labels."""
+    """``NAME``, ``NAME+KERNEL``, ``NAME@ASSOCIATION`` or ``NAME+KERNEL@ASSOCIATION``
+    → the estimator's name and the override of its options: the kernel's (``gauss``:
+    no kernel; without one, the profile's) and the association: ``@truth`` by
+    reference labels, ``@own`` the graph backend's own (iSAM2 only), instead of the
+    EKF's decisions."""
     rest, _, assoc = est.partition("@")
-    if assoc not in ("", "truth"):
-        raise ValueError(f"unknown association {assoc!r} in {est!r} (only @truth)")
+    if assoc not in ("", "truth", "own"):
+        raise ValueError(f"unknown association {assoc!r} in {est!r} (@truth or @own)")
     name, _, kernel = rest.partition("+")
-    kw: dict[str, Any] = {"association": "truth"} if assoc else {}
+    kw: dict[str, Any] = {"association": assoc} if assoc else {}
     if kernel:
         kw["graph"] = {"robust": None if kernel == "gauss" else kernel}
     return name, kw

@@ -97,5 +97,6 @@ def test_estimator_names_take_a_kernel_and_the_reference_association(
         "batch",
         {"association": "truth", "graph": {"robust": "huber"}},
     )
-    with pytest.raises(ValueError, match="only @truth"):
-        bench.backend_and_kernel("batch@own")
+    assert bench.backend_and_kernel("isam2@own") == ("isam2", {"association": "own"})
+    with pytest.raises(ValueError, match="@truth or @own"):
+        bench.backend_and_kernel("batch@given")
