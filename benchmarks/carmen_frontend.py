@@ -53,8 +53,8 @@ from mapfuse_core.data.datasets import (
     line_nees,
     load_carmen,
     same_wall,
+    wall_d2,
 )
-from mapfuse_core.data.datasets.floorplan import wall_residual
 from mapfuse_core.estimate import EstimatorResult
 from mapfuse_core.evaluation.labels import landmark_labels
 from mapfuse_core.geometry.features import FeatureKind
@@ -177,7 +177,7 @@ def off_wall_observations(
     (``log.feat_true_id``, :func:`landmark_labels`) is judged against that wall at the
     reference pose: a labelled one is off when its wall is on another line
     (``same_wall`` at any gap), an unlabelled one when its squared Mahalanobis distance
-    to the wall (:func:`~mapfuse_core.data.datasets.wall_residual`) exceeds
+    to the wall (:func:`~mapfuse_core.data.datasets.wall_d2`) exceeds
     :data:`OFF_WALL_GATE`.
     """
     lm = np.asarray(obs_landmark)
@@ -197,8 +197,7 @@ def off_wall_observations(
         if a >= 0:
             bad = a != w and not same_wall(plan, a, w, gap_m=math.inf)
         else:
-            r, S, _ = wall_residual(log, i, plan.walls, w)
-            d2 = float(r @ np.linalg.solve(S, r))
+            d2 = wall_d2(log, i, plan.walls, w)
             bad = d2 > OFF_WALL_GATE
             far += d2 > FAR_OFF_WALL
         if bad:
@@ -375,7 +374,7 @@ def _summary(rows: list[dict[str, Any]], estimators: list[str]) -> dict[str, Any
         out[f"wrong_reobs_strict_{key}_pct"] = 100.0 * s / j if j else math.nan
         oj = sum(r[f"ekf_{key}"]["off_wall"]["judged"] for r in rows)
         oo = sum(r[f"ekf_{key}"]["off_wall"]["off"] for r in rows)
-        of = sum(r[f"ekf_{key}"]["off_wall"].get("far", 0) for r in rows)
+        of = sum(r[f"ekf_{key}"]["off_wall"]["far"] for r in rows)
         out[f"off_wall_{key}_pct"] = 100.0 * oo / oj if oj else math.nan
         out[f"far_off_wall_{key}_pct"] = 100.0 * of / oj if oj else math.nan
         for est in estimators:

@@ -47,6 +47,7 @@ from mapfuse_core.data.datasets.floorplan import (
     line_nees,
     reference_labels,
     same_wall,
+    wall_d2,
 )
 from mapfuse_core.data.datasets.gps import gps_reference_labels
 from mapfuse_core.data.datasets.line_noise import (
@@ -101,5 +102,6 @@ __all__ = [
     "rear_axle_speed",
     "reference_labels",
     "same_wall",
+    "wall_d2",
     "with_line_model_error",
 ]

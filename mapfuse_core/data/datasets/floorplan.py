@@ -41,6 +41,7 @@ __all__ = [
     "reference_labels",
     "same_wall",
     "survey_cov",
+    "wall_d2",
 ]
 
 
@@ -421,7 +422,7 @@ def wall_residual(
     return r, S, Jz
 
 
-def _d2(log: MeasurementLog, i: int, walls: KnownMapArrays, w: int) -> float:
+def wall_d2(log: MeasurementLog, i: int, walls: KnownMapArrays, w: int) -> float:
     """Squared Mahalanobis distance of line observation ``i`` to wall ``w`` at the
     reference pose (:func:`wall_residual`)."""
     r, S, _ = wall_residual(log, i, walls, w)
@@ -458,7 +459,7 @@ def reference_labels(
         )
         best, best_d2 = -1, gate
         for w in cand:
-            d2 = _d2(log, int(i), walls, int(w))
+            d2 = wall_d2(log, int(i), walls, int(w))
             if d2 <= best_d2:
                 best, best_d2 = int(w), d2
         out[i] = best
@@ -490,4 +491,4 @@ def line_nees(log: MeasurementLog, plan: FloorPlan) -> FloatArray:
     if log.true_poses is None:
         raise ValueError("line_nees needs a log with a reference trajectory (true_poses)")
     idx = np.flatnonzero(plan.obs_wall >= 0)
-    return np.array([_d2(log, int(i), plan.walls, int(plan.obs_wall[i])) for i in idx])
+    return np.array([wall_d2(log, int(i), plan.walls, int(plan.obs_wall[i])) for i in idx])
