@@ -26,6 +26,15 @@ class EKFConfig:
     """*(choice)* Steps per local map before it is joined.  40 steps (10 m of travel in
     loop600) balances the per-step cost (larger maps) against the join cost and
     linearisation (more joins): ``benchmarks/bench_ekf.py`` measures it."""
+    local_map_heading_sigma_rad: float | None = None
+    """*(choice, beyond the paper)* Also join a local map once the heading σ its
+    odometry has accumulated since the map started exceeds this (rad): the square root of
+    the sum of its increments' heading variances, dead reckoning before any observation.
+    On logs whose odometry is rough for their step length the filter's own excess over
+    a smoother grows with what a local map accumulates; this bounds it whatever a
+    step's length and noise, at the cost of more joins.  ``None`` (default): steps
+    alone (:attr:`local_map_steps`), as the paper (``docs/results/carmen.md``, the
+    EKF's own part)."""
     data_association: AssociationConfig = field(default_factory=AssociationConfig)
     """Gates, search (``method``: nearest neighbour or JCBB), one-to-one rules, CCDA
     match and anchor prior: the settings shared with the factor graph
@@ -167,6 +176,9 @@ class EKFConfig:
             )
         if self.local_map_steps < 1:
             raise ValueError(f"local_map_steps must be >= 1, got {self.local_map_steps}")
+        h = self.local_map_heading_sigma_rad
+        if h is not None and not (isinstance(h, numbers.Real) and math.isfinite(h) and h > 0.0):
+            raise ValueError(f"local_map_heading_sigma_rad must be None or > 0, got {h!r}")
         if (
             isinstance(self.carry_seen_steps, bool)
             or not isinstance(self.carry_seen_steps, numbers.Integral)
@@ -245,6 +257,8 @@ class EKFConfig:
         * ``data_association.match_joint_test``, ``match_pairing_test``: off and
           ``match_exclusions``: 0: CCDA's accepted match is used as it is (§3.2–3.3).
         * ``anchor_watch``: ``None``: an accepted anchor stays (Algorithm 1).
+        * ``local_map_heading_sigma_rad``: ``None``: a local map is bounded by its number
+          of filter iterations alone (§1).
         * ``known_map_gating``: off: every pairing the association accepts is fused at
           every step (§3.3.2).
         * ``tentative_min_sightings``: 1, no condition on a new feature (§2.1.1);
@@ -299,6 +313,7 @@ class EKFConfig:
             known_map_in_local_maps="copied",
             line_tie_residual_at="target",
             anchor_watch=None,
+            local_map_heading_sigma_rad=None,
             known_map_gating=False,
             tentative_min_sightings=1,
             min_obs_to_join=1,
@@ -354,6 +369,7 @@ _CCDA = "data_association.ccda."
 PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
     {
         "local_map_steps": _c("40: the paper bounds a local map by iterations, not how many."),
+        "local_map_heading_sigma_rad": _p("§1: a local map is bounded by iterations only (None)."),
         _DA + "gate_prob": _c("0.999: the association's gate is not given (ref. [5])."),
         _DA + "prefilter_m": _c("3 m: a cheap pre-gate far wider than the χ² gate."),
         _DA + "prefilter_rad": _c("0.3 rad: a cheap pre-gate far wider than the χ² gate."),

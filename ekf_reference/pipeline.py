@@ -134,6 +134,13 @@ class _Run:
         self.known_tracks: dict[int, int] = {}
         """Track of each known feature (index into :attr:`known`), from the match on."""
         self.local, self.ctx = self._start_local_map([])
+        self.local_start = 0
+        """First step of the current local map."""
+        self.local_odometry_var = 0.0
+        """Sum of the heading variances of the odometry increments the current local
+        map has predicted (rad²)."""
+        self.joins = 0
+        """Local maps joined so far (:attr:`EKFDetails.joins`)."""
         self.ccda_attempts = 0
         self.ccda_reasons: dict[str, int] = {}
         self.ccda_refused: list[tuple[int, float, int]] = []
@@ -399,6 +406,9 @@ class _Run:
         if self.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
         self.local, self.ctx = self._start_local_map(self._carried(k))
+        self.local_start = k + 1
+        self.local_odometry_var = 0.0
+        self.joins += 1
 
     def _carried(self, k: int) -> list[int]:
         """Global features the next local map holds from its start: those seen in steps
@@ -753,7 +763,20 @@ class _Run:
             setattr(self, name, value)
         self.before_fusion, self.fused_anchor, self.watch = None, None, None
         self.local, self.ctx = self._start_local_map(self._carried(fused_at))
+        self.local_start = fused_at + 1
+        self.local_odometry_var = 0.0
         return fused_at
+
+    def local_map_full(self, k: int) -> bool:
+        """Whether the local map is joined at the end of step ``k``: it holds
+        ``local_map_steps`` steps, or its odometry has accumulated a heading σ above
+        ``local_map_heading_sigma_rad``."""
+        c = self.config
+        if k + 1 - self.local_start >= c.local_map_steps:
+            return True
+        if c.local_map_heading_sigma_rad is None:
+            return False
+        return self.local_odometry_var > c.local_map_heading_sigma_rad**2
 
 
 @single_threaded_blas
@@ -786,6 +809,7 @@ def run_ekf(
         t0 = time.perf_counter()
         if k > 0:
             predict(run.local, log.odometry[k], log.odometry_cov[k])
+            run.local_odometry_var += float(log.odometry_cov[k][2, 2])
         run.observe(k)
         first = k > reported
         if first:
@@ -798,7 +822,7 @@ def run_ekf(
                 x, J = inverse_jacobian(run.local.mean[a])
                 poses_known[k] = uncentred(x, run.known_centre)
                 covs_known[k] = J @ run.local.block(a) @ J.T
-        if (k + 1) % config.local_map_steps == 0 or k == n - 1:
+        if k == n - 1 or run.local_map_full(k):
             run.join(k)
         resume = run.check_anchor(k)
         times[reported] += time.perf_counter() - t0
@@ -857,6 +881,7 @@ def _result(
             tentative_promoted=run.tentative.promoted,
             anchors_undone=tuple(run.undone),
             innovations=InnovationTotals(run.innovation_chi2, run.innovation_dof),
+            joins=run.joins,
             obs_local_track=run.obs_track.copy(),
         ),
     )

@@ -108,6 +108,10 @@ class EKFDetails:
     innovations: InnovationTotals = InnovationTotals(0.0, 0)
     """The measurement updates' innovations over the run: the consistency evidence of
     a run without a reference trajectory (``mapfuse.changes.run_consistency``)."""
+    joins: int = 0
+    """Local maps joined into the global map over the run, the last one included (a
+    join made again after an anchor is undone counts again): how
+    ``config.local_map_steps`` and ``config.local_map_heading_sigma_rad`` cut the run."""
     obs_local_track: np.ndarray | None = None
     """(M,) int64 the feature each observation was given in its local map (a track id,
     −1 for none), before the joins merged it with global ones; the result's

@@ -171,6 +171,8 @@ _R = "results/"
 EVIDENCE: dict[str, str] = {
     "EKFConfig.local_map_steps": "`benchmarks/bench_ekf.py --sweep`; "
     f"[Victoria Park]({_R}victoria-park.md#ekf-ekf)",
+    "EKFConfig.local_map_heading_sigma_rad": f"[CARMEN]({_R}carmen.md"
+    "#the-ekfs-own-part-its-linearisation-over-a-local-map)",
     "EKFConfig.min_obs_to_join": f"[EKF options]({_R}ekf-options.md#ekfconfigmin_obs_to_join), "
     f"[Victoria Park]({_R}victoria-park.md#ekf-ekf)",
     "EKFConfig.tentative_min_sightings": f"[EKF options]({_R}ekf-options.md"
