@@ -61,8 +61,16 @@ def test_summary_is_the_mean_and_median_of_the_runs(cf) -> None:  # type: ignore
             "ekf_rmse_m": 0.1 * e,
             "isam2_filtered_nees": i,
             "isam2_filtered_rmse_m": 0.01 * i,
+            "anchored_steps": 10 if a else 0,
+            "ekf_plan_frame_nees": k,
+            "ekf_plan_frame_rmse_m": 0.02 * k,
+            "ekf_global_same_steps_nees": 2.0 * k,
         }
-        for a, e, i in ((True, 3.0, 2.0), (False, 9.0, 4.0), (True, 30.0, 3.0))
+        for a, e, i, k in (
+            (True, 3.0, 2.0, 2.0),
+            (False, 9.0, 4.0, math.nan),
+            (True, 30.0, 3.0, 6.0),
+        )
     ]
     s = cf.summarise(rows)
     assert (s["runs"], s["anchored"]) == (3, 2)
@@ -71,3 +79,34 @@ def test_summary_is_the_mean_and_median_of_the_runs(cf) -> None:  # type: ignore
     assert s["ekf_rmse_median_m"] == pytest.approx(0.9)
     assert s["isam2_filtered_anees"] == pytest.approx(3.0)
     assert s["isam2_filtered_median"] == pytest.approx(3.0)
+    # The plan's frame: over the anchored runs only.
+    assert s["ekf_plan_frame_anees"] == pytest.approx(4.0)
+    assert s["ekf_plan_frame_median"] == pytest.approx(4.0)
+    assert s["ekf_plan_frame_rmse_median_m"] == pytest.approx(0.08)
+    assert s["ekf_global_same_steps_anees"] == pytest.approx(8.0)
+
+
+def test_plan_frame_nees_is_over_the_anchored_steps(cf) -> None:  # type: ignore[no-untyped-def]
+    from types import SimpleNamespace
+
+    from mapfuse_core.estimate import PoseTrack
+
+    reference = np.zeros((4, 3))
+    cov = np.tile(np.diag([0.01, 1.0, 1.0]), (4, 1, 1))
+    known = np.full((4, 3), np.nan)
+    known[2:] = [0.1, 0.0, 0.0]  # anchored from step 2 on, 0.1 m (1 σ) off
+    details = SimpleNamespace(poses_in_known=known, covs_in_known=cov)
+    filtered = PoseTrack(np.tile([0.2, 0.0, 0.0], (4, 1)), cov)  # 2 σ off in Wglobal
+    out = cf.in_plan_frame(filtered, details, reference, reference)
+    assert out["anchored_steps"] == 2
+    assert out["ekf_plan_frame_nees"] == pytest.approx(1.0)
+    assert out["ekf_plan_frame_rmse_m"] == pytest.approx(0.1)
+    assert out["ekf_global_same_steps_nees"] == pytest.approx(4.0)
+    none = cf.in_plan_frame(
+        filtered,
+        SimpleNamespace(poses_in_known=np.full((4, 3), np.nan), covs_in_known=cov),
+        reference,
+        reference,
+    )
+    assert none["anchored_steps"] == 0
+    assert math.isnan(none["ekf_plan_frame_nees"])
