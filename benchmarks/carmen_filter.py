@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.carmen_frontend import add_log_arguments, resolve_logs
-from benchmarks.cause_separation import _redrawn_line
+from benchmarks.cause_separation import _redrawn_line, with_observations
 from mapfuse.runner import run, truth_in_global
 from mapfuse_core.data.datasets import (
     CarmenOptions,
@@ -67,17 +67,7 @@ def scaled_noise(scale: float) -> IncrementNoise:
 
 def labelled_only(log: MeasurementLog) -> MeasurementLog:
     """``log`` with the observations that have a reference label only."""
-    keep = log.feat_true_id >= 0
-    return dataclasses.replace(
-        log,
-        feat_step=log.feat_step[keep],
-        feat_kind=log.feat_kind[keep],
-        feat_params=log.feat_params[keep],
-        feat_cov=log.feat_cov[keep],
-        feat_true_id=log.feat_true_id[keep],
-        feat_n_points=log.feat_n_points[keep],
-        feat_extent=log.feat_extent[keep],
-    )
+    return with_observations(log, log.feat_true_id >= 0)
 
 
 def redrawn_from_plan(log: MeasurementLog, walls: Any, seed: int) -> MeasurementLog:

@@ -162,7 +162,11 @@ def exact_known_map(log: MeasurementLog) -> MeasurementLog:
 
 def only(log: MeasurementLog, kind: FeatureKind) -> MeasurementLog:
     """``log`` with the observations of ``kind`` only."""
-    keep = log.feat_kind == int(kind)
+    return with_observations(log, log.feat_kind == int(kind))
+
+
+def with_observations(log: MeasurementLog, keep: np.ndarray) -> MeasurementLog:
+    """``log`` with the observations where the (M,) mask ``keep`` is true only."""
     return dataclasses.replace(
         log,
         feat_step=log.feat_step[keep],
