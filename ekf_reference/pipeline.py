@@ -133,12 +133,12 @@ class _Run:
         self.known, self.known_centre = centred_known_map(log.known_map)
         self.known_tracks: dict[int, int] = {}
         """Track of each known feature (index into :attr:`known`), from the match on."""
-        self.local, self.ctx = self._start_local_map([])
         self.local_start = 0
         """First step of the current local map."""
         self.local_odometry_var = 0.0
         """Sum of the heading variances of the odometry increments the current local
         map has predicted (rad²)."""
+        self._begin_local_map([], 0)
         self.joins = 0
         """Local maps joined so far (:attr:`EKFDetails.joins`)."""
         self.ccda_attempts = 0
@@ -307,6 +307,17 @@ class _Run:
             end_sd=e.extent_sd,
         )
 
+    def _begin_local_map(self, carry: list[int], first_step: int) -> None:
+        """Make :meth:`_start_local_map`'s map the current one, from ``first_step`` on."""
+        self.local, self.ctx = self._start_local_map(carry)
+        self.local_start = first_step
+        self.local_odometry_var = 0.0
+
+    def predict(self, k: int) -> None:
+        """Move the local map by step ``k``'s odometry increment."""
+        predict(self.local, self.log.odometry[k], self.log.odometry_cov[k])
+        self.local_odometry_var += float(self.log.odometry_cov[k][2, 2])
+
     def _start_local_map(self, carry: list[int]) -> tuple[GaussianMap, CIContext | None]:
         """The next local map: with the known map shared (and the ``carry`` features),
         or, matched with ``known_map_in_local_maps="copied"``, with its own copies."""
@@ -405,9 +416,7 @@ class _Run:
         self.global_map = joint
         if self.fusion and not joint.has(Role.ANCHOR):
             self.try_ccda(k)
-        self.local, self.ctx = self._start_local_map(self._carried(k))
-        self.local_start = k + 1
-        self.local_odometry_var = 0.0
+        self._begin_local_map(self._carried(k), k + 1)
         self.joins += 1
 
     def _carried(self, k: int) -> list[int]:
@@ -762,9 +771,7 @@ class _Run:
         for name, value in self.before_fusion.items():
             setattr(self, name, value)
         self.before_fusion, self.fused_anchor, self.watch = None, None, None
-        self.local, self.ctx = self._start_local_map(self._carried(fused_at))
-        self.local_start = fused_at + 1
-        self.local_odometry_var = 0.0
+        self._begin_local_map(self._carried(fused_at), fused_at + 1)
         return fused_at
 
     def local_map_full(self, k: int) -> bool:
@@ -808,8 +815,7 @@ def run_ekf(
     while k < n:
         t0 = time.perf_counter()
         if k > 0:
-            predict(run.local, log.odometry[k], log.odometry_cov[k])
-            run.local_odometry_var += float(log.odometry_cov[k][2, 2])
+            run.predict(k)
         run.observe(k)
         first = k > reported
         if first:
