@@ -110,15 +110,14 @@ def in_plan_frame(
             "ekf_plan_frame_rmse_m": nan,
             "ekf_global_same_steps_nees": nan,
         }
-    err = pose_errors(details.poses_in_known[ok], reference[: ok.size][ok])
-    nees = nees_series(err.dx, details.covs_in_known[ok])
-    g = pose_errors(filtered.poses[ok], truth[: ok.size][ok])
-    g_nees = nees_series(g.dx, filtered.covs[ok])
+    in_plan = PoseTrack(details.poses_in_known[ok], details.covs_in_known[ok])
+    nees, rmse = track_nees(in_plan, reference[: ok.size][ok])
+    in_global = PoseTrack(filtered.poses[ok], filtered.covs[ok])
     return {
         "anchored_steps": int(ok.sum()),
-        "ekf_plan_frame_nees": float(np.nanmean(nees)),
-        "ekf_plan_frame_rmse_m": float(np.sqrt(np.mean(np.square(err.position)))),
-        "ekf_global_same_steps_nees": float(np.nanmean(g_nees)),
+        "ekf_plan_frame_nees": nees,
+        "ekf_plan_frame_rmse_m": rmse,
+        "ekf_global_same_steps_nees": track_nees(in_global, truth[: ok.size][ok])[0],
     }
 
 
