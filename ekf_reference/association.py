@@ -474,13 +474,15 @@ def apply_iterated(
     pairings: Callable[[GaussianMap], list[Candidate]],
     max_iterations: int = 10,
     tol: float = 1e-9,
+    rtol: float = 0.0,
 ) -> IteratedUpdate:
     """Iterated EKF update (Gauss–Newton on prior and pairings).
 
     ``pairings(state)`` evaluates the same pairings at ``state.mean``.  Each iteration
     relinearises them at the last estimate ``x`` and updates the prior ``(x0, P0)`` with
     the residual ``r(x) + H (x0 − x)``; it stops when no mean moves by more than
-    ``tol`` (metres or radians); if it has not after ``max_iterations``, the last
+    ``tol`` (metres or radians) plus ``rtol`` times its prior σ; if it has not after
+    ``max_iterations``, the last
     iterate is kept and ``converged`` is false.  For a prior much looser than its
     pairings (the anchor when CCDA accepts) one linearisation at the prior's mean is
     not the maximum of the posterior, and the posterior then depends on the form of
@@ -490,9 +492,11 @@ def apply_iterated(
     chosen = pairings(state)
     if not chosen:
         return IteratedUpdate(0, True, 0.0, 0)
-    x0, P0 = state.mean.copy(), state.cov.copy()
+    x0 = state.mean.copy()
     angles = state.kinds_roles()[0] != int(ElementKind.CIRCLE)
-    nis = 0.0
+    limit = tol + rtol * np.sqrt(np.maximum(np.diagonal(state.cov), 0.0)).reshape(-1, 3)
+    # The iterations move the mean only (the covariance stays the prior's); the
+    # covariance is updated once, at the last linearisation.
     for it in range(1, max_iterations + 1):
         x = state.mean.copy()
         if it > 1:
@@ -501,10 +505,14 @@ def apply_iterated(
         dx = x0 - x
         dx[angles, 2] = wrap_angle(dx[angles, 2])
         elems = sorted({i for c in chosen for i in c.indices})
-        state.mean, state.cov = x0.copy(), P0.copy()
-        nis = state.update(elems, r + H @ dx.reshape(-1)[idx], H, R)
-        step = state.mean - x
+        nu = r + H @ dx.reshape(-1)[idx]
+        state.mean = x0.copy()
+        new, nis = state.updated_mean(elems, nu, H, R)
+        step = new - x
         step[angles, 2] = wrap_angle(step[angles, 2])
-        if float(np.abs(step).max()) <= tol:
-            return IteratedUpdate(it, True, nis, int(r.size))
-    return IteratedUpdate(max_iterations, False, nis, int(r.size))
+        converged = bool(np.all(np.abs(step) <= limit))
+        if converged or it == max_iterations:
+            state.update(elems, nu, H, R)
+            return IteratedUpdate(it, converged, nis, int(r.size))
+        state.mean = new
+    raise AssertionError("unreachable: the last iteration returns")

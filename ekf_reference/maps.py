@@ -46,11 +46,14 @@ from mapfuse_core.measlog import KnownMapArrays
 
 __all__ = [
     "CIContext",
+    "Motion",
     "bind_line_cov",
     "copied_local_map",
+    "motion",
     "new_global_map",
     "new_local_map",
     "predict",
+    "rotate_moving",
     "tie_anchor_copy",
     "vehicle_in_global",
 ]
@@ -204,11 +207,27 @@ def _seen_from_base(loc: GaussianMap, lb: int, i: int) -> tuple[FloatArray, Floa
     return express_in(e.kind.feature_kind(), loc.mean[lb], loc.mean[i])
 
 
-def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
-    """Move every element expressed in ``R`` by the odometry increment ``u`` (cov ``Q``)."""
+@dataclass(frozen=True)
+class Motion:
+    """Where an odometry increment ``u`` takes the elements expressed in ``R``:
+    ``⊖u ⊕ x`` for each moving element, first order in ``u``."""
+
+    mean: FloatArray
+    """(n, 3) the elements' means after the motion (static ones unchanged)."""
+    rotation: FloatArray
+    """(3, 3) ``∂(⊖u ⊕ x)/∂x``, the same for every kind (a static element's is I)."""
+    increment_jacobian: FloatArray
+    """(3n, 3) ``∂(⊖u ⊕ x)/∂u`` stacked over the elements (zero for a static one),
+    with the along-line component of a line's reference point projected out: the
+    rotation keeps a bound line bound (its direction turns with it); only the
+    increment's noise would add along-line variance (SPmap binding, see state.py)."""
+    moving: np.ndarray
+    """(n,) bool: the elements that move."""
+
+
+def motion(loc: GaussianMap, u: FloatArray) -> Motion:
+    """The :class:`Motion` of ``loc``'s moving elements by the increment ``u``."""
     moving = np.array([e.moving for e in loc.elements], dtype=bool)
-    if not moving.any():
-        return
     c, s = math.cos(u[2]), math.sin(u[2])
     m = loc.mean
     dx, dy = m[:, 0] - u[0], m[:, 1] - u[1]
@@ -226,10 +245,6 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
     new[moving, 1] = ly[moving]
     rot = moving & ~is_circle
     new[rot, 2] = wrap_angle(m[rot, 2] - u[2])
-    _rotate_moving(loc, np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]), moving)
-    # The rotation keeps a bound line bound (its direction turns with it); only the
-    # odometry noise would add along-line variance, so project it out of G instead of
-    # re-binding the whole covariance (SPmap binding, see state.py).
     lines = moving & (kinds == int(ElementKind.LINE))
     if lines.any():
         ux, uy = np.cos(new[lines, 2]), np.sin(new[lines, 2])
@@ -237,12 +252,23 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
         Ju[lines, 0, :] -= ux[:, None] * along
         Ju[lines, 1, :] -= uy[:, None] * along
     G = np.where(moving[:, None, None], Ju, 0.0).reshape(3 * n, 3)
+    R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Motion(new, R, G, moving)
+
+
+def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
+    """Move every element expressed in ``R`` by the odometry increment ``u`` (cov ``Q``)."""
+    if not any(e.moving for e in loc.elements):
+        return
+    mo = motion(loc, u)
+    rotate_moving(loc, mo.rotation, mo.moving)
+    G = mo.increment_jacobian
     loc.cov = loc.cov + G @ Q @ G.T
-    loc.mean = new
+    loc.mean = mo.mean
     loc.symmetrise()
 
 
-def _rotate_moving(loc: GaussianMap, Jx: FloatArray, moving: np.ndarray) -> None:
+def rotate_moving(loc: GaussianMap, Jx: FloatArray, moving: np.ndarray) -> None:
     """``P ← F P Fᵀ`` with ``F = blockdiag(Jx on moving elements, I on static)``.
 
     One GEMM per side instead of a per-block einsum: the prediction's hot spot.

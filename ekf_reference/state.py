@@ -233,6 +233,22 @@ class GaussianMap:
         blocks[:, 2, 2] = 1.0
         self.apply_linear(blocks, lines)
 
+    def _innovation(
+        self, indices: list[int], H: FloatArray, R: FloatArray, jitter: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``P Hᵀ`` (3n × m), ``S = H P Hᵀ + R`` and its Cholesky factor."""
+        idx = self.dofs(indices)
+        PHt = self.cov[:, idx] @ H.T
+        S = H @ PHt[idx] + R
+        S = 0.5 * (S + S.T) + jitter * np.eye(S.shape[0])
+        try:
+            L = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError as exc:
+            raise np.linalg.LinAlgError(
+                f"innovation covariance not positive definite for elements {indices}"
+            ) from exc
+        return PHt, S, L
+
     def update(
         self,
         indices: list[int],
@@ -247,16 +263,7 @@ class GaussianMap:
         ``r`` due to measurement noise (m × m; zero for a hard constraint).  Returns the
         Mahalanobis distance ``rᵀ S⁻¹ r`` of the residual before the update.
         """
-        idx = self.dofs(indices)
-        PHt = self.cov[:, idx] @ H.T
-        S = H @ PHt[idx] + R
-        S = 0.5 * (S + S.T) + jitter * np.eye(S.shape[0])
-        try:
-            L = np.linalg.cholesky(S)
-        except np.linalg.LinAlgError as exc:
-            raise np.linalg.LinAlgError(
-                f"innovation covariance not positive definite for elements {indices}"
-            ) from exc
+        PHt, S, L = self._innovation(indices, H, R, jitter)
         # K = P Hᵀ S⁻¹ via the Cholesky factor (better conditioned than inv(S)).
         Linv_PHt = np.linalg.solve(L, PHt.T)
         K = np.linalg.solve(L.T, Linv_PHt).T
@@ -266,3 +273,20 @@ class GaussianMap:
         self.symmetrise()
         self.wrap()
         return d2
+
+    def updated_mean(
+        self,
+        indices: list[int],
+        residual: FloatArray,
+        H: FloatArray,
+        R: FloatArray,
+        jitter: float = 1e-12,
+    ) -> tuple[FloatArray, float]:
+        """The mean :meth:`update` would leave (angles wrapped) and ``rᵀ S⁻¹ r``, the
+        covariance untouched: ``O(n·m)`` instead of the update's ``O(n²·m)``."""
+        PHt, _, L = self._innovation(indices, H, R, jitter)
+        w = np.linalg.solve(L.T, np.linalg.solve(L, residual))
+        mean = self.mean - (PHt @ w).reshape(-1, 3)
+        ang = self.kinds_roles()[0] != int(ElementKind.CIRCLE)
+        mean[ang, 2] = wrap_angle(mean[ang, 2])
+        return mean, float(residual @ w)
