@@ -90,6 +90,7 @@ ABLATIONS: dict[str, tuple[str, ...]] = {
     "anchor_entry": ("anchor_entry",),
     "known_map_in_local_maps": ("known_map_in_local_maps",),
     "line_tie_residual_at": ("line_tie_residual_at",),
+    "odometry_linearisation": ("odometry_linearisation",),
 }
 """The extensions, grouped where one needs another (the pairing test runs with the
 joint test, the re-runs after a failed pairing test), for ``--ablation``."""

@@ -33,6 +33,7 @@ from ekf_reference.association import (
 )
 from ekf_reference.config import EKFConfig
 from ekf_reference.final_map import final_map
+from ekf_reference.increment import Increment, update_through_increment
 from ekf_reference.known_frame import centred_known_map, uncentred
 from ekf_reference.known_gating import KnownGate, Targets
 from ekf_reference.loops import LoopClosureParams, accepted, register_circles
@@ -138,6 +139,10 @@ class _Run:
         self.local_odometry_var = 0.0
         """Sum of the heading variances of the odometry increments the current local
         map has predicted (rad²)."""
+        self.increment: Increment | None = None
+        """The step's increment and the map before it, for an iterated update."""
+        self.increment_unconverged = 0
+        """Iterated updates through an increment that did not converge."""
         self._begin_local_map([], 0)
         self.joins = 0
         """Local maps joined so far (:attr:`EKFDetails.joins`)."""
@@ -210,7 +215,7 @@ class _Run:
             if e.role == Role.FEATURE and q.kind == ElementKind.LINE:
                 extend_line(e, loc.mean[c.target], q.params, q.extent, q.end_sd)
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
-        self._apply_measurements(loc, [c for c in chosen if c is not None])
+        self._update_step(loc, [(q, c) for q, c in zip(queries, chosen, strict=True) if c])
         born: list[int] = []
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is not None:
@@ -269,6 +274,21 @@ class _Run:
         if self.watch is not None:
             self.watch.record(step, state, chosen)
 
+    def _update_step(self, loc: GaussianMap, pairs: list[tuple[Query, Candidate]]) -> None:
+        """Update the local map with the step's measurement pairings: linearised at the
+        predicted map, or through the step's increment
+        (:func:`~ekf_reference.increment.update_through_increment`)."""
+        inc, self.increment = self.increment, None
+        if inc is None or not pairs:
+            self._apply_measurements(loc, [c for _, c in pairs])
+            return
+        upd = update_through_increment(
+            loc, inc, lambda state: [evaluate(state, q, c.target) for q, c in pairs]
+        )
+        self.increment_unconverged += not upd.converged
+        self.innovation_chi2 += upd.nis
+        self.innovation_dof += upd.dims
+
     def _apply_measurements(self, loc: GaussianMap, chosen: list[Candidate]) -> None:
         """Update with measurement pairings and add their innovations to the run's."""
         self.innovation_chi2 += apply(loc, chosen)
@@ -312,10 +332,15 @@ class _Run:
         self.local, self.ctx = self._start_local_map(carry)
         self.local_start = first_step
         self.local_odometry_var = 0.0
+        self.increment = None
 
     def predict(self, k: int) -> None:
-        """Move the local map by step ``k``'s odometry increment."""
-        predict(self.local, self.log.odometry[k], self.log.odometry_cov[k])
+        """Move the local map by step ``k``'s odometry increment (kept for the update
+        with ``odometry_linearisation="iterated"``)."""
+        u, Q = self.log.odometry[k], self.log.odometry_cov[k]
+        if self.config.odometry_linearisation == "iterated":
+            self.increment = Increment(self.local.copy(), np.asarray(u, dtype=float), Q)
+        predict(self.local, u, Q)
         self.local_odometry_var += float(self.log.odometry_cov[k][2, 2])
 
     def _start_local_map(self, carry: list[int]) -> tuple[GaussianMap, CIContext | None]:
@@ -888,6 +913,7 @@ def _result(
             anchors_undone=tuple(run.undone),
             innovations=InnovationTotals(run.innovation_chi2, run.innovation_dof),
             joins=run.joins,
+            increment_unconverged=run.increment_unconverged,
             obs_local_track=run.obs_track.copy(),
         ),
     )

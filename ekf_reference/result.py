@@ -112,6 +112,9 @@ class EKFDetails:
     """Local maps joined into the global map over the run, the last one included (a
     join made again after an anchor is undone counts again): how
     ``config.local_map_steps`` and ``config.local_map_heading_sigma_rad`` cut the run."""
+    increment_unconverged: int = 0
+    """Steps whose update through the odometry increment
+    (``config.odometry_linearisation = "iterated"``) kept its last iterate unconverged."""
     obs_local_track: np.ndarray | None = None
     """(M,) int64 the feature each observation was given in its local map (a track id,
     −1 for none), before the joins merged it with global ones; the result's

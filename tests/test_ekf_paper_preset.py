@@ -147,15 +147,23 @@ def test_paper_preset_runs_and_fuses_on_loop600() -> None:
     assert np.array_equal(known[fused], log.feat_true_id[fused])
 
 
-def test_without_fusion_the_preset_is_the_default_filter_but_for_the_join_ties() -> None:
-    """Every extension but ``line_tie_residual_at`` acts on the fusion only: without
-    it the two filters are one when they measure the join's line ties alike (eq. 5),
-    and differ when they do not."""
+def test_without_fusion_the_preset_is_the_default_filter_but_for_ties_and_linearisation() -> None:
+    """Every extension but ``line_tie_residual_at`` and ``odometry_linearisation`` acts
+    on the fusion only: without it the two filters are one when they measure the join's
+    line ties alike (eq. 5) and linearise the odometry alike, and differ when they do
+    not."""
     log = _loop600_start()
     paper = run_ekf(log, EKFConfig.paper(), fusion=False)
     assert not np.array_equal(paper.poses, run_ekf(log, EKFConfig(), fusion=False).poses)
+    for changed in ({"line_tie_residual_at": "observed"}, {"odometry_linearisation": "iterated"}):
+        one = run_ekf(log, dataclasses.replace(EKFConfig.paper(), **changed), fusion=False)
+        assert not np.array_equal(one.poses, run_ekf(log, EKFConfig(), fusion=False).poses)
     paper = run_ekf(
-        log, dataclasses.replace(EKFConfig.paper(), line_tie_residual_at="observed"), fusion=False
+        log,
+        dataclasses.replace(
+            EKFConfig.paper(), line_tie_residual_at="observed", odometry_linearisation="iterated"
+        ),
+        fusion=False,
     )
     default = run_ekf(log, EKFConfig(), fusion=False)
     np.testing.assert_array_equal(paper.poses, default.poses)
