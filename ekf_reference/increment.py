@@ -91,14 +91,16 @@ def update_through_increment(
     predicted: GaussianMap,
     inc: Increment,
     pairings: Callable[[GaussianMap], list[Candidate]],
+    first: list[Candidate] | None = None,
 ) -> IteratedUpdate:
     """Update ``predicted`` (``inc.before`` moved by ``inc.u``) with ``pairings``
     relinearised through the increment, and leave it moved by the updated increment.
 
     ``pairings(state)`` evaluates the step's pairings on a map of ``predicted``'s
     elements at ``state.mean`` (its covariance is the prediction's: it serves their
-    Mahalanobis distance only).  ``predicted`` must hold the same elements as
-    ``inc.before``.
+    Mahalanobis distance only); ``first``, when given, is what it returns on
+    ``predicted`` as it comes (the association's candidates), the first
+    linearisation.  ``predicted`` must hold the same elements as ``inc.before``.
     """
     n = len(predicted)
     if len(inc.before) != n:
@@ -106,7 +108,10 @@ def update_through_increment(
             f"the predicted map has {n} elements and the map before the prediction "
             f"{len(inc.before)}: elements were added in between"
         )
-    joint = inc.before.copy()
+    # ``add`` makes new arrays: the joint state shares nothing it changes with ``inc``.
+    joint = GaussianMap()
+    joint.elements = list(inc.before.elements)
+    joint.mean, joint.cov = inc.before.mean, inc.before.cov
     ui = joint.add(Element(ElementKind.POSE, Role.BASE, moving=False, track=-1), inc.u, inc.Q)
 
     def moved(state: GaussianMap, elems: list[int]) -> Motion:
@@ -116,13 +121,20 @@ def update_through_increment(
         return motion(view, state.mean[ui])
 
     # The pairings read the elements they tie only: move those at each iteration.
-    involved = sorted({i for c in pairings(predicted) for i in c.indices})
+    pending: list[Candidate] | None = first if first is not None else pairings(predicted)
+    involved = sorted({i for c in pending or [] for i in c.indices})
     at = {e: r for r, e in enumerate(involved)}
 
     def chained(state: GaussianMap) -> list[Candidate]:
+        nonlocal pending
         mo = moved(state, involved)
-        predicted.mean[involved] = mo.mean
-        return [_chained(c, mo, at, ui) for c in pairings(predicted)]
+        if pending is None:
+            predicted.mean[involved] = mo.mean
+            out = pairings(predicted)
+        else:
+            # The first linearisation is at the prediction: the pairings as they came.
+            out, pending = pending, None
+        return [_chained(c, mo, at, ui) for c in out]
 
     upd = apply_iterated(joint, chained, MAX_ITERATIONS, 0.0, RELATIVE_TOLERANCE)
     _compose(predicted, joint, moved(joint, list(range(n))))

@@ -283,7 +283,10 @@ class _Run:
             self._apply_measurements(loc, [c for _, c in pairs])
             return
         upd = update_through_increment(
-            loc, inc, lambda state: [evaluate(state, q, c.target) for q, c in pairs]
+            loc,
+            inc,
+            lambda state: [evaluate(state, q, c.target) for q, c in pairs],
+            [c for _, c in pairs],
         )
         self.increment_unconverged += not upd.converged
         self.innovation_chi2 += upd.nis

@@ -164,6 +164,16 @@ def test_the_update_is_the_steps_maximum_a_posteriori(monkeypatch: pytest.Monkey
     view.elements, view.mean = before.elements, x_map[: 3 * n].reshape(-1, 3)
     mo = motion(view, x_map[3 * n :])
     np.testing.assert_allclose(iterated.mean, mo.mean, atol=1e-7)
+    # Handed the pairings at the prediction (the association's), it starts from them.
+    again = pred.copy()
+    update_through_increment(
+        again,
+        Increment(before.copy(), U, Q),
+        lambda s: [evaluate(s, q, t) for q, t in pairs],
+        [evaluate(pred, q, t) for q, t in pairs],
+    )
+    np.testing.assert_array_equal(again.mean, iterated.mean)
+    np.testing.assert_array_equal(again.cov, iterated.cov)
     assert np.abs(measured.mean - mo.mean)[:, :2].max() > 1e-3
     F = np.zeros((3 * n, 3 * n + 3))
     for i in range(n):

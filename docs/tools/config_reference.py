@@ -173,6 +173,9 @@ EVIDENCE: dict[str, str] = {
     f"[Victoria Park]({_R}victoria-park.md#ekf-ekf)",
     "EKFConfig.local_map_heading_sigma_rad": f"[CARMEN]({_R}carmen.md"
     "#the-ekfs-own-part-its-linearisation-over-a-local-map)",
+    "EKFConfig.odometry_linearisation": f"[CARMEN]({_R}carmen.md"
+    "#the-cause-the-update-linearised-at-the-measured-increment), "
+    f"[EKF options]({_R}ekf-options.md#ekfconfigodometry_linearisation)",
     "EKFConfig.min_obs_to_join": f"[EKF options]({_R}ekf-options.md#ekfconfigmin_obs_to_join), "
     f"[Victoria Park]({_R}victoria-park.md#ekf-ekf)",
     "EKFConfig.tentative_min_sightings": f"[EKF options]({_R}ekf-options.md"
