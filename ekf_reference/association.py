@@ -355,8 +355,10 @@ def choose(
     config: AssociationConfig,
 ) -> list[Candidate | None]:
     """The pairing of every query (``None``: unpaired), measurements and map elements
-    alike: individually compatible candidates, map queries that are ambiguous left
-    out (:attr:`~mapfuse_core.matching.AssociationConfig.map_ambiguity`), then nearest
+    alike: individually compatible candidates, ambiguous queries left out where their
+    rule refuses (:attr:`~mapfuse_core.matching.AssociationConfig.ambiguity` for
+    measurements, :attr:`~mapfuse_core.matching.AssociationConfig.map_ambiguity` for map
+    elements), then nearest
     neighbour or JCBB (``config.method`` for measurements, ``config.map_method`` for
     map elements; a list mixing both takes ``method``).  ``targets_for[kind]`` gives
     the targets of each kind and their predictions (:func:`predict_all_targets`)."""
@@ -365,12 +367,15 @@ def choose(
         targets, preds = targets_for[q.kind]
         cands.append(individual_candidates(state, q, targets, preds, config))
     maps = [k for k, q in enumerate(queries) if q.element >= 0]
-    if config.map_ambiguity == "refuse":
+    measurements = [k for k, q in enumerate(queries) if q.element < 0]
+    for group, rule in ((maps, config.map_ambiguity), (measurements, config.ambiguity)):
+        if rule != "refuse" or not group:
+            continue
         kept = drop_ambiguous(
-            [cands[k] for k in maps],
+            [cands[k] for k in group],
             lambda a, b: targets_distinct(state, a, b, config.gate_prob),
         )
-        for k, cs in zip(maps, kept, strict=True):
+        for k, cs in zip(group, kept, strict=True):
             cands[k] = cs
     method = config.map_method if queries and len(maps) == len(queries) else config.method
     if method == "jcbb":

@@ -290,7 +290,7 @@ class EKFConfig:
         * ``local_map_steps`` *(choice)*: 40; the paper bounds a local map by "a maximal
           number of filter iterations" without giving it (§1).
         * ``data_association.gate_prob``, ``prefilter_m``, ``prefilter_rad``, ``method``,
-          ``map_method``, ``map_ambiguity``, ``jcbb_max_nodes``,
+          ``map_method``, ``map_ambiguity``, ``ambiguity``, ``jcbb_max_nodes``,
           ``one_observation_per_circle``, ``one_observation_per_line`` *(choice)*: the
           association within the filter and at a join is not described (the paper
           defers to its reference [5]): individual χ² at 0.999, nearest neighbour for
@@ -407,6 +407,7 @@ PAPER_FIELDS: Mapping[str, PaperField] = MappingProxyType(
         _DA + "map_ambiguity": _c(
             "the nearest: the join's association is not described (ref. [5])."
         ),
+        _DA + "ambiguity": _c("the nearest: the association is not described (ref. [5])."),
         _DA + "one_observation_per_circle": _c("a scan sees a trunk once; not described."),
         _DA + "one_observation_per_line": _c("an occluded wall gives several segments."),
         _DA + "min_obs_for_matching": _x(

@@ -222,3 +222,48 @@ def test_a_join_pairs_the_local_features_as_a_jointly_compatible_set() -> None:
 def test_an_unknown_map_method_is_refused() -> None:
     with pytest.raises(ValueError, match="map_method"):
         dataclasses.replace(REFUSE, map_method="guess")  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------- measurements
+
+
+def _measure(walls: list[float], z: float, config: AssociationConfig) -> int | None:
+    """A measured segment at ``y = z`` (lateral σ 2 cm) against walls along x at the
+    given ``y``, in the vehicle frame: each known to 5 cm relative to the others and all
+    together 0.4 m across (a drifted pose); returns the wall it is paired with, ``None``
+    for none."""
+    m = GaussianMap()
+    for k, y in enumerate(walls):
+        m.add(
+            Element(ElementKind.LINE, Role.FEATURE, moving=True, track=k, extent=(-3.0, 3.0)),
+            _line(y),
+            np.zeros((3, 3)),
+        )
+    n = len(walls)
+    lateral = 3 * np.arange(n) + 1
+    m.cov[np.ix_(lateral, lateral)] = 0.4**2
+    m.cov[lateral, lateral] += 0.05**2
+    m.cov[3 * np.arange(n) + 2, 3 * np.arange(n) + 2] = 0.01**2
+    q = Query(ElementKind.LINE, _line(z), _cov(0.02, 0.005, _line(z)), (-0.3, 0.3))
+    (c,) = choose(m, [q], predict_all_targets(m, lambda el: True), config)
+    return None if c is None else c.target
+
+
+def test_a_measurement_between_two_walls_is_refused_or_takes_the_nearest() -> None:
+    """Walls at y = 0 and y = 1.2 m: a segment at y = 0.5 m fits both, which are not
+    one wall.  ``ambiguity="refuse"`` leaves it unpaired (a feature of its own);
+    ``"nearest"`` takes the wall at 0.5 m."""
+    assert _measure([0.0, 1.2], 0.5, AssociationConfig(ambiguity="refuse")) is None
+    assert _measure([0.0, 1.2], 0.5, AssociationConfig(ambiguity="nearest")) == 0
+    # The map rule does not reach measurements.
+    assert _measure([0.0, 1.2], 0.5, REFUSE) == 0
+
+
+def test_a_measurement_that_fits_one_wall_is_paired_under_refuse() -> None:
+    """The second wall out of the gate (at 5 m): nothing to refuse."""
+    assert _measure([0.0, 5.0], 0.3, AssociationConfig(ambiguity="refuse")) == 0
+
+
+def test_unknown_measurement_ambiguity_rule_is_refused() -> None:
+    with pytest.raises(ValueError, match="ambiguity must be one of"):
+        AssociationConfig(ambiguity="guess")  # type: ignore[arg-type]

@@ -24,7 +24,8 @@ METHODS: tuple[str, ...] = ("nn", "jcbb")
 """Names of the association searches: nearest neighbour, joint compatibility."""
 
 MAP_AMBIGUITY: tuple[str, ...] = ("refuse", "nearest")
-"""What an ambiguous map-to-map pairing does (:attr:`AssociationConfig.map_ambiguity`)."""
+"""What an ambiguous pairing does (:attr:`AssociationConfig.ambiguity` for measurements,
+:attr:`AssociationConfig.map_ambiguity` for map features)."""
 
 
 def _default_ccda() -> CCDAParams:
@@ -91,12 +92,22 @@ class AssociationConfig:
     duplicate at worst, and is paired at a later join once the maps have drifted
     less); which of the two it is would be a guess, and a wrong merge joins two
     walls for the rest of the run.  ``"nearest"``: the nearest of them.  Measurements
-    follow :attr:`method` alone.  *(choice)* ``"nearest"``: on loop600 a refused
+    follow :attr:`ambiguity`.  *(choice)* ``"nearest"``: on loop600 a refused
     feature becomes a duplicate landmark, and with ``map_method`` ``"jcbb"`` the
     duplicates double the line landmarks.  On the CARMEN logs, with ``"jcbb"``, refusing
     halves the joins' wrong pairings on three logs of six and leaves every judged pairing
     of CCDA's accepted matches right, and the CARMEN profile refuses
     (``docs/results/association.md``).  Used by the EKF."""
+    ambiguity: Literal["refuse", "nearest"] = "nearest"
+    """What a measurement does when it is individually compatible with two targets that
+    are not compatible with each other (two walls a door or a corridor apart, a wall of
+    the known map and an estimated one beside it), as :attr:`map_ambiguity` is for map
+    features.  ``"refuse"``: it is not paired and starts a feature of its own (a
+    duplicate at worst, which a join may pair later); ``"nearest"``: the nearest of them.
+    *(choice)* ``"nearest"``: the paper's filter pairs every measurement it can; on the
+    CARMEN logs a short segment far off, once the pose has drifted a few decimetres, fits
+    a parallel wall of the plan as well as its own, and the CARMEN profile refuses
+    (``docs/results/carmen.md``).  Used by the EKF."""
     jcbb_max_nodes: int = 20_000
     """JCBB stops after visiting this many search nodes and returns the best set found
     so far (its cost is exponential in the worst case)."""
@@ -150,11 +161,11 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, numbers.Real) and v > 0.0):
                 raise ValueError(f"{name} must be a number > 0 (inf: no limit), got {v!r}")
-        if self.map_ambiguity not in MAP_AMBIGUITY:
-            raise ValueError(
-                f"map_ambiguity must be one of {', '.join(MAP_AMBIGUITY)}, "
-                f"got {self.map_ambiguity!r}"
-            )
+        for name in ("ambiguity", "map_ambiguity"):
+            if getattr(self, name) not in MAP_AMBIGUITY:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(MAP_AMBIGUITY)}, got {getattr(self, name)!r}"
+                )
         for name in ("method", "map_method"):
             if getattr(self, name) not in METHODS:
                 raise ValueError(
