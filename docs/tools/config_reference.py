@@ -209,6 +209,7 @@ EVIDENCE: dict[str, str] = {
     "#joins-joint-compatibility-and-ambiguous-features)",
     "AssociationConfig.map_ambiguity": f"[association]({_R}association.md"
     "#joins-joint-compatibility-and-ambiguous-features)",
+    "AssociationConfig.ambiguity": f"[CARMEN]({_R}carmen.md#ambiguous-measurements)",
     "AssociationConfig.one_observation_per_line": f"[association]({_R}association.md"
     "#one-segment-per-scan-or-every-segment)",
     "AssociationConfig.ccda": f"[association]({_R}association.md#eight-ccda-pairings), "
