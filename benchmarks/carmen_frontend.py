@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
+from mapfuse.campaign.stats import anees_bounds
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import (
     CarmenOptions,
@@ -328,8 +329,7 @@ def _anees(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
     runs = [r[key] for r in rows if key in r]
     means = [x["nees_mean"] for x in runs]
     n_eff = sum(x["nees_effective_samples"] or 0.0 for x in runs)
-    lo = float(chi2.ppf(0.025, 3 * n_eff) / n_eff) if n_eff else math.nan
-    hi = float(chi2.ppf(0.975, 3 * n_eff) / n_eff) if n_eff else math.nan
+    lo, hi = (float(b) for b in anees_bounds(n_eff))
     return {
         "anees": statistics.fmean(means),
         "interval": [lo, hi],

@@ -30,14 +30,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import statistics
 import time
 from typing import Any
 
-from scipy.stats import chi2
-
 from ekf_reference import EKFConfig, run_ekf
+from mapfuse.campaign.stats import anees_bounds
 from mapfuse.metrics import run_metrics
 from mapfuse_core.sim.scenario import Scenario, load_scenario
 from mapfuse_core.sim.simulate import simulate
@@ -93,8 +91,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """ANEES with its 95 % region, medians and counts over the runs of one group."""
     means = [r["nees_mean"] for r in rows]
     n_eff = sum(r["effective_samples"] or 0.0 for r in rows)
-    lo = float(chi2.ppf(0.025, 3 * n_eff) / n_eff) if n_eff else math.nan
-    hi = float(chi2.ppf(0.975, 3 * n_eff) / n_eff) if n_eff else math.nan
+    lo, hi = (float(b) for b in anees_bounds(n_eff))
     return {
         "regime": rows[0]["regime"],
         "linearisation": rows[0]["linearisation"],

@@ -33,9 +33,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from scipy.stats import chi2
-
 from benchmarks.carmen_frontend import add_log_arguments, backend_and_kernel, resolve_logs
+from mapfuse.campaign.stats import anees_bounds
 from mapfuse.runner import run
 from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, label_with_plan, load_carmen
 from mapfuse_core.data.datasets.line_noise import estimate_line_model_error
@@ -115,8 +114,7 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for terms, est in keys:
         runs = [r for r in rows if r["terms"] == terms and r["estimator"] == est]
         n_eff = sum(r["nees_effective_samples"] or 0.0 for r in runs)
-        lo = float(chi2.ppf(0.025, 3 * n_eff) / n_eff) if n_eff else math.nan
-        hi = float(chi2.ppf(0.975, 3 * n_eff) / n_eff) if n_eff else math.nan
+        lo, hi = (float(b) for b in anees_bounds(n_eff))
         out.append(
             {
                 "log": runs[0]["log"],
