@@ -368,13 +368,19 @@ def choose(
         cands.append(individual_candidates(state, q, targets, preds, config))
     maps = [k for k, q in enumerate(queries) if q.element >= 0]
     measurements = [k for k, q in enumerate(queries) if q.element < 0]
+
+    def distinct(a: int, b: int) -> bool:
+        return targets_distinct(state, a, b, config.gate_prob)
+
+    def distinct_known(a: int, b: int) -> bool:
+        known = state.elements[a].role == Role.KNOWN and state.elements[b].role == Role.KNOWN
+        return known and distinct(a, b)
+
+    rules = {"refuse": distinct, "refuse_known": distinct_known}
     for group, rule in ((maps, config.map_ambiguity), (measurements, config.ambiguity)):
-        if rule != "refuse" or not group:
+        if rule not in rules or not group:
             continue
-        kept = drop_ambiguous(
-            [cands[k] for k in group],
-            lambda a, b: targets_distinct(state, a, b, config.gate_prob),
-        )
+        kept = drop_ambiguous([cands[k] for k in group], rules[rule])
         for k, cs in zip(group, kept, strict=True):
             cands[k] = cs
     method = config.map_method if queries and len(maps) == len(queries) else config.method

@@ -267,3 +267,32 @@ def test_a_measurement_that_fits_one_wall_is_paired_under_refuse() -> None:
 def test_unknown_measurement_ambiguity_rule_is_refused() -> None:
     with pytest.raises(ValueError, match="ambiguity must be one of"):
         AssociationConfig(ambiguity="guess")  # type: ignore[arg-type]
+
+
+def _measure_known(walls: list[float], z: float, config: AssociationConfig) -> int | None:
+    """As :func:`_measure`, the walls known-map features seen through an anchor at the
+    vehicle frame that is uncertain by 0.4 m across them."""
+    m = GaussianMap()
+    m.add(
+        Element(ElementKind.POSE, Role.ANCHOR, moving=True, track=-1),
+        np.zeros(3),
+        np.diag([1e-4, 0.4**2, 1e-6]),
+    )
+    for k, y in enumerate(walls):
+        m.add(
+            Element(ElementKind.LINE, Role.KNOWN, moving=False, track=k, extent=(-3.0, 3.0)),
+            _line(y),
+            _cov(0.05, 0.01, _line(y)),
+        )
+    q = Query(ElementKind.LINE, _line(z), _cov(0.02, 0.005, _line(z)), (-0.3, 0.3))
+    (c,) = choose(m, [q], predict_all_targets(m, lambda el: False), config)
+    return None if c is None else c.target
+
+
+def test_refuse_known_refuses_between_known_walls_only() -> None:
+    """``ambiguity="refuse_known"``: a segment between two plan walls is refused, one
+    between two estimated walls takes the nearest."""
+    rk = AssociationConfig(ambiguity="refuse_known")
+    assert _measure_known([0.0, 1.2], 0.5, rk) is None
+    assert _measure_known([0.0, 1.2], 0.5, AssociationConfig()) == 1
+    assert _measure([0.0, 1.2], 0.5, rk) == 0

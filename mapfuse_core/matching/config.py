@@ -18,14 +18,15 @@ from typing import Literal
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.matching.ccda import CCDAParams
 
-__all__ = ["MAP_AMBIGUITY", "METHODS", "AssociationConfig"]
+__all__ = ["AMBIGUITY", "MAP_AMBIGUITY", "METHODS", "AssociationConfig"]
 
 METHODS: tuple[str, ...] = ("nn", "jcbb")
 """Names of the association searches: nearest neighbour, joint compatibility."""
 
 MAP_AMBIGUITY: tuple[str, ...] = ("refuse", "nearest")
-"""What an ambiguous pairing does (:attr:`AssociationConfig.ambiguity` for measurements,
-:attr:`AssociationConfig.map_ambiguity` for map features)."""
+"""What an ambiguous map-to-map pairing does (:attr:`AssociationConfig.map_ambiguity`)."""
+AMBIGUITY: tuple[str, ...] = ("refuse", "refuse_known", "nearest")
+"""What an ambiguous measurement does (:attr:`AssociationConfig.ambiguity`)."""
 
 
 def _default_ccda() -> CCDAParams:
@@ -98,17 +99,19 @@ class AssociationConfig:
     halves the joins' wrong pairings on three logs of six and leaves every judged pairing
     of CCDA's accepted matches right, and the CARMEN profile refuses
     (``docs/results/association.md``).  Used by the EKF."""
-    ambiguity: Literal["refuse", "nearest"] = "nearest"
+    ambiguity: Literal["refuse", "refuse_known", "nearest"] = "nearest"
     """What a measurement does when it is individually compatible with two targets that
-    are not compatible with each other (two walls a door or a corridor apart, a wall of
-    the known map and an estimated one beside it), as :attr:`map_ambiguity` is for map
-    features.  ``"refuse"``: it is not paired and starts a feature of its own (a
-    duplicate at worst, which a join may pair later); ``"nearest"``: the nearest of them.
-    *(choice)* ``"nearest"``: the paper's filter pairs every measurement it can.  On the
-    CARMEN logs a short segment far off, once the pose has drifted a few decimetres,
-    fits a parallel wall of the plan as well as its own; refusing mends those runs but
-    its duplicate landmarks let CCDA accept a wrong pairing on Intel, so the CARMEN
-    profile keeps the nearest too (``docs/results/carmen.md``).  Used by the EKF."""
+    are not compatible with each other (two walls a door or a corridor apart), as
+    :attr:`map_ambiguity` is for map features.  ``"refuse"``: it is not paired and
+    starts a feature of its own (a duplicate at worst, which a join may pair later);
+    ``"refuse_known"``: the same when both targets are known-map features, the nearest
+    otherwise; ``"nearest"``: the nearest of them.  *(choice)* ``"nearest"``: the
+    paper's filter pairs every measurement it can.  On the CARMEN logs, once the pose
+    has drifted a few decimetres, a short segment far off fits the plan wall beside its
+    own as well as its own; refusing mends those runs, but before the match its
+    duplicate landmarks let CCDA accept wrong pairings (Intel, Seattle), so the CARMEN
+    profile refuses between known walls only, which acts after the match alone
+    (``docs/results/carmen.md``).  Used by the EKF."""
     jcbb_max_nodes: int = 20_000
     """JCBB stops after visiting this many search nodes and returns the best set found
     so far (its cost is exponential in the worst case)."""
@@ -162,10 +165,10 @@ class AssociationConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, numbers.Real) and v > 0.0):
                 raise ValueError(f"{name} must be a number > 0 (inf: no limit), got {v!r}")
-        for name in ("ambiguity", "map_ambiguity"):
-            if getattr(self, name) not in MAP_AMBIGUITY:
+        for name, allowed in (("ambiguity", AMBIGUITY), ("map_ambiguity", MAP_AMBIGUITY)):
+            if getattr(self, name) not in allowed:
                 raise ValueError(
-                    f"{name} must be one of {', '.join(MAP_AMBIGUITY)}, got {getattr(self, name)!r}"
+                    f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
                 )
         for name in ("method", "map_method"):
             if getattr(self, name) not in METHODS:

@@ -443,7 +443,7 @@ def _estimated_terms(
 def carmen_association() -> AssociationConfig:
     """Association settings for runs of a CARMEN log against its floor plan.
 
-    The defaults but for five settings (``docs/real-data.md``):
+    The defaults but for six settings (``docs/real-data.md``):
 
     * CCDA's ``min_pairings``: 12 instead of 8.  Office walls come in parallel families
       a door width or a corridor apart, and a match of 8 walls seen in the first local
@@ -464,10 +464,12 @@ def carmen_association() -> AssociationConfig:
       seven logs this cuts the re-observations a join sends to another wall by more
       than half (``docs/results/association.md``).
 
-    Measurements keep the default ``ambiguity`` (the nearest): refusing an ambiguous
-    segment mends runs on Belgioioso and Freiburg but leaves duplicate landmarks that
-    CCDA then pairs wrongly (Intel, seed 0: a wall with a 6° kink;
-    ``docs/results/carmen.md``).
+    * ``ambiguity``: ``"refuse_known"``.  Once the pose has drifted a few decimetres a
+      short segment far off fits the plan wall beside its own as well as its own; a
+      measurement that fits two plan walls which are not one wall is left unpaired.
+      Refused against estimated features too, its duplicate landmarks let CCDA accept
+      wrong pairings before the match (Intel, Seattle); between plan walls it acts
+      after the match alone (``docs/results/carmen.md``).
     """
     return AssociationConfig(
         ccda=CCDAParams(min_pairings=12),
@@ -475,6 +477,7 @@ def carmen_association() -> AssociationConfig:
         line_gap_m=1.0,
         map_method="jcbb",
         map_ambiguity="refuse",
+        ambiguity="refuse_known",
     )
 
 
