@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ekf_reference.association import Candidate, IteratedUpdate, apply_iterated
-from ekf_reference.maps import Motion, motion, rotate_moving
+from ekf_reference.maps import Motion, apply_motion, motion
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role
 from mapfuse_core.geometry.se2 import FloatArray
 
@@ -67,24 +67,6 @@ def _chained(c: Candidate, mo: Motion, at: dict[int, int], ui: int) -> Candidate
             blocks.append(Hb)
     H = np.hstack([*blocks, HU])
     return Candidate(c.target, c.residual, [*c.indices, ui], H, c.R, c.d2)
-
-
-def _compose(predicted: GaussianMap, joint: GaussianMap, mo: Motion) -> None:
-    """Set ``predicted`` to ``joint``'s map moved by its increment (the last element),
-    first order: ``P = F P_xx Fᵀ + C Gᵀ + G Cᵀ + G P_uu Gᵀ``, ``F`` the block rotation,
-    ``G`` the increment's Jacobian and ``C = F P_xu``."""
-    n = len(predicted)
-    m = 3 * n
-    predicted.cov = joint.cov[:m, :m].copy()
-    rotate_moving(predicted, mo.rotation, mo.moving)
-    C = joint.cov[:m, m:].reshape(n, 3, 3).copy()
-    C[mo.moving] = mo.rotation @ C[mo.moving]
-    C2 = C.reshape(m, 3)
-    G = mo.increment_jacobian
-    GC = G @ C2.T
-    predicted.cov = predicted.cov + GC + GC.T + G @ joint.cov[m:, m:] @ G.T
-    predicted.mean = mo.mean
-    predicted.symmetrise()
 
 
 def update_through_increment(
@@ -137,5 +119,8 @@ def update_through_increment(
         return [_chained(c, mo, at, ui) for c in out]
 
     upd = apply_iterated(joint, chained, MAX_ITERATIONS, 0.0, RELATIVE_TOLERANCE)
-    _compose(predicted, joint, moved(joint, list(range(n))))
+    # Moved by the updated increment, its covariance with the map included.
+    m = 3 * n
+    predicted.cov = joint.cov[:m, :m].copy()
+    apply_motion(predicted, moved(joint, list(range(n))), joint.cov[m:, m:], joint.cov[:m, m:])
     return upd

@@ -47,6 +47,7 @@ from mapfuse_core.measlog import KnownMapArrays
 __all__ = [
     "CIContext",
     "Motion",
+    "apply_motion",
     "bind_line_cov",
     "copied_local_map",
     "motion",
@@ -260,10 +261,26 @@ def predict(loc: GaussianMap, u: FloatArray, Q: FloatArray) -> None:
     """Move every element expressed in ``R`` by the odometry increment ``u`` (cov ``Q``)."""
     if not any(e.moving for e in loc.elements):
         return
-    mo = motion(loc, u)
+    apply_motion(loc, motion(loc, u), Q)
+
+
+def apply_motion(
+    loc: GaussianMap, mo: Motion, P_uu: FloatArray, P_xu: FloatArray | None = None
+) -> None:
+    """Set ``loc`` (its mean and covariance those before the motion) to the moved map,
+    first order in the increment whose covariance is ``P_uu`` and whose covariance with
+    ``loc``'s elements is ``P_xu`` (3n × 3; ``None``: uncorrelated, the prediction):
+    ``P = F P Fᵀ + C Gᵀ + G Cᵀ + G P_uu Gᵀ``, ``F`` the block rotation, ``G`` the
+    increment's Jacobian and ``C = F P_xu``."""
     rotate_moving(loc, mo.rotation, mo.moving)
     G = mo.increment_jacobian
-    loc.cov = loc.cov + G @ Q @ G.T
+    cov = loc.cov + G @ P_uu @ G.T
+    if P_xu is not None:
+        C = P_xu.reshape(-1, 3, 3).copy()
+        C[mo.moving] = mo.rotation @ C[mo.moving]
+        GC = G @ C.reshape(-1, 3).T
+        cov += GC + GC.T
+    loc.cov = cov
     loc.mean = mo.mean
     loc.symmetrise()
 
