@@ -341,10 +341,13 @@ class _Run:
         """Move the local map by step ``k``'s odometry increment (kept for the update
         with ``odometry_linearisation="iterated"``)."""
         u, Q = self.log.odometry[k], self.log.odometry_cov[k]
-        if self.config.odometry_linearisation == "iterated":
+        sl = self.log.feature_slice(k)
+        # A step without observations has no update: the prediction is all it does.
+        self.increment = None
+        if self.config.odometry_linearisation == "iterated" and sl.stop > sl.start:
             self.increment = Increment(self.local.copy(), np.asarray(u, dtype=float), Q)
         predict(self.local, u, Q)
-        self.local_odometry_var += float(self.log.odometry_cov[k][2, 2])
+        self.local_odometry_var += float(Q[2, 2])
 
     def _start_local_map(self, carry: list[int]) -> tuple[GaussianMap, CIContext | None]:
         """The next local map: with the known map shared (and the ``carry`` features),
