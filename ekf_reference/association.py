@@ -353,15 +353,17 @@ def choose(
     queries: list[Query],
     targets_for: dict[ElementKind, tuple[list[int], FloatArray]],
     config: AssociationConfig,
+    skipped: list[int] | None = None,
 ) -> list[Candidate | None]:
     """The pairing of every query (``None``: unpaired), measurements and map elements
     alike: individually compatible candidates, ambiguous queries left out where their
-    rule refuses (:attr:`~mapfuse_core.matching.AssociationConfig.ambiguity` for
-    measurements, :attr:`~mapfuse_core.matching.AssociationConfig.map_ambiguity` for map
-    elements), then nearest
-    neighbour or JCBB (``config.method`` for measurements, ``config.map_method`` for
-    map elements; a list mixing both takes ``method``).  ``targets_for[kind]`` gives
-    the targets of each kind and their predictions (:func:`predict_all_targets`)."""
+    rule refuses or skips (:attr:`~mapfuse_core.matching.AssociationConfig.ambiguity`
+    for measurements, :attr:`~mapfuse_core.matching.AssociationConfig.map_ambiguity` for
+    map elements), then nearest neighbour or JCBB (``config.method`` for measurements,
+    ``config.map_method`` for map elements; a list mixing both takes ``method``).
+    ``targets_for[kind]`` gives the targets of each kind and their predictions
+    (:func:`predict_all_targets`).  The indices of the queries the ``"skip"`` rule
+    leaves out (unpaired, and not to start a feature) are appended to ``skipped``."""
     cands = []
     for q in queries:
         targets, preds = targets_for[q.kind]
@@ -376,12 +378,14 @@ def choose(
         known = state.elements[a].role == Role.KNOWN and state.elements[b].role == Role.KNOWN
         return known and distinct(a, b)
 
-    rules = {"refuse": distinct, "refuse_known": distinct_known}
+    rules = {"refuse": distinct, "refuse_known": distinct_known, "skip": distinct}
     for group, rule in ((maps, config.map_ambiguity), (measurements, config.ambiguity)):
         if rule not in rules or not group:
             continue
         kept = drop_ambiguous([cands[k] for k in group], rules[rule])
         for k, cs in zip(group, kept, strict=True):
+            if rule == "skip" and cands[k] and not cs and skipped is not None:
+                skipped.append(k)
             cands[k] = cs
     method = config.map_method if queries and len(maps) == len(queries) else config.method
     if method == "jcbb":

@@ -107,6 +107,7 @@ _STATE = (
     "gate",
     "innovation_chi2",
     "innovation_dof",
+    "ambiguous_skipped",
     "step",
 )
 """Attributes of :class:`_Run` that filtering changes: what a snapshot keeps.  The
@@ -143,6 +144,8 @@ class _Run:
         """The step's increment and the map before it, for an iterated update."""
         self.increment_unconverged = 0
         """Iterated updates through an increment that did not converge."""
+        self.ambiguous_skipped = 0
+        """Measurements the ``"skip"`` ambiguity rule left out."""
         self._begin_local_map([], 0)
         self.joins = 0
         """Local maps joined so far (:attr:`EKFDetails.joins`)."""
@@ -204,7 +207,9 @@ class _Run:
         targets = self._gated(
             loc, predict_all_targets(loc, lambda e: e.moving, known=not self._copied())
         )
-        chosen = choose(loc, queries, targets, self.config.data_association)
+        skipped: list[int] = []
+        chosen = choose(loc, queries, targets, self.config.data_association, skipped)
+        self.ambiguous_skipped += len(skipped)
         self._record(k, loc, queries, chosen, targets)
         for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
             if c is None:
@@ -217,8 +222,9 @@ class _Run:
         # No re-binding: an update only shrinks P, so a zero along-line variance stays 0.
         self._update_step(loc, [(q, c) for q, c in zip(queries, chosen, strict=True) if c])
         born: list[int] = []
-        for q, c, j in zip(queries, chosen, range(sl.start, sl.stop), strict=True):
-            if c is not None:
+        left_out = set(skipped)
+        for i, (q, c, j) in enumerate(zip(queries, chosen, range(sl.start, sl.stop), strict=True)):
+            if c is not None or i in left_out:
                 continue
             # A wall first seen as two segments (a tree in front of it) would otherwise
             # become two landmarks at once, which later observations then split between
@@ -920,6 +926,7 @@ def _result(
             innovations=InnovationTotals(run.innovation_chi2, run.innovation_dof),
             joins=run.joins,
             increment_unconverged=run.increment_unconverged,
+            ambiguous_skipped=run.ambiguous_skipped,
             obs_local_track=run.obs_track.copy(),
         ),
     )

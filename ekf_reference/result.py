@@ -115,6 +115,11 @@ class EKFDetails:
     increment_unconverged: int = 0
     """Steps whose update through the odometry increment
     (``config.odometry_linearisation = "iterated"``) kept its last iterate unconverged."""
+    ambiguous_skipped: int = 0
+    """Measurements left out, neither paired nor a feature of their own, because they
+    fitted two features that cannot be one
+    (:attr:`~mapfuse_core.matching.AssociationConfig.ambiguity` ``"skip"``; their
+    ``obs_local_track`` is −1)."""
     obs_local_track: np.ndarray | None = None
     """(M,) int64 the feature each observation was given in its local map (a track id,
     −1 for none), before the joins merged it with global ones; the result's

@@ -16,8 +16,13 @@ import numpy as np
 import pytest
 
 from ekf_reference.association import Query, choose, predict_all_targets, targets_distinct
+from ekf_reference.config import EKFConfig
+from ekf_reference.pipeline import run_ekf
+from ekf_reference.result import EKFDetails
 from ekf_reference.state import Element, ElementKind, GaussianMap, Role, bind_line_cov
+from mapfuse_core.geometry.features import FeatureKind, canonical_line
 from mapfuse_core.matching import AssociationConfig, ScoredPair, drop_ambiguous
+from mapfuse_core.measlog import KnownMapArrays, MeasurementLog
 
 REFUSE = AssociationConfig(map_ambiguity="refuse")
 NEAREST = AssociationConfig(map_ambiguity="nearest")
@@ -296,3 +301,92 @@ def test_refuse_known_refuses_between_known_walls_only() -> None:
     assert _measure_known([0.0, 1.2], 0.5, rk) is None
     assert _measure_known([0.0, 1.2], 0.5, AssociationConfig()) == 1
     assert _measure([0.0, 1.2], 0.5, rk) == 0
+
+
+def test_skip_leaves_an_ambiguous_measurement_unpaired_and_reports_it() -> None:
+    """``ambiguity="skip"``: the segment between two walls is unpaired and named in
+    ``skipped``; ``"refuse"`` leaves it unpaired too but not skipped (it starts a
+    feature); a segment that fits no wall is not skipped either (it is new)."""
+    skip = AssociationConfig(ambiguity="skip")
+    skipped: list[int] = []
+    m = GaussianMap()
+    for k, y in enumerate((0.0, 1.2)):
+        m.add(
+            Element(ElementKind.LINE, Role.FEATURE, moving=True, track=k, extent=(-3.0, 3.0)),
+            _line(y),
+            np.zeros((3, 3)),
+        )
+    m.cov[np.ix_([1, 4], [1, 4])] = 0.4**2
+    m.cov[[1, 4], [1, 4]] += 0.05**2
+    m.cov[[2, 5], [2, 5]] = 0.01**2
+    targets = predict_all_targets(m, lambda el: True)
+    queries = [
+        Query(ElementKind.LINE, _line(z), _cov(0.02, 0.005, _line(z)), (-0.3, 0.3))
+        for z in (0.5, 6.0)
+    ]
+    chosen = choose(m, queries, targets, skip, skipped)
+    assert chosen == [None, None]
+    assert skipped == [0]
+    refused: list[int] = []
+    chosen = choose(m, queries, targets, AssociationConfig(ambiguity="refuse"), refused)
+    assert chosen[0] is None
+    assert refused == []
+
+
+def _corridor_log() -> MeasurementLog:
+    """Two steps: the walls of a corridor 1.2 m wide (y = 0 and 1.2 m, each 6 m long),
+    then a move of unknown sideways offset (σ 0.4 m) and a short segment at y = 0.5 m,
+    which fits both walls."""
+    walls = [canonical_line(_line(0.0)), canonical_line(_line(1.2))]
+    seen = [*walls, canonical_line(_line(0.5))]
+    covs = [_line_cov(w) for w in seen]
+    return MeasurementLog(
+        scenario="corridor",
+        seed=0,
+        timestamps=np.array([0.0, 0.1]),
+        odometry=np.zeros((2, 3)),
+        odometry_cov=np.array([np.zeros((3, 3)), np.diag([1e-4, 0.4**2, 1e-6])]),
+        feat_step=np.array([0, 0, 1], dtype=np.int64),
+        feat_kind=np.full(3, int(FeatureKind.LINE), dtype=np.int8),
+        feat_params=np.array(seen),
+        feat_cov=np.array(covs),
+        feat_true_id=np.array([0, 1, 0], dtype=np.int64),
+        feat_n_points=np.full(3, 20, dtype=np.int64),
+        feat_extent=np.array([[-3.0, 3.0], [-3.0, 3.0], [-0.3, 0.3]]),
+        known_map=KnownMapArrays(
+            np.zeros(0, dtype=np.int64),
+            np.zeros(0, dtype=np.int8),
+            np.zeros((0, 3)),
+            np.zeros((0, 3, 3)),
+            np.zeros((0, 2)),
+        ),
+    )
+
+
+def _line_cov(line: np.ndarray) -> np.ndarray:
+    """A measured line's covariance: 2 cm across, 5 mrad in angle, 2 m along."""
+    c, s = math.cos(line[2]), math.sin(line[2])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R @ np.diag([4.0, 0.02**2, 0.005**2]) @ R.T
+
+
+@pytest.mark.parametrize(
+    ("rule", "paired", "new_feature", "skipped"),
+    [("nearest", True, False, 0), ("refuse", False, True, 0), ("skip", False, False, 1)],
+)
+def test_the_ekf_skips_an_ambiguous_measurement_without_starting_a_feature(
+    rule: str, paired: bool, new_feature: bool, skipped: int
+) -> None:
+    """Through the EKF: ``"nearest"`` pairs the segment with a wall, ``"refuse"`` makes
+    it a third feature, ``"skip"`` leaves it out (track −1) and counts it."""
+    config = EKFConfig(data_association=AssociationConfig(ambiguity=rule))  # type: ignore[arg-type]
+    res = run_ekf(_corridor_log(), config, fusion=False)
+    details = res.details
+    assert isinstance(details, EKFDetails)
+    track = details.obs_local_track
+    assert track is not None
+    assert track[0] != track[1]
+    assert (track[2] in (track[0], track[1])) == paired
+    assert (track[2] >= 0 and track[2] not in (track[0], track[1])) == new_feature
+    assert (track[2] == -1) == (skipped == 1)
+    assert details.ambiguous_skipped == skipped

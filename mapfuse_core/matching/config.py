@@ -25,7 +25,7 @@ METHODS: tuple[str, ...] = ("nn", "jcbb")
 
 MAP_AMBIGUITY: tuple[str, ...] = ("refuse", "nearest")
 """What an ambiguous map-to-map pairing does (:attr:`AssociationConfig.map_ambiguity`)."""
-AMBIGUITY: tuple[str, ...] = ("refuse", "refuse_known", "nearest")
+AMBIGUITY: tuple[str, ...] = ("refuse", "refuse_known", "skip", "nearest")
 """What an ambiguous measurement does (:attr:`AssociationConfig.ambiguity`)."""
 
 
@@ -99,18 +99,22 @@ class AssociationConfig:
     halves the joins' wrong pairings on three logs of six and leaves every judged pairing
     of CCDA's accepted matches right, and the CARMEN profile refuses
     (``docs/results/association.md``).  Used by the EKF."""
-    ambiguity: Literal["refuse", "refuse_known", "nearest"] = "nearest"
+    ambiguity: Literal["refuse", "refuse_known", "skip", "nearest"] = "nearest"
     """What a measurement does when it is individually compatible with two targets that
     are not compatible with each other (two walls a door or a corridor apart), as
     :attr:`map_ambiguity` is for map features.  ``"refuse"``: it is not paired and
     starts a feature of its own (a duplicate at worst, which a join may pair later);
     ``"refuse_known"``: the same when both targets are known-map features, the nearest
-    otherwise; ``"nearest"``: the nearest of them.  *(choice)* ``"nearest"``: the
-    paper's filter pairs every measurement it can.  On the CARMEN logs, once the pose
-    has drifted a few decimetres, a short segment far off fits the plan wall beside its
-    own as well as its own; refusing mends those runs, but before the match its
-    duplicate landmarks let CCDA accept wrong pairings (Intel, Seattle), so the CARMEN
-    profile refuses between known walls only, which acts after the match alone
+    otherwise; ``"skip"``: it is neither paired nor a feature (it fits two features
+    already in the map, so it adds no new one; counted in the EKF's
+    ``details.ambiguous_skipped``); ``"nearest"``: the nearest of them.  *(choice)*
+    ``"nearest"``: the paper's filter pairs every measurement it can.  On the CARMEN
+    logs, once the pose has drifted a few decimetres, a short segment far off fits the
+    plan wall beside its own as well as its own; refusing mends those runs, but before
+    the match its duplicate landmarks let CCDA accept wrong pairings (Intel, Seattle),
+    so the CARMEN profile refuses between known walls only, which acts after the match
+    alone.  Skipping mends Seattle without the plan and Freiburg with it, but FHW loses
+    its walls' observations and CCDA accepts wrong pairings on four runs in 48
     (``docs/results/carmen.md``).  Used by the EKF."""
     jcbb_max_nodes: int = 20_000
     """JCBB stops after visiting this many search nodes and returns the best set found
