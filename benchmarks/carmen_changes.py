@@ -83,8 +83,7 @@ def _as_built(rep: ChangeReport) -> dict[str, Any]:
             if c.status.value == "moved"
         ],
         "seen_empty": sum(1 for c in rep.known if c.scans_seen_empty >= 1),
-        "verdict": "conclusive" if rep.conclusive else "inconclusive",
-        "consistency": None if rep.consistency is None else rep.consistency.as_dict(),
+        **{k: v for k, v in rep.as_dict().items() if k in ("verdict", "consistency")},
     }
 
 
