@@ -463,7 +463,6 @@ def carmen_association() -> AssociationConfig:
       jointly compatible set, and leaves a wall that fits two walls unpaired.  On the
       seven logs this cuts the re-observations a join sends to another wall by more
       than half (``docs/results/association.md``).
-
     * ``ambiguity``: ``"refuse_known"``.  Once the pose has drifted a few decimetres a
       short segment far off fits the plan wall beside its own as well as its own; a
       measurement that fits two plan walls which are not one wall is left unpaired.
