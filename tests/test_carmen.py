@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import math
 import re
@@ -16,6 +17,7 @@ from mapfuse_core.data.datasets.carmen import (
     carmen_scans,
     detect_odometry_kind,
     load_carmen,
+    redraw_odometry,
 )
 from mapfuse_core.data.datasets.carmen_format import guess_beam_geometry, read_carmen
 from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
@@ -227,6 +229,36 @@ def test_simulated_odometry_is_seeded_and_its_noise_matches_its_covariance(
     np.testing.assert_allclose(z.var(axis=0), 1.0, atol=0.21)
 
 
+def test_redrawn_odometry_is_the_log_loaded_with_that_seed_bit_for_bit(tmp_path: Path) -> None:
+    path = _corrected_log(tmp_path, n=40)
+    noise = IncrementNoise(trans_frac=0.08)
+    first = load_carmen(path, options=CarmenOptions(seed=7, odometry_noise=noise))
+    again = load_carmen(path, options=CarmenOptions(seed=8, odometry_noise=noise))
+    redrawn = redraw_odometry(first, 8, noise)
+    assert redrawn.seed == 8
+    assert save_log(redrawn, tmp_path / "a.npz").read_bytes() == (
+        save_log(again, tmp_path / "b.npz").read_bytes()
+    )
+    # Labels and metadata put on the log stay.
+    labels = np.arange(first.n_features, dtype=np.int64) % 5
+    labelled = dataclasses.replace(
+        first, feat_true_id=labels, metadata={**first.metadata, "known_map": "a plan"}
+    )
+    kept = redraw_odometry(labelled, 8, noise)
+    np.testing.assert_array_equal(kept.feat_true_id, labels)
+    assert kept.metadata == {**again.metadata, "known_map": "a plan"}
+    np.testing.assert_array_equal(kept.odometry, again.odometry)
+
+
+def test_redrawing_needs_simulated_odometry_and_an_int_seed(tmp_path: Path) -> None:
+    path = _corrected_log(tmp_path, n=30)
+    raw = load_carmen(path, options=CarmenOptions(odometry="raw"))
+    with pytest.raises(ValueError, match="odometry 'raw'"):
+        redraw_odometry(raw, 1)
+    with pytest.raises(ValueError, match="seed must be an int"):
+        redraw_odometry(load_carmen(path), True)  # type: ignore[arg-type]
+
+
 def test_metadata_survives_save_and_load(tmp_path: Path) -> None:
     log = load_carmen(_corrected_log(tmp_path))
     back = load_log(save_log(log, tmp_path / "log.npz"))
@@ -343,16 +375,17 @@ def test_real_log_ccda_places_the_plan_with_correct_pairings_and_lowers_the_erro
     from mapfuse_core.evaluation import anchor_truth, pose_metrics, truth_in_global
     from mapfuse_core.geometry.se2 import relative
 
-    path = _carmen_file(data_dir, name)
+    raw = load_carmen(_carmen_file(data_dir, name))
+    assert raw.true_poses is not None
+    plan = build_floor_plan(raw)
+    labelled = label_with_plan(raw, plan)
+    truth = truth_in_global(raw.true_poses)
     assoc = carmen_association()
-    plan = None
     accepted, anchor_m, anchor_rad, rmse_plan, rmse_none = 0, [], [], [], []
     for seed in _SEEDS:
-        raw = load_carmen(path, options=CarmenOptions(seed=seed))
-        assert raw.true_poses is not None
-        plan = build_floor_plan(raw) if plan is None else plan
-        log = label_with_plan(raw, plan)
-        truth = truth_in_global(raw.true_poses)
+        # The file read once; each seed's odometry as loading it with that seed gives
+        # (test_redrawn_odometry_is_the_log_loaded_with_that_seed_bit_for_bit).
+        log = redraw_odometry(labelled, seed)
         r_plan = run_ekf(log, EKFConfig(data_association=assoc))
         r_none = run_ekf(log, EKFConfig(data_association=assoc), fusion=False)
         rmse_plan.append(pose_metrics(r_plan.poses, r_plan.covs, truth)[0].rmse)

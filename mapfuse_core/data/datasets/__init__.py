@@ -34,6 +34,7 @@ from mapfuse_core.data.datasets.carmen import (
     carmen_association,
     detect_odometry_kind,
     load_carmen,
+    redraw_odometry,
 )
 from mapfuse_core.data.datasets.carmen_format import read_carmen
 from mapfuse_core.data.datasets.carpark import CARPARK_NAME, load_carpark
@@ -100,6 +101,7 @@ __all__ = [
     "load_victoria_park",
     "read_carmen",
     "rear_axle_speed",
+    "redraw_odometry",
     "reference_labels",
     "same_wall",
     "wall_d2",

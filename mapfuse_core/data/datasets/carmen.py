@@ -57,6 +57,7 @@ __all__ = [
     "carmen_view_laser",
     "detect_odometry_kind",
     "load_carmen",
+    "redraw_odometry",
 ]
 
 OdometryKind = Literal["auto", "raw", "corrected"]
@@ -300,6 +301,60 @@ def _increments(poses: FloatArray) -> FloatArray:
     return inc
 
 
+_SIMULATED = "simulated from reference"
+"""``metadata["odometry"]`` of a log whose odometry is drawn from its reference."""
+
+
+def _simulated_odometry(
+    true_poses: FloatArray, noise: IncrementNoise, seed: int
+) -> tuple[FloatArray, FloatArray]:
+    """Odometry increments drawn around the reference increments of ``true_poses`` with
+    ``noise``'s covariance, and that covariance; row 0 (no increment) is zero."""
+    n = true_poses.shape[0]
+    ref_inc = _increments(true_poses)
+    rng = np.random.default_rng(seed)
+    odometry = np.zeros((n, 3))
+    odometry_cov = np.zeros((n, 3, 3))
+    for k in range(1, n):
+        odometry_cov[k] = noise.cov(ref_inc[k])
+        drawn = rng.standard_normal(3) * np.sqrt(np.diag(odometry_cov[k]))
+        odometry[k] = ref_inc[k] + drawn
+        odometry[k, 2] = wrap_scalar(float(odometry[k, 2]))
+    return odometry, odometry_cov
+
+
+def redraw_odometry(
+    log: MeasurementLog, seed: int, noise: IncrementNoise | None = None
+) -> MeasurementLog:
+    """``log`` (a corrected CARMEN log as :func:`load_carmen` reads it) with its
+    simulated odometry drawn again with ``seed`` and ``noise`` (default
+    :class:`IncrementNoise`): equal to loading the file again with that seed and noise,
+    without reading the file or extracting its lines again.
+
+    Everything but the odometry, its covariance, ``seed`` and
+    ``metadata["odometry_seed"]`` is ``log``'s own (its known map and labels included).
+    A log whose odometry is not simulated from its reference is a :class:`ValueError`.
+    """
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"redraw_odometry: seed must be an int, got {seed!r}")
+    if log.true_poses is None or log.metadata.get("odometry") != _SIMULATED:
+        said = log.metadata.get("odometry", "not stated")
+        raise ValueError(
+            f"redraw_odometry needs a log whose odometry is simulated from its reference "
+            f"trajectory; {log.scenario!r} has odometry {said!r}"
+        )
+    odometry, odometry_cov = _simulated_odometry(
+        log.true_poses, IncrementNoise() if noise is None else noise, seed
+    )
+    return replace(
+        log,
+        seed=seed,
+        odometry=odometry,
+        odometry_cov=odometry_cov,
+        metadata={**log.metadata, "odometry_seed": str(seed)},
+    )
+
+
 def load_carmen(
     path: str | Path,
     *,
@@ -335,16 +390,8 @@ def load_carmen(
     true_poses: FloatArray | None
     if kind == "corrected":
         true_poses = np.array([m.laser_pose for m in rec.lasers])
-        ref_inc = _increments(true_poses)
-        rng = np.random.default_rng(opts.seed)
-        odometry = np.zeros((n, 3))
-        odometry_cov = np.zeros((n, 3, 3))
-        for k in range(1, n):
-            odometry_cov[k] = opts.odometry_noise.cov(ref_inc[k])
-            noise = rng.standard_normal(3) * np.sqrt(np.diag(odometry_cov[k]))
-            odometry[k] = ref_inc[k] + noise
-            odometry[k, 2] = wrap_scalar(float(odometry[k, 2]))
-        metadata["odometry"] = "simulated from reference"
+        odometry, odometry_cov = _simulated_odometry(true_poses, opts.odometry_noise, opts.seed)
+        metadata["odometry"] = _SIMULATED
         metadata["odometry_seed"] = str(opts.seed)
     else:
         true_poses = None
