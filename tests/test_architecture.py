@@ -9,6 +9,7 @@ from layers below it, so no two subpackages import each other.
 from __future__ import annotations
 
 import ast
+import json
 import os
 import subprocess
 import sys
@@ -281,7 +282,14 @@ def test_mapfuse_run_ekf_works_without_gtsam(tmp_path: Path) -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert (out / "metrics.json").is_file()
-    assert '"steps": 120' in (out / "metrics.json").read_text()
+    said = json.loads((out / "metrics.json").read_text())
+    assert said["steps"] == 120
+    # The command line's metrics are the library's for the same input.
+    import mapfuse as mf
+
+    lib = mf.run(mf.simulate("loop600", seed=0, steps=120), "ekf").metrics.to_json()
+    for key in ("position_error_m", "heading_error_rad", "nees", "anchor", "map"):
+        assert said[key] == lib[key], key
     # The same interpreter set-up does refuse gtsam (the test is not vacuous).
     probe = subprocess.run(
         [sys.executable, "-c", "import gtsam"], capture_output=True, text=True, env=env

@@ -1,9 +1,8 @@
 """The notebooks: stored clean, all logic imported, and each runs without error.
 
-Executing a notebook starts a kernel (``python3``, resolved by jupyter_client to this
-interpreter) and runs every cell; a cell error or a timeout fails the test.  Each
-notebook is meant to run in under two minutes on a laptop; the per-cell timeout is
-looser so a loaded CI machine does not fail them spuriously.
+Executing a notebook starts a kernel and runs every cell (``tests/notebook_exec.py``);
+a cell error or a timeout fails the test.  A notebook whose run a test also checks
+values of runs there only (:data:`RUN_WITH_CHECKS`), once.
 """
 
 from __future__ import annotations
@@ -12,11 +11,11 @@ import ast
 import re
 from pathlib import Path
 
-import nbclient
 import nbformat
 import pytest
 
-NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
+from tests.notebook_exec import execute_notebook, read_notebook
+
 NOTEBOOKS = (
     "01_scenario_and_sensor",
     "02_ekf_reference",
@@ -29,13 +28,13 @@ NOTEBOOKS = (
 )
 # Notebooks that read the real datasets: skipped, like the real-data tests, without them.
 NEEDS_DATA = ("05_real_data_carpark", "06_victoria_park", "08_indoor_lines")
-# Per-cell timeout (s): a whole notebook targets two minutes; the margin is for loaded
-# machines, the timeout only catches a hung or runaway cell.
-TIMEOUT_S = 600
-
-
-def _read(name: str) -> object:
-    return nbformat.read(NOTEBOOK_DIR / f"{name}.ipynb", as_version=4)
+RUN_WITH_CHECKS = {
+    "06_victoria_park": (
+        "tests/test_real_runs.py",
+        "test_victoria_whole_run_closes_its_loops_without_a_systematic_turn",
+    ),
+}
+"""Notebooks executed by the named test, which also checks what they compute."""
 
 
 def _code(src: str) -> str:
@@ -45,7 +44,7 @@ def _code(src: str) -> str:
 
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_is_stored_clean(name: str) -> None:
-    nb = _read(name)
+    nb = read_notebook(name)
     nbformat.validate(nb)
     cells = nb.cells  # type: ignore[attr-defined]
     assert cells[0].cell_type == "markdown", "a notebook opens with its symbols and equations"
@@ -65,28 +64,27 @@ def test_notebook_is_stored_clean(name: str) -> None:
         assert not defined, f"cell {i} defines logic; put it in a package and import it"
 
 
+def test_every_notebook_runs_in_one_test() -> None:
+    assert set(RUN_WITH_CHECKS) <= set(NOTEBOOKS)
+    for name, (module, test) in RUN_WITH_CHECKS.items():
+        source = (Path(__file__).resolve().parents[1] / module).read_text()
+        assert f"def {test}(" in source, name
+        assert f'execute_notebook("{name}"' in source, name
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", NOTEBOOKS)
+@pytest.mark.parametrize("name", [n for n in NOTEBOOKS if n not in RUN_WITH_CHECKS])
 def test_notebook_runs(
     name: str, request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     if name in NEEDS_DATA:
-        # Skips with a message when the data directory is absent.  The kernel inherits
-        # MAPFUSE_DATA, made absolute because it runs in the notebooks directory.
+        # Skips with a message when the data directory is absent.
         data = request.getfixturevalue("data_dir")
         monkeypatch.setenv("MAPFUSE_DATA", str(Path(data).resolve()))
-    nb = _read(name)
-    client = nbclient.NotebookClient(
-        nb,
-        timeout=TIMEOUT_S,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
-    )
-    # Raises CellExecutionError (naming the cell and the traceback) on any error.
-    client.execute()
+    nb = execute_notebook(name)
     errors = [
         out
-        for cell in nb.cells  # type: ignore[attr-defined]
+        for cell in nb.cells
         if cell.cell_type == "code"
         for out in cell.outputs
         if out.output_type == "error"

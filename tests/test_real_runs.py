@@ -27,6 +27,7 @@ from mapfuse_core.data.datasets import (
 )
 from mapfuse_core.estimate import PositionError
 from mapfuse_core.measlog import MeasurementLog
+from tests.notebook_exec import RESULT_MARK, execute_notebook, printed_result
 
 pytestmark = pytest.mark.slow
 
@@ -168,33 +169,63 @@ def test_victoria_ekf_follows_gps_past_t_300s(victoria_head: MeasurementLog) -> 
     assert np.median(e[late]) < 1.0
 
 
+_VICTORIA_CHECKS = f"""
+import json
+from mapfuse.figures import gps_errors
+
+t_gps, e_gps = gps_errors(result)
+arm = (t_gps > 1285.0) & (t_gps < 1335.0)  # the arm's tip
+print({RESULT_MARK!r} + json.dumps({{
+    "closures": [
+        {{
+            "turn_deg": float(np.degrees(lc.correction[2])),
+            "inliers": lc.inliers,
+            "inliers_at_identity": lc.inliers_at_identity,
+            "pairings": lc.pairings,
+            "shape": list(lc.correction.shape),
+            "writeable": bool(lc.correction.flags.writeable),
+        }}
+        for lc in result.result.details.loop_closures
+    ],
+    "median_m": result.metrics.position_error.median,
+    "alignment": result.metrics.position_error.alignment,
+    "arm_fixes": int(arm.sum()),
+    "arm_median_m": float(np.median(e_gps[arm])),
+}}))
+"""
+"""Run after notebook 06's cells: what its whole EKF run computed, as JSON."""
+
+
 @pytest.mark.slow
-def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(data_dir: Path) -> None:
+def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(
+    data_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """With the odometry's sideways slip chosen by the loop closures
     (VICTORIA_PARK_ODOMETRY_NOISE) the closures turn both ways and the park's north-west
-    arm follows GPS (figures without the slip: docs/results/victoria-park-calibration.md)."""
-    result = run(load_victoria_park(data_dir), "ekf", fusion=False)
-    closures = result.result.details.loop_closures
-    rot = np.degrees([lc.correction[2] for lc in closures])
+    arm follows GPS (figures without the slip: docs/results/victoria-park-calibration.md).
+
+    The run is notebook 06's own (``mf.run(log, "ekf", fusion=False)``), so the notebook
+    runs once and its numbers are the ones checked.
+    """
+    monkeypatch.setenv("MAPFUSE_DATA", str(Path(data_dir).resolve()))
+    got = printed_result(execute_notebook("06_victoria_park", after=_VICTORIA_CHECKS))
+    closures = got["closures"]
+    rot = np.array([c["turn_deg"] for c in closures])
     # 0.3° is a sixth of the systematic turn 1 cm/√m of slip leaves, and about 1.3
     # standard errors of a mean of 6 closures.  A regression guard: the slip is chosen
     # on this same run.
     assert rot.size >= 5
     assert abs(rot.mean()) < 0.3
     assert 0 < int((rot > 0).sum()) < rot.size
-    for lc in closures:
-        assert lc.inliers >= LoopClosureParams().min_inliers
-        assert lc.inliers > lc.inliers_at_identity
-        assert 0 < lc.pairings <= lc.inliers
-        assert lc.correction.shape == (3,)
-        assert not lc.correction.flags.writeable
-    m = result.metrics.position_error
-    assert m is not None
+    for c in closures:
+        assert c["inliers"] >= LoopClosureParams().min_inliers
+        assert c["inliers"] > c["inliers_at_identity"]
+        assert 0 < c["pairings"] <= c["inliers"]
+        assert c["shape"] == [3]
+        assert not c["writeable"]
     # GPS itself jumps by metres.  Not an independent check of the slip: GPS is what
     # shows the arm, but the value is chosen without it.
-    assert m.median < 1.0
-    assert m.alignment == "best_fit"
-    t, e = gps_errors(result)
-    arm = (t > 1285.0) & (t < 1335.0)  # the arm's tip
-    assert arm.sum() > 100
-    assert np.median(e[arm]) < 2.0
+    assert got["median_m"] < 1.0
+    assert got["alignment"] == "best_fit"
+    assert got["arm_fixes"] > 100
+    assert got["arm_median_m"] < 2.0
