@@ -287,11 +287,22 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
             # No term on this dof: the other's (the angle's, which widens the lateral
             # offset too) already whitens it below 1/τ (FHW's lateral offset).
             assert nees * tau <= 1.05
+
+
+@pytest.mark.realdata
+def test_estimated_terms_change_covariances_only(data_dir: Path) -> None:
+    # Seattle: the shortest of the logs to extract.
+    path = data_dir / "carmen" / "seattle-corrected.log.gz"
+    if not path.is_file():
+        pytest.skip(f"CARMEN log not found ({path})")
+    log = load_carmen(path, options=CarmenOptions(line_model_error="correlated"))
+    assert log.metadata["line_model_error"].startswith("estimated from the log (correlated):")
     profile = load_carmen(path)  # the default: the extraction profile's terms
     assert profile.metadata["line_model_error"] == (
         "extraction profile's (as asked): 0.020 m, 0.80 deg"
     )
     np.testing.assert_array_equal(profile.feat_params, log.feat_params)
+    assert not np.array_equal(profile.feat_cov, log.feat_cov)
 
 
 def test_options_name_a_bad_choice() -> None:
