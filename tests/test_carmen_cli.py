@@ -337,10 +337,10 @@ def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
         pytest.skip(f"{log} not found")
     out = tmp_path / "csail"
     res = _main_json(["changes", f"carmen:{log}", "--out", str(out), "--quiet"], capsys)
-    # Seed 0's EKF is more overconfident than its NEES region allows (mean 10.5
-    # against [2.38, 3.69]): the run cannot be trusted, so no wall of the plan, all
-    # standing, is called moved, missing or new; a wall the evidence would call moved
-    # is reported inconclusive (none is, on this run: all 46 are confirmed).
+    # Seed 0's EKF is more overconfident than its NEES region allows (mean 10.8
+    # against [2.48, 3.57], docs/results/carmen.md): the run cannot be trusted, so no
+    # wall of the plan, all standing, is called moved, missing or new; a wall the
+    # evidence would call moved is reported inconclusive (79 confirmed, 1 inconclusive).
     assert res["verdict"] == "inconclusive"
     consistency = res["consistency"]
     assert isinstance(consistency, dict)
