@@ -352,3 +352,50 @@ def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
     assert (counts["moved"], counts["missing"], counts["new"]) == (0, 0, 0)
     data = json.loads((out / "changes.json").read_text())
     assert data["verdict"] == "inconclusive"
+
+
+def test_a_process_reads_a_carmen_file_once_for_every_seed(
+    room_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mapfuse import carmen_input
+    from mapfuse_core.data.datasets import (
+        CarmenOptions,
+        build_floor_plan,
+        label_with_plan,
+        load_carmen,
+    )
+    from mapfuse_core.measlog import save_log
+
+    monkeypatch.setattr(carmen_input, "_reads", type(carmen_input._reads)())
+    reads: list[Path] = []
+
+    def counted(path: Path, **kw: object) -> object:
+        reads.append(path)
+        return load_carmen(path, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr("mapfuse_core.data.datasets.load_carmen", counted)
+    first = carmen_input.load_carmen_input(f"carmen:{room_log}", seed=3)
+    first.feat_params[:] = np.nan  # a caller's change stays its own
+    steps: list[tuple[int, int]] = []
+    again = carmen_input.load_carmen_input(
+        f"carmen:{room_log}", seed=5, progress=lambda k, n: steps.append((k, n))
+    )
+    assert reads == [room_log]
+    assert steps == [(40, 40)]
+    # The seed's log as reading the file with that seed gives, plan and labels included.
+    read = load_carmen(room_log, options=CarmenOptions(seed=5))
+    want = label_with_plan(read, build_floor_plan(read))
+    out = Path(str(room_log) + ".npz")
+    assert save_log(dataclasses.replace(again, metadata={}), out).read_bytes() == (
+        save_log(dataclasses.replace(want, metadata={}), out).read_bytes()
+    )
+    assert again.metadata == {**want.metadata, **_described(again)}
+    # A file changed since is read again.
+    room_log.touch()
+    carmen_input.load_carmen_input(f"carmen:{room_log}", seed=5)
+    assert reads == [room_log, room_log]
+
+
+def _described(log: object) -> dict[str, str]:
+    meta = log.metadata  # type: ignore[attr-defined]
+    return {k: meta[k] for k in ("known_map", "reference_labels")}
