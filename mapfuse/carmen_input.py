@@ -19,6 +19,7 @@ colons, question marks) is read as it is written.  The one option is ``odometry=
 from __future__ import annotations
 
 import copy
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -172,9 +173,8 @@ _KEPT_READS = 2
 """CARMEN logs whose reading one process keeps (:func:`_read`): a campaign's worker
 runs seed after seed of one log."""
 
-_reads: OrderedDict[tuple[str, int, int, str], tuple[MeasurementLog, FloorPlan | None]] = (
-    OrderedDict()
-)
+_reads: OrderedDict[tuple[object, ...], tuple[MeasurementLog, FloorPlan | None]] = OrderedDict()
+_reads_lock = threading.Lock()
 
 
 def _read(
@@ -184,29 +184,41 @@ def _read(
 ) -> tuple[MeasurementLog, FloorPlan | None]:
     """The log at ``path`` read with seed 0 (odometry kind ``odometry``) and its floor
     plan (``None`` without a reference trajectory), a deep copy of the kept one when this
-    process read the same file (path, size, modification time) before.
+    process read the same file before (same path, device, inode, size, modification and
+    status-change times).
 
-    Reading and extracting are most of a CARMEN run's set-up (Intel: 3.9 s of the
-    loader, 0.8 s of the plan); the seed changes only the simulated odometry, which
-    :func:`~mapfuse_core.data.datasets.redraw_odometry` draws again bit for bit.  The
-    copy keeps a caller's changes to its arrays out of the next run.  ``progress(n, n)``
-    once on a kept read.
+    Reading and extracting are most of a CARMEN run's set-up
+    (``docs/results/performance.md``); the seed changes only the simulated odometry,
+    which :func:`~mapfuse_core.data.datasets.redraw_odometry` draws again bit for bit.
+    The copy keeps a caller's changes to its arrays out of the next run.
+    ``progress(n, n)`` once on a kept read.
     """
     from mapfuse_core.data.datasets import CarmenOptions, build_floor_plan, load_carmen
 
     st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, odometry)
-    kept = _reads.get(key)
+    key = (
+        str(path.resolve()),
+        st.st_dev,
+        st.st_ino,
+        st.st_size,
+        st.st_mtime_ns,
+        st.st_ctime_ns,
+        odometry,
+    )
+    with _reads_lock:
+        kept = _reads.get(key)
+        if kept is not None:
+            _reads.move_to_end(key)
     if kept is not None:
-        _reads.move_to_end(key)
         if progress is not None:
             progress(kept[0].n_steps, kept[0].n_steps)
         return copy.deepcopy(kept)
     log = load_carmen(path, options=CarmenOptions(seed=0, odometry=odometry), progress=progress)
     read = (log, None if log.true_poses is None else build_floor_plan(log))
-    _reads[key] = copy.deepcopy(read)
-    while len(_reads) > _KEPT_READS:
-        _reads.popitem(last=False)
+    with _reads_lock:
+        _reads[key] = copy.deepcopy(read)
+        while len(_reads) > _KEPT_READS:
+            _reads.popitem(last=False)
     return read
 
 
@@ -224,18 +236,18 @@ def load_carmen_input(
     reference trajectory; an error for a log without one), ``"none"``, or ``None``
     (the floor plan when the log has a reference trajectory, else none).  A log whose
     kind its evidence does not decide, and the source does not state, is an error
-    naming ``--odometry``.  ``progress(k, n)``: after each scan's extraction.  A process
-    reads and extracts a file once for every seed (:func:`_read`).
+    naming ``--odometry``.  ``progress(k, n)``: after each scan's extraction, or once
+    with ``k = n`` when this process has read the file before: a process reads and
+    extracts a file once for every seed (:func:`_read`).
     """
-    from mapfuse_core.data.datasets import label_with_plan, redraw_odometry
+    from mapfuse_core.data.datasets import CarmenOptions, label_with_plan, redraw_odometry
     from mapfuse_core.data.datasets.carmen_kind import UndecidedOdometryError
 
     if known_map is not None and known_map not in KNOWN_MAPS:
         raise ValueError(f"--known-map must be one of {', '.join(KNOWN_MAPS)}, got {known_map!r}")
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-        raise ValueError(f"CarmenOptions.seed must be an int, got {seed!r}")
     src = parse_carmen_source(source)
     path = src.path
+    CarmenOptions(seed=0 if seed is None else seed, odometry=src.odometry)  # checks both
     try:
         log, plan = _read(Path(path), src.odometry, progress)
     except UndecidedOdometryError as exc:

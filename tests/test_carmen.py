@@ -257,6 +257,8 @@ def test_redrawing_needs_simulated_odometry_and_an_int_seed(tmp_path: Path) -> N
         redraw_odometry(raw, 1)
     with pytest.raises(ValueError, match="seed must be an int"):
         redraw_odometry(load_carmen(path), True)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="seed must be >= 0, got -2"):
+        redraw_odometry(load_carmen(path), -2)
 
 
 def test_metadata_survives_save_and_load(tmp_path: Path) -> None:

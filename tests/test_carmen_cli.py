@@ -355,7 +355,7 @@ def test_changes_on_the_real_csail_log_are_inconclusive_and_call_no_wall_moved(
 
 
 def test_a_process_reads_a_carmen_file_once_for_every_seed(
-    room_log: Path, monkeypatch: pytest.MonkeyPatch
+    room_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from mapfuse import carmen_input
     from mapfuse_core.data.datasets import (
@@ -374,26 +374,51 @@ def test_a_process_reads_a_carmen_file_once_for_every_seed(
         return load_carmen(path, **kw)  # type: ignore[arg-type]
 
     monkeypatch.setattr("mapfuse_core.data.datasets.load_carmen", counted)
-    first = carmen_input.load_carmen_input(f"carmen:{room_log}", seed=3)
-    first.feat_params[:] = np.nan  # a caller's change stays its own
+    path = tmp_path / "room.log"
+    path.write_bytes(room_log.read_bytes())
+    source = f"carmen:{path}"
     steps: list[tuple[int, int]] = []
-    again = carmen_input.load_carmen_input(
-        f"carmen:{room_log}", seed=5, progress=lambda k, n: steps.append((k, n))
-    )
-    assert reads == [room_log]
-    assert steps == [(40, 40)]
+    logs = [carmen_input.load_carmen_input(source, seed=3)]
+    for seed in (4, 5):
+        logs[-1].feat_params[:] = np.nan  # a caller's change stays its own
+        logs.append(
+            carmen_input.load_carmen_input(
+                source, seed=seed, progress=lambda k, n: steps.append((k, n))
+            )
+        )
+    assert reads == [path]
+    assert steps == [(40, 40), (40, 40)]
     # The seed's log as reading the file with that seed gives, plan and labels included.
-    read = load_carmen(room_log, options=CarmenOptions(seed=5))
+    read = load_carmen(path, options=CarmenOptions(seed=5))
     want = label_with_plan(read, build_floor_plan(read))
-    out = Path(str(room_log) + ".npz")
-    assert save_log(dataclasses.replace(again, metadata={}), out).read_bytes() == (
-        save_log(dataclasses.replace(want, metadata={}), out).read_bytes()
+    got = logs[-1]
+    assert save_log(dataclasses.replace(got, metadata={}), tmp_path / "a.npz").read_bytes() == (
+        save_log(dataclasses.replace(want, metadata={}), tmp_path / "b.npz").read_bytes()
     )
-    assert again.metadata == {**want.metadata, **_described(again)}
+    assert got.metadata == {**want.metadata, **_described(got)}
+    # The stated odometry kind is part of what was read.
+    assert carmen_input.load_carmen_input(f"carmen,odometry=raw:{path}").true_poses is None
+    assert reads == [path, path]
     # A file changed since is read again.
-    room_log.touch()
-    carmen_input.load_carmen_input(f"carmen:{room_log}", seed=5)
-    assert reads == [room_log, room_log]
+    path.write_bytes(room_log.read_bytes())
+    carmen_input.load_carmen_input(source, seed=5)
+    assert reads == [path, path, path]
+    # Two reads are kept: a third file pushes out the one used longest ago.
+    other = tmp_path / "other.log"
+    other.write_bytes(room_log.read_bytes())
+    carmen_input.load_carmen_input(f"carmen:{other}")  # keeps other and path
+    carmen_input.load_carmen_input(f"carmen,odometry=raw:{path}")  # pushes out path
+    carmen_input.load_carmen_input(source)
+    assert reads == [path, path, path, other, path, path]
+
+
+def test_a_carmen_seed_is_checked_before_the_file_is_read(room_log: Path) -> None:
+    from mapfuse.carmen_input import load_carmen_input
+
+    with pytest.raises(ValueError, match="seed must be >= 0, got -1"):
+        load_carmen_input(f"carmen:{room_log}", seed=-1)
+    with pytest.raises(ValueError, match="seed must be an int, got True"):
+        load_carmen_input(f"carmen:{room_log}", seed=True)
 
 
 def _described(log: object) -> dict[str, str]:

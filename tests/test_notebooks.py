@@ -14,7 +14,7 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from tests.notebook_exec import execute_notebook, read_notebook
+from tests.notebook_exec import NOTEBOOK_DIR, execute_notebook, read_notebook
 
 NOTEBOOKS = (
     "01_scenario_and_sensor",
@@ -65,6 +65,7 @@ def test_notebook_is_stored_clean(name: str) -> None:
 
 
 def test_every_notebook_runs_in_one_test() -> None:
+    assert set(NOTEBOOKS) == {path.stem for path in NOTEBOOK_DIR.glob("*.ipynb")}
     assert set(RUN_WITH_CHECKS) <= set(NOTEBOOKS)
     for name, (module, test) in RUN_WITH_CHECKS.items():
         source = (Path(__file__).resolve().parents[1] / module).read_text()

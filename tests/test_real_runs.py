@@ -176,6 +176,10 @@ from mapfuse.figures import gps_errors
 t_gps, e_gps = gps_errors(result)
 arm = (t_gps > 1285.0) & (t_gps < 1335.0)  # the arm's tip
 print({RESULT_MARK!r} + json.dumps({{
+    "steps": result.result.n_steps,
+    "log_steps": log.n_steps,
+    "estimator": result.result.estimator,
+    "fusion": result.metrics.fusion,
     "closures": [
         {{
             "turn_deg": float(np.degrees(lc.correction[2])),
@@ -209,6 +213,9 @@ def test_victoria_whole_run_closes_its_loops_without_a_systematic_turn(
     """
     monkeypatch.setenv("MAPFUSE_DATA", str(Path(data_dir).resolve()))
     got = printed_result(execute_notebook("06_victoria_park", after=_VICTORIA_CHECKS))
+    # The notebook's run is the EKF without fusion over the whole log.
+    assert (got["estimator"], got["fusion"]) == ("ekf", False)
+    assert got["steps"] == got["log_steps"] == load_victoria_park(data_dir).n_steps
     closures = got["closures"]
     rot = np.array([c["turn_deg"] for c in closures])
     # 0.3° is a sixth of the systematic turn 1 cm/√m of slip leaves, and about 1.3

@@ -160,8 +160,7 @@ class CarmenOptions:
                 f"CarmenOptions.odometry must be 'auto', 'raw' or 'corrected', "
                 f"got {self.odometry!r}"
             )
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise ValueError(f"CarmenOptions.seed must be an int, got {self.seed!r}")
+        _check_seed("CarmenOptions.seed", self.seed)
         for name in ("sigma_range_m", "sigma_bearing_rad", "extraction_max_range_m"):
             check_finite("CarmenOptions", name, getattr(self, name), positive=True)
         if self.max_range_m is not None:
@@ -301,6 +300,15 @@ def _increments(poses: FloatArray) -> FloatArray:
     return inc
 
 
+def _check_seed(name: str, seed: object) -> None:
+    """A :class:`ValueError` naming ``name`` unless ``seed`` is an int ≥ 0 (a seed of
+    :func:`numpy.random.default_rng`)."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"{name} must be an int, got {seed!r}")
+    if seed < 0:
+        raise ValueError(f"{name} must be >= 0, got {seed}")
+
+
 _SIMULATED = "simulated from reference"
 """``metadata["odometry"]`` of a log whose odometry is drawn from its reference."""
 
@@ -327,16 +335,17 @@ def redraw_odometry(
     log: MeasurementLog, seed: int, noise: IncrementNoise | None = None
 ) -> MeasurementLog:
     """``log`` (a corrected CARMEN log as :func:`load_carmen` reads it) with its
-    simulated odometry drawn again with ``seed`` and ``noise`` (default
-    :class:`IncrementNoise`): equal to loading the file again with that seed and noise,
-    without reading the file or extracting its lines again.
+    simulated odometry drawn again with ``seed`` and ``noise``: equal to loading the
+    file again with that seed and noise, without reading the file or extracting its
+    lines again.  ``noise`` defaults to :class:`IncrementNoise`'s defaults: the log does
+    not record the model it was drawn with, so a log loaded with another one needs it
+    given here.
 
     Everything but the odometry, its covariance, ``seed`` and
     ``metadata["odometry_seed"]`` is ``log``'s own (its known map and labels included).
     A log whose odometry is not simulated from its reference is a :class:`ValueError`.
     """
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"redraw_odometry: seed must be an int, got {seed!r}")
+    _check_seed("redraw_odometry: seed", seed)
     if log.true_poses is None or log.metadata.get("odometry") != _SIMULATED:
         said = log.metadata.get("odometry", "not stated")
         raise ValueError(
