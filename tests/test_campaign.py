@@ -317,3 +317,15 @@ def test_a_campaign_row_measures_the_anchor_in_the_known_maps_own_frame() -> Non
     without_truth = anchor_block(anchor, None, frame)
     assert without_truth is not None
     assert without_truth.nees is None
+
+
+def test_local_workers_keep_glibc_s_own_malloc_thresholds(monkeypatch: pytest.MonkeyPatch) -> None:
+    # dask.distributed sets MALLOC_TRIM_THRESHOLD_ in the workers it spawns, which fixes
+    # glibc's mmap threshold too and doubles an EKF run's CPU in page faults
+    # (docs/results/performance.md); the local cluster leaves both to glibc.
+    from mapfuse.campaign.engine import map_on_cluster
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    got = [value for value, _ in map_on_cluster(os.getenv, ["MALLOC_TRIM_THRESHOLD_"], workers=1)]
+    assert got == [None]
+    assert "MALLOC_TRIM_THRESHOLD_" not in os.environ

@@ -24,13 +24,21 @@ from mapfuse.campaign.spec import CampaignSpec
 from mapfuse.campaign.store import CampaignStore
 from mapfuse.campaign.task import RunOutcome, run_seed
 
-__all__ = ["BLAS_ENV", "CampaignSummary", "map_on_cluster", "run_campaign"]
+__all__ = ["BLAS_ENV", "LOCAL_CLUSTER_CONFIG", "CampaignSummary", "map_on_cluster", "run_campaign"]
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 #: Environment of every local worker: one BLAS thread each.
 BLAS_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+#: dask settings of a local cluster: glibc's own trim and mmap thresholds in the
+#: workers.  dask.distributed sets ``MALLOC_TRIM_THRESHOLD_`` (64 KiB) in every worker
+#: it spawns, which also fixes glibc's mmap threshold: each array over 128 KiB (a
+#: covariance of 128 landmark dofs) is then mapped and unmapped anew, and a CARMEN EKF
+#: run takes twice its CPU in page faults (``docs/results/performance.md``).  A
+#: variable of the user's own environment still reaches the workers.
+LOCAL_CLUSTER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
 
 @dataclass(frozen=True)
@@ -76,18 +84,20 @@ def map_on_cluster(
     and the items must pickle (a module-level function and plain data).  Whoever
     aggregates the results orders them itself: completion order depends on the
     workers, the results do not."""
+    import dask
     from dask.distributed import Client, LocalCluster, as_completed
 
     cluster = None
     if scheduler is None:
         n = workers if workers is not None else (os.cpu_count() or 1)
-        cluster = LocalCluster(
-            n_workers=n,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            env=BLAS_ENV,
-        )
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                env=BLAS_ENV,
+            )
         client = Client(cluster)
     else:
         client = Client(scheduler)
