@@ -29,8 +29,9 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+from mapfuse.datadir import DATA_ENV
+
 __all__ = [
-    "DATA_ENV",
     "Formatter",
     "Parser",
     "add_cluster",
@@ -50,9 +51,6 @@ __all__ = [
     "positive_int",
     "seed_int",
 ]
-
-#: Environment variable naming the data directory of the real datasets (``--data``).
-DATA_ENV = "MAPFUSE_DATA"
 
 
 class Parser(argparse.ArgumentParser):

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -33,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from mapfuse.cli_args import DATA_ENV
+from mapfuse.datadir import data_dir
 
 if TYPE_CHECKING:
     from mapfuse.progress import LabelledProgress, ProgressBar
@@ -284,13 +283,10 @@ def _data_dir(args: argparse.Namespace, source: str, kind: SourceKind) -> str | 
         if given is not None:
             raise UsageError(f"--data applies to carpark and victoria-park only, not {source!r}")
         return None
-    data = given if given is not None else os.environ.get(DATA_ENV) or None
-    if data is None:
-        raise UsageError(f"dataset {source!r} needs a data directory (--data DIR or ${DATA_ENV})")
-    if not Path(data).is_dir():
-        where = "--data" if given is not None else f"${DATA_ENV}"
-        raise UsageError(f"{where} {data} is not a directory")
-    return str(data)
+    try:
+        return data_dir(given, source, "--data DIR")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _check_steps(steps: int, n_steps: int, source: str) -> None:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from mapfuse.carmen_input import is_carmen, load_carmen_input
+from mapfuse.datadir import data_dir
 from mapfuse.estimator import Estimator, Progress
 from mapfuse.execution import estimate, fusion_for
 from mapfuse.metrics import run_metrics
@@ -99,10 +100,10 @@ def load(
     workers: int | None = None,
 ) -> MeasurementLog:
     """A measurement log from ``source``: a saved ``.npz`` log, a real dataset
-    (``"carpark"``, ``"victoria-park"``; needs ``data``, the data directory), a CARMEN
-    log (``"carmen:PATH"``; ``seed`` of its simulated odometry, ``known_map``
-    ``"floorplan"`` or ``"none"``, :mod:`mapfuse.carmen_input`), or a scenario to
-    simulate (a built-in name or a TOML file; :func:`simulate`).
+    (``"carpark"``, ``"victoria-park"``; in the data directory ``data``, else in
+    ``$MAPFUSE_DATA``), a CARMEN log (``"carmen:PATH"``; ``seed`` of its simulated
+    odometry, ``known_map`` ``"floorplan"`` or ``"none"``, :mod:`mapfuse.carmen_input`),
+    or a scenario to simulate (a built-in name or a TOML file; :func:`simulate`).
 
     ``seed`` applies to a simulation and to a CARMEN log's simulated odometry only, and
     ``data`` to a dataset only: given elsewhere they are errors (they would change
@@ -124,12 +125,10 @@ def load(
     if src.endswith(".npz"):
         return _head(load_log(src), steps) if steps is not None else load_log(src)
     if src in DATASETS:
-        if data is None:
-            raise ValueError(f"dataset {src!r} needs a data directory (--data DIR)")
         from mapfuse_core.data.datasets import load_carpark, load_victoria_park
 
         loader = load_carpark if src == "carpark" else load_victoria_park
-        log = loader(str(data))
+        log = loader(data_dir(data, src, "data=DIR"))
         return log if steps is None else _head(log, steps)
     return simulate(src, seed, steps=steps, progress=progress, workers=workers)
 

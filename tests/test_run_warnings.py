@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -179,6 +180,27 @@ def test_options_that_do_not_apply_are_errors_in_the_library(
         prepare_log("carpark", seed=3, data_dir=str(tmp_path))
     with pytest.raises(ValueError, match="a data directory applies to"):
         prepare_log(str(path), data_dir=str(tmp_path))
+
+
+def test_library_finds_a_dataset_where_the_command_line_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # ``$MAPFUSE_DATA`` is read by the library too: the loader looks in it (and finds
+    # no data there), and ``data`` wins over it.
+    from mapfuse_core.data.datasets import DatasetError
+
+    monkeypatch.setenv("MAPFUSE_DATA", str(tmp_path))
+    missing = re.escape(f"{tmp_path}/acfr_carpark/data_set.mat: no such file")
+    with pytest.raises(DatasetError, match=missing):
+        prepare_log("carpark")
+    with pytest.raises(ValueError, match=r"^data /no/such/dir is not a directory$"):
+        prepare_log("carpark", data_dir="/no/such/dir")
+    monkeypatch.setenv("MAPFUSE_DATA", str(tmp_path / "gone"))
+    with pytest.raises(ValueError, match=r"^\$MAPFUSE_DATA .*gone is not a directory$"):
+        prepare_log("victoria-park")
+    monkeypatch.delenv("MAPFUSE_DATA")
+    with pytest.raises(ValueError, match=r"needs a data directory \(data=DIR or \$MAPFUSE_DATA\)"):
+        prepare_log("carpark")
 
 
 def test_cli_prints_each_warning_once_on_stderr_and_keeps_stdout_json(

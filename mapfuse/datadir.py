@@ -1,0 +1,29 @@
+"""Where the real datasets live: a directory given by the caller, else ``$MAPFUSE_DATA``.
+
+One rule for the library (:func:`mapfuse.load`'s ``data``) and the command line
+(``--data``), so that a notebook and a shell that set the variable read the same files.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+#: Environment variable naming the data directory of the real datasets.
+DATA_ENV = "MAPFUSE_DATA"
+
+
+def data_dir(given: str | Path | None, source: str, option: str) -> str:
+    """The data directory for dataset ``source``: ``given``, else ``$MAPFUSE_DATA``.
+
+    ``option`` is how the caller spells the argument (``"data=DIR"``, ``"--data DIR"``),
+    for the messages.  Raises ``ValueError`` when neither names a directory, or when
+    the one used is not a directory.
+    """
+    directory = str(given) if given is not None else os.environ.get(DATA_ENV) or None
+    if directory is None:
+        raise ValueError(f"dataset {source!r} needs a data directory ({option} or ${DATA_ENV})")
+    if not Path(directory).is_dir():
+        where = option.split()[0].split("=")[0] if given is not None else f"${DATA_ENV}"
+        raise ValueError(f"{where} {directory} is not a directory")
+    return directory
