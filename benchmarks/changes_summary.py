@@ -160,10 +160,49 @@ def main() -> None:
     )
 
     _gate_table(rows)
+    _variants_table(rows)
     _anees_table(rows)
     _after_anchor(rows)
     _oracle_table(rows)
     _graph_table(rows)
+
+
+def _variants_table(rows: list[dict[str, Any]]) -> None:
+    """The same runs classified with each ``changes_mc.py --variant`` (keys
+    ``<map>_TAG_score``), next to the default classification: every class as the
+    score counts it (moves by :meth:`ChangeTruth.significant_move`)."""
+    keys = {k for r in rows for k in r if k.startswith("changed_") and k.endswith("_score")}
+    tags = sorted({k[len("changed_") : -len("_score")] for k in keys} - {"", "graph"})
+    if not tags:
+        return
+    print("\nclassification variants (the same runs):")
+    print(
+        "| variant | moved | R, surveyed place in view | false moves, unchanged maps "
+        "| removed in view | false missing, unchanged maps | added |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for tag in ["default", *tags]:
+        key = "{}_score" if tag == "default" else f"{{}}_{tag}_score"
+        got = [r for r in rows if key.format("changed") in r]
+        tot: dict[str, list[int]] = {c: [0, 0, 0] for c in ("moved", "removed", "added")}
+        view = [0, 0]
+        false_moves = false_missing = beyond = 0
+        for r in got:
+            s = r[key.format("changed")]
+            for c in tot:
+                tot[c] = [tot[c][i] + s[c][f] for i, f in enumerate(("tp", "fp", "fn"))]
+            beyond += s["removed"].get("beyond_view_tp", 0)
+            v = s.get("moved_surveyed_in_view", {"tp": 0, "fn": 0})
+            view = [view[0] + v["tp"], view[1] + v["fn"]]
+            u = r.get(key.format("unchanged"))
+            if u is not None:
+                false_moves += u["moved"]["fp"]
+                false_missing += u["removed"]["fp"]
+        in_view = f"{view[0] / sum(view):.3f}" if sum(view) else "–"
+        print(
+            f"| {tag} | {_pr(*tot['moved'])} | {in_view} | {false_moves} "
+            f"| {_pr(*tot['removed'], beyond=beyond)} | {false_missing} | {_pr(*tot['added'])} |"
+        )
 
 
 def _anees_table(rows: list[dict[str, Any]]) -> None:
