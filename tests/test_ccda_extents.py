@@ -383,3 +383,66 @@ def test_the_segment_tests_never_cut_an_edge_between_true_pairings() -> None:
             cut += _parallel_cut(bare, full, a, b)
     assert kept > 2000
     assert cut > 1000
+
+
+def _corners_reference(
+    ca: np.ndarray, cb: np.ndarray, sign: float, g1: float, p: CCDAParams
+) -> bool:
+    """One row of the corner test, written out: the ``A`` segments along lines ``i`` and
+    ``k`` against their partners', for both orientations of the rotation."""
+    if not (np.all(np.isfinite(ca[:4])) and np.all(np.isfinite(cb[:4]))):
+        return True
+
+    def agrees(lo: float, hi: float, blo: float, bhi: float, s: float, m: float) -> bool:
+        lo, hi = (lo, hi) if s > 0 else (-hi, -lo)
+        if p.extent_rule == "within":
+            return bool(blo - m <= lo and hi <= bhi + m)
+        return bool(lo <= bhi + m and blo <= hi + m)
+
+    m_i = p.extent_margin_m + math.sqrt(g1 * (ca[4] + cb[4]))
+    m_k = p.extent_margin_m + math.sqrt(g1 * (ca[5] + cb[5]))
+    return any(
+        agrees(ca[0], ca[1], cb[0], cb[1], r, m_i)
+        and agrees(ca[2], ca[3], cb[2], cb[3], r * sign, m_k)
+        for r in (1.0, -1.0)
+    )
+
+
+@pytest.mark.parametrize("rule", ["overlap", "within"])
+def test_the_vectorised_corner_test_is_the_written_out_rule(rule: str) -> None:
+    from mapfuse_core.matching.ccda.graph import _corners_overlap
+    from mapfuse_core.matching.ccda.params import _Gates
+
+    rng = np.random.default_rng(7)
+    n = 4000
+    ca, cb = rng.normal(0.0, 2.0, (n, 6)), rng.normal(0.0, 2.0, (n, 6))
+    ca[:, 4:], cb[:, 4:] = 0.02 * np.abs(ca[:, 4:]), 0.02 * np.abs(cb[:, 4:])
+    ca[rng.random(n) < 0.05, :4] = np.nan  # unknown extents pass
+    cb[rng.random(n) < 0.05, 2] = np.nan
+    sign = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    p, gates = CCDAParams(extent_rule=rule), _Gates.of(0.999)  # type: ignore[arg-type]
+    got = _corners_overlap(ca, cb, sign, gates, p)
+    want = [_corners_reference(ca[r], cb[r], sign[r], gates.g1, p) for r in range(n)]
+    assert got.tolist() == want
+    assert 0.2 < got.mean() < 0.8  # both outcomes are exercised
+    # All rows unknown, or all known: the two short cuts.
+    assert _corners_overlap(ca[:0], cb[:0], sign[:0], gates, p).size == 0
+    known = np.isfinite(ca[:, :4]).all(axis=1) & np.isfinite(cb[:, :4]).all(axis=1)
+    sub = _corners_overlap(ca[known], cb[known], sign[known], gates, p)
+    assert sub.tolist() == [w for w, k in zip(want, known, strict=True) if k]
+
+
+def test_common_neighbour_counts_are_those_of_the_adjacency_matrix() -> None:
+    # Dense enough that rows hold several words and counts pass 255 (8-bit sums
+    # would wrap).
+    rng = np.random.default_rng(3)
+    n = 700
+    dense = np.triu(rng.random((n, n)) < 0.6, 1)
+    u, v = (x.astype(np.int64) for x in np.nonzero(dense))
+    adj = (dense | dense.T).astype(np.int64)
+    W = clique_mod._packed_adjacency(n, u, v)
+    got = clique_mod._common_neighbours(W, u, v)
+    want = (adj @ adj)[u, v]
+    assert got.dtype == np.int64
+    assert np.array_equal(got, want)
+    assert want.max() > 255

@@ -256,40 +256,37 @@ def _corners_overlap(
     ``j``'s (and ``k``'s to ``sign`` times ``l``'s), or both reversed.  Rows with an
     unknown extent pass.
     """
-    out = np.ones(ca.shape[0], dtype=bool)
-    known = np.all(np.isfinite(ca[:, :4]), axis=1) & np.all(np.isfinite(cb[:, :4]), axis=1)
-    if not np.any(known):
-        return out
-    a, b, sg = ca[known], cb[known], sign[known]
+    known = np.isfinite(ca[:, :4]).all(axis=1) & np.isfinite(cb[:, :4]).all(axis=1)
+    if not known.any():
+        return np.ones(ca.shape[0], dtype=bool)
+    if not known.all():
+        ca, cb, sign = ca[known], cb[known], sign[known]
     within = params.extent_rule == "within"
-    m_i = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 4] + b[:, 4]))
-    m_k = params.extent_margin_m + np.sqrt(gates.g1 * (a[:, 5] + b[:, 5]))
 
-    def overlap(
-        lo: FloatArray,
-        hi: FloatArray,
-        blo: FloatArray,
-        bhi: FloatArray,
-        s: FloatArray,
-        margin: FloatArray,
-    ) -> BoolArray:
-        lo2 = np.where(s > 0, lo, -hi)
-        hi2 = np.where(s > 0, hi, -lo)
-        res: BoolArray
+    def both(
+        lo: FloatArray, hi: FloatArray, blo: FloatArray, bhi: FloatArray, var: FloatArray
+    ) -> tuple[BoolArray, BoolArray]:
+        # Whether [lo, hi] agrees with [blo, bhi] as measured, and reversed along its
+        # line ([−hi, −lo]): each candidate's rotation picks one per line.
+        m = params.extent_margin_m + np.sqrt(gates.g1 * var)
+        top = bhi + m
         if within:
-            res = (blo - margin <= lo2) & (hi2 <= bhi + margin)
-        else:
-            res = (lo2 <= bhi + margin) & (blo <= hi2 + margin)
-        return res
+            bottom = blo - m
+            return (bottom <= lo) & (hi <= top), (bottom <= -hi) & (-lo <= top)
+        return (lo <= top) & (blo <= hi + m), (-hi <= top) & (blo <= m - lo)
 
-    one = np.ones(sg.size)
-    fwd = overlap(a[:, 0], a[:, 1], b[:, 0], b[:, 1], one, m_i) & overlap(
-        a[:, 2], a[:, 3], b[:, 2], b[:, 3], sg, m_k
+    i_fwd, i_rev = both(ca[:, 0], ca[:, 1], cb[:, 0], cb[:, 1], ca[:, 4] + cb[:, 4])
+    k_same, k_flip = both(ca[:, 2], ca[:, 3], cb[:, 2], cb[:, 3], ca[:, 5] + cb[:, 5])
+    # Line k's direction maps to ``sign`` times l's when i's maps to j's, and the
+    # other way round when i's is reversed.
+    same = sign > 0
+    ok: BoolArray = (i_fwd & np.where(same, k_same, k_flip)) | (
+        i_rev & np.where(same, k_flip, k_same)
     )
-    rev = overlap(a[:, 0], a[:, 1], b[:, 0], b[:, 1], -one, m_i) & overlap(
-        a[:, 2], a[:, 3], b[:, 2], b[:, 3], -sg, m_k
-    )
-    out[known] = fwd | rev
+    if ok.size == known.size:
+        return ok
+    out = np.ones(known.size, dtype=bool)
+    out[known] = ok
     return out
 
 
@@ -353,29 +350,29 @@ def _line_filter(pa: _Pairs, pb: _Pairs, gates: _Gates, params: CCDAParams, emit
     """Wrap ``emit`` with the test of parallel line pairs: angle and distance jointly."""
 
     def parallel_test(ia: IntArray, ib: IntArray) -> None:
-        dang = wrap_angle_half(pa.g[ia, 0] - pb.g[ib, 0])
-        abs_a, abs_b = np.abs(pa.g[ia, 0]), np.abs(pb.g[ib, 0])
+        ang_a, ang_b = pa.g[ia, 0], pb.g[ib, 0]
+        abs_a, abs_b = np.abs(ang_a), np.abs(ang_b)
         par = (abs_a <= params.parallel_tol_rad) & (abs_b <= params.parallel_tol_rad)
         ok = np.ones(ia.size, dtype=bool)
-        if np.any(par):
-            ja, jb, da = ia[par], ib[par], dang[par]
+        rows = np.flatnonzero(par)
+        if rows.size:
+            ja, jb = ia[rows], ib[rows]
+            da = wrap_angle_half(ang_a[rows] - ang_b[rows])
             dd = pa.g[ja, 1] - pb.g[jb, 1]
             S = pa.S[ja] + pb.S[jb]
             # Nearly parallel lines: their distance depends on where it is measured.
-            sin_max = np.sin(np.maximum(abs_a[par], abs_b[par]))
+            sin_max = np.sin(np.maximum(abs_a[rows], abs_b[rows]))
             S[:, 1, 1] += (sin_max * params.parallel_along_std_m) ** 2
             det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
             q = (S[:, 1, 1] * da * da - 2.0 * S[:, 0, 1] * da * dd + S[:, 0, 0] * dd * dd) / det
-            ok[par] = q <= gates.g2
-            test = np.nonzero(par)[0][ok[par]]
+            ok[rows] = q <= gates.g2
+            test = rows[ok[rows]]
             ok[test] = _parallel_overlap(pa, pb, ia[test], ib[test], gates, params)
-        if pa.corner is not None and pb.corner is not None and np.any(~par):
-            ok[~par] = _corners_overlap(
-                pa.corner[ia[~par]],
-                pb.corner[ib[~par]],
-                dang_sign(ia[~par], ib[~par]),
-                gates,
-                params,
+        rows = np.flatnonzero(~par)
+        if pa.corner is not None and pb.corner is not None and rows.size:
+            na, nb = ia[rows], ib[rows]
+            ok[rows] = _corners_overlap(
+                pa.corner[na], pb.corner[nb], dang_sign(na, nb), gates, params
             )
         emit(ia[ok], ib[ok])
 
