@@ -308,3 +308,26 @@ def test_estimated_terms_change_covariances_only(data_dir: Path) -> None:
 def test_options_name_a_bad_choice() -> None:
     with pytest.raises(ValueError, match="line_model_error must be 'correlated', 'independent' or"):
         CarmenOptions(line_model_error="guess")  # type: ignore[arg-type]
+
+
+def test_residuals_are_those_the_estimators_form() -> None:
+    # The terms are set on the residual the estimators' factors see: an observation's
+    # reference point against its wall's line (``observe``), not the wall's midpoint
+    # against the observed line, which lets the angle's lever arm stand in for the
+    # lateral term.
+    from mapfuse_core.data.datasets import build_floor_plan
+    from mapfuse_core.data.datasets.line_noise import _residuals
+    from mapfuse_core.models import observe
+
+    log = _log((0.03, math.radians(0.6)), phi=0.0, n=60)
+    plan = build_floor_plan(log)
+    res = _residuals(log, plan)
+    assert log.true_poses is not None
+    idx = np.flatnonzero(plan.obs_wall >= 0)
+    assert idx.size > 0.9 * log.n_features
+    for n, i in enumerate(idx.tolist()):
+        pose = log.true_poses[log.feat_step[i]]
+        want, _, _ = observe(
+            FeatureKind.LINE, log.feat_params[i], pose, plan.walls.params[plan.obs_wall[i]]
+        )
+        assert res.r[n] == pytest.approx(want, abs=1e-12)

@@ -11,8 +11,10 @@ independent counts the same error several times.
 
 :func:`estimate_line_model_error` measures both on the log itself.  It builds the
 log's floor plan (each wall the mean of the observations clustered on it, with the
-standard error of that mean and no survey σ), expresses every observation's wall at
-the reference pose and takes the residual (lateral offset, angle) against the
+standard error of that mean and no survey σ), and compares every observation with its
+wall at the reference pose as the estimators compare an observation with its landmark
+(:func:`~mapfuse_core.models.dispatch.observe`: the lateral offset of the
+observation's reference point from the wall's line, and the angle), against the
 observation's own covariance plus the wall's.  Then, per degree of freedom:
 
 1. the σ that makes the mean whitened squared residual 1;
@@ -26,14 +28,11 @@ observation's own covariance plus the wall's.  Then, per degree of freedom:
    moves ``τ`` a little): the ``τ`` reported is that of the residuals whitened with
    the terms reported.
 
-The lateral offset is that of the wall's midpoint from the observed line, as
-:func:`~mapfuse_core.data.datasets.floorplan.line_nees` measures it; the angle's σ is
-solved first (the lateral offset depends on both terms, the angle's through the
-distance from the foot of the observed line's normal to that midpoint).  The
-estimators' factors measure the offset at the observation instead, where the σ comes
-out larger on some logs (``docs/gaps.md``).  The tail of the residuals is heavy
-(mixed-up walls, furniture); the mean counts it, as a run's NEES does.  Measured on the
-seven CARMEN logs in ``docs/results/carmen.md``.
+The angle's σ is solved first: the lateral offset depends on both terms (the angle's
+through the distance from the foot of the observed line's normal to its reference
+point).  The tail of the residuals is heavy (mixed-up walls, furniture); the mean
+counts it, as a run's NEES does.  Measured on the seven CARMEN logs in
+``docs/results/carmen.md``.
 """
 
 from __future__ import annotations
@@ -48,12 +47,12 @@ from mapfuse_core.data.datasets.floorplan import (
     FloorPlan,
     FloorPlanParams,
     build_floor_plan,
-    wall_residual,
 )
-from mapfuse_core.geometry.features import FeatureKind
+from mapfuse_core.geometry.features import FeatureKind, express_line_in
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.measlog.log import IntArray
+from mapfuse_core.models import observe, pairing_cov
 from mapfuse_core.perception.extraction.noise import line_model_cov
 
 __all__ = [
@@ -140,17 +139,26 @@ class _Residuals:
 
 
 def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
+    """Every observation on a plan wall against that wall at the reference pose, as the
+    estimators compare a line observation with its landmark
+    (:func:`~mapfuse_core.models.dispatch.observe`): the lateral offset of the
+    observation's reference point from the wall's line, and the angle."""
     assert log.true_poses is not None
     idx = np.flatnonzero(plan.obs_wall >= 0)
     r = np.empty((idx.size, 2))
     var = np.empty((idx.size, 2))
     gain = np.empty((idx.size, 2, 2))
+    walls = plan.walls
     for n, i in enumerate(idx.tolist()):
-        z = log.feat_params[i]
-        r[n], S, Jz = wall_residual(log, i, plan.walls, int(plan.obs_wall[i]))
+        z, w = log.feat_params[i], int(plan.obs_wall[i])
+        pose = log.true_poses[log.feat_step[i]]
+        r[n], _, Jw = observe(FeatureKind.LINE, z, pose, walls.params[w])
+        pred, _, _ = express_line_in(pose, walls.params[w])
+        S = pairing_cov(FeatureKind.LINE, pred, z, log.feat_cov[i]) + Jw @ walls.covs[w] @ Jw.T
         var[n] = np.diag(S)
         for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            gain[n, :, k] = np.diag(Jz @ line_model_cov(z, *unit) @ Jz.T)
+            added = line_model_cov(z, *unit)
+            gain[n, :, k] = np.diag(pairing_cov(FeatureKind.LINE, pred, z, added))
     return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain)
 
 
