@@ -154,6 +154,8 @@ def _variant(spec: str) -> tuple[str, dict[str, object]]:
     tag, sep, body = spec.partition(":")
     if not sep or not tag.isidentifier():
         raise argparse.ArgumentTypeError(f"{spec!r}: expected 'TAG:field=value;...'")
+    if tag == "graph":
+        raise argparse.ArgumentTypeError(f"{spec!r}: the tag 'graph' names the --graph run's keys")
     fields: dict[str, object] = {}
     for item in filter(None, (x.strip() for x in body.split(";"))):
         key, eq, value = item.partition("=")

@@ -13,17 +13,20 @@ from pathlib import Path
 DATA_ENV = "MAPFUSE_DATA"
 
 
-def data_dir(given: str | Path | None, source: str, option: str) -> str:
+def data_dir(given: str | Path | None, source: str, name: str, spelling: str) -> str:
     """The data directory for dataset ``source``: ``given``, else ``$MAPFUSE_DATA``.
 
-    ``option`` is how the caller spells the argument (``"data=DIR"``, ``"--data DIR"``),
-    for the messages.  Raises ``ValueError`` when neither names a directory, or when
-    the one used is not a directory.
+    ``name`` is the caller's name of the argument (``"data"``, ``"--data"``) and
+    ``spelling`` how it is written with a value (``"data=DIR"``, ``"--data DIR"``), for
+    the messages.  Raises ``ValueError`` when neither names a directory (an empty
+    ``given`` included), or when the one used is not a directory.
     """
+    if given is not None and not str(given):
+        raise ValueError(f"{name} is empty: give the data directory ({spelling})")
     directory = str(given) if given is not None else os.environ.get(DATA_ENV) or None
     if directory is None:
-        raise ValueError(f"dataset {source!r} needs a data directory ({option} or ${DATA_ENV})")
+        raise ValueError(f"dataset {source!r} needs a data directory ({spelling} or ${DATA_ENV})")
     if not Path(directory).is_dir():
-        where = option.split()[0].split("=")[0] if given is not None else f"${DATA_ENV}"
+        where = name if given is not None else f"${DATA_ENV}"
         raise ValueError(f"{where} {directory} is not a directory")
     return directory

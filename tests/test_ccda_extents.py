@@ -419,14 +419,17 @@ def test_the_vectorised_corner_test_is_the_written_out_rule(rule: str) -> None:
     ca[:, 4:], cb[:, 4:] = 0.02 * np.abs(ca[:, 4:]), 0.02 * np.abs(cb[:, 4:])
     ca[rng.random(n) < 0.05, :4] = np.nan  # unknown extents pass
     cb[rng.random(n) < 0.05, 2] = np.nan
+    ca[rng.random(n) < 0.02, 5] = np.nan  # a known extent with no variance fails
     sign = np.where(rng.random(n) < 0.5, 1.0, -1.0)
     p, gates = CCDAParams(extent_rule=rule), _Gates.of(0.999)  # type: ignore[arg-type]
     got = _corners_overlap(ca, cb, sign, gates, p)
     want = [_corners_reference(ca[r], cb[r], sign[r], gates.g1, p) for r in range(n)]
     assert got.tolist() == want
     assert 0.2 < got.mean() < 0.8  # both outcomes are exercised
-    # All rows unknown, or all known: the two short cuts.
+    # No rows, all rows unknown, or all known: the short cuts.
     assert _corners_overlap(ca[:0], cb[:0], sign[:0], gates, p).size == 0
+    unknown = np.full((5, 6), np.nan)
+    assert _corners_overlap(unknown, cb[:5], sign[:5], gates, p).tolist() == [True] * 5
     known = np.isfinite(ca[:, :4]).all(axis=1) & np.isfinite(cb[:, :4]).all(axis=1)
     sub = _corners_overlap(ca[known], cb[known], sign[known], gates, p)
     assert sub.tolist() == [w for w, k in zip(want, known, strict=True) if k]
@@ -443,6 +446,8 @@ def test_common_neighbour_counts_are_those_of_the_adjacency_matrix() -> None:
     W = clique_mod._packed_adjacency(n, u, v)
     got = clique_mod._common_neighbours(W, u, v)
     want = (adj @ adj)[u, v]
-    assert got.dtype == np.int64
     assert np.array_equal(got, want)
     assert want.max() > 255
+    # Row sums in 16 bits only where a row's count (≤ 64 per word) fits them.
+    assert clique_mod._row_sum_dtype(1023) == np.uint16
+    assert clique_mod._row_sum_dtype(1024) == np.int64

@@ -44,3 +44,13 @@ def test_each_variant_sums_its_own_scores(capsys: pytest.CaptureFixture[str]) ->
     # missing on the unchanged maps: 2 each under m0.
     assert table["m0"].split(" | ")[2:4] == ["0.750", "2"]
     assert table["m0"].split(" | ")[5] == "2"
+
+
+def test_a_variant_may_not_take_the_graph_run_s_keys() -> None:
+    import argparse
+
+    from benchmarks.changes_mc import _variant
+
+    assert _variant("m1:missing_radius_sigmas=1.0") == ("m1", {"missing_radius_sigmas": 1.0})
+    with pytest.raises(argparse.ArgumentTypeError, match="names the --graph run's keys"):
+        _variant("graph:missing_radius_sigmas=1.0")

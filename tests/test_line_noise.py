@@ -318,6 +318,7 @@ def test_residuals_are_those_the_estimators_form() -> None:
     from mapfuse_core.data.datasets import build_floor_plan
     from mapfuse_core.data.datasets.line_noise import _residuals
     from mapfuse_core.models import observe
+    from mapfuse_core.models.line import line_observation_cov
 
     log = _log((0.03, math.radians(0.6)), phi=0.0, n=60)
     plan = build_floor_plan(log)
@@ -327,7 +328,14 @@ def test_residuals_are_those_the_estimators_form() -> None:
     assert idx.size > 0.9 * log.n_features
     for n, i in enumerate(idx.tolist()):
         pose = log.true_poses[log.feat_step[i]]
-        want, _, _ = observe(
-            FeatureKind.LINE, log.feat_params[i], pose, plan.walls.params[plan.obs_wall[i]]
-        )
+        z, w = log.feat_params[i], plan.obs_wall[i]
+        wall, wall_cov = plan.walls.params[w], plan.walls.covs[w]
+        want, _, Jw = observe(FeatureKind.LINE, z, pose, wall)
         assert res.r[n] == pytest.approx(want, abs=1e-12)
+        # Its variance: the observation's noise as the estimators take it, plus the
+        # wall's through the residual's Jacobian; and what a unit term adds.
+        S = line_observation_cov(pose, wall, z, log.feat_cov[i]) + Jw @ wall_cov @ Jw.T
+        assert res.var[n] == pytest.approx(np.diag(S), rel=1e-12)
+        for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
+            added = line_observation_cov(pose, wall, z, line_model_cov(z, *unit))
+            assert res.gain[n, :, k] == pytest.approx(np.diag(added), rel=1e-12)

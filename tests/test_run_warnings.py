@@ -195,6 +195,8 @@ def test_library_finds_a_dataset_where_the_command_line_does(
         prepare_log("carpark")
     with pytest.raises(ValueError, match=r"^data /no/such/dir is not a directory$"):
         prepare_log("carpark", data_dir="/no/such/dir")
+    with pytest.raises(ValueError, match=r"^data is empty: give the data directory"):
+        prepare_log("carpark", data_dir="")
     monkeypatch.setenv("MAPFUSE_DATA", str(tmp_path / "gone"))
     with pytest.raises(ValueError, match=r"^\$MAPFUSE_DATA .*gone is not a directory$"):
         prepare_log("victoria-park")

@@ -142,9 +142,10 @@ class CarmenOptions:
     ``"correlated"`` counts the correlation of consecutive scans (each observation worth
     ``1/τ``), ``"independent"`` whitens each observation to 1.  A log without a
     reference (raw odometry), or with too few observations on its plan, keeps
-    :attr:`extraction`'s.  The estimates are not the default: with them every estimator
-    is within its NEES target on more of the seven logs, but a larger angle term
-    breaks FHW's association (``docs/results/carmen.md``).  The log's metadata
+    :attr:`extraction`'s.  The estimates are not the default: with them and the plan
+    every estimator's ANEES is at most 6 on four of the six logs measured (two with the
+    profile's terms), but FHW's larger angle term breaks its runs
+    (``docs/results/carmen.md``).  The log's metadata
     (``line_model_error``) says which were used."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam

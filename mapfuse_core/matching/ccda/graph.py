@@ -277,11 +277,10 @@ def _corners_overlap(
 
     i_fwd, i_rev = both(ca[:, 0], ca[:, 1], cb[:, 0], cb[:, 1], ca[:, 4] + cb[:, 4])
     k_same, k_flip = both(ca[:, 2], ca[:, 3], cb[:, 2], cb[:, 3], ca[:, 5] + cb[:, 5])
-    # Line k's direction maps to ``sign`` times l's when i's maps to j's, and the
-    # other way round when i's is reversed.
-    same = sign > 0
-    ok: BoolArray = (i_fwd & np.where(same, k_same, k_flip)) | (
-        i_rev & np.where(same, k_flip, k_same)
+    # Line k's direction maps to ``sign`` times l's when i's maps to j's, and to
+    # ``−sign`` times l's when i's is reversed (``sign`` is ±1).
+    ok: BoolArray = (i_fwd & np.where(sign > 0, k_same, k_flip)) | (
+        i_rev & np.where(sign < 0, k_same, k_flip)
     )
     if ok.size == known.size:
         return ok
