@@ -143,7 +143,7 @@ class CarmenOptions:
     ``1/τ``), ``"independent"`` whitens each observation to 1.  A log without a
     reference (raw odometry), or with too few observations on its plan, keeps
     :attr:`extraction`'s.  The estimates are not the default: with them and the plan
-    every estimator's ANEES is at most 6 on four of the six logs measured (two with the
+    every estimator's ANEES is at most 6 on four of the seven logs (two with the
     profile's terms), but FHW's larger angle term breaks its runs
     (``docs/results/carmen.md``).  The log's metadata
     (``line_model_error``) says which were used."""
