@@ -48,11 +48,11 @@ from mapfuse_core.data.datasets.floorplan import (
     FloorPlanParams,
     build_floor_plan,
 )
-from mapfuse_core.geometry.features import FeatureKind, express_line_in
+from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray
 from mapfuse_core.measlog import MeasurementLog
 from mapfuse_core.measlog.log import IntArray
-from mapfuse_core.models import observe, pairing_cov
+from mapfuse_core.models import line_observation_cov, observe
 from mapfuse_core.perception.extraction.noise import line_model_cov
 
 __all__ = [
@@ -151,14 +151,13 @@ def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
     walls = plan.walls
     for n, i in enumerate(idx.tolist()):
         z, w = log.feat_params[i], int(plan.obs_wall[i])
-        pose = log.true_poses[log.feat_step[i]]
-        r[n], _, Jw = observe(FeatureKind.LINE, z, pose, walls.params[w])
-        pred, _, _ = express_line_in(pose, walls.params[w])
-        S = pairing_cov(FeatureKind.LINE, pred, z, log.feat_cov[i]) + Jw @ walls.covs[w] @ Jw.T
+        pose, wall = log.true_poses[log.feat_step[i]], walls.params[w]
+        r[n], _, Jw = observe(FeatureKind.LINE, z, pose, wall)
+        S = line_observation_cov(pose, wall, z, log.feat_cov[i]) + Jw @ walls.covs[w] @ Jw.T
         var[n] = np.diag(S)
         for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            added = line_model_cov(z, *unit)
-            gain[n, :, k] = np.diag(pairing_cov(FeatureKind.LINE, pred, z, added))
+            added = line_observation_cov(pose, wall, z, line_model_cov(z, *unit))
+            gain[n, :, k] = np.diag(added)
     return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain)
 
 
