@@ -284,7 +284,7 @@ def _data_dir(args: argparse.Namespace, source: str, kind: SourceKind) -> str | 
             raise UsageError(f"--data applies to carpark and victoria-park only, not {source!r}")
         return None
     try:
-        return data_dir(given, source, "--data", "--data DIR")
+        return data_dir(given, source, "--data")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 

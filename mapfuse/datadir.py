@@ -13,14 +13,15 @@ from pathlib import Path
 DATA_ENV = "MAPFUSE_DATA"
 
 
-def data_dir(given: str | Path | None, source: str, name: str, spelling: str) -> str:
+def data_dir(given: str | Path | None, source: str, name: str) -> str:
     """The data directory for dataset ``source``: ``given``, else ``$MAPFUSE_DATA``.
 
-    ``name`` is the caller's name of the argument (``"data"``, ``"--data"``) and
-    ``spelling`` how it is written with a value (``"data=DIR"``, ``"--data DIR"``), for
-    the messages.  Raises ``ValueError`` when neither names a directory (an empty
-    ``given`` included), or when the one used is not a directory.
+    ``name`` is the caller's name of the argument, for the messages: a keyword
+    (``"data"``, written ``data=DIR``) or an option (``"--data"``, written ``--data
+    DIR``).  Raises ``ValueError`` when neither names a directory (an empty ``given``
+    included), or when the one used is not a directory.
     """
+    spelling = f"{name} DIR" if name.startswith("-") else f"{name}=DIR"
     if given is not None and not str(given):
         raise ValueError(f"{name} is empty: give the data directory ({spelling})")
     directory = str(given) if given is not None else os.environ.get(DATA_ENV) or None

@@ -128,7 +128,7 @@ def load(
         from mapfuse_core.data.datasets import load_carpark, load_victoria_park
 
         loader = load_carpark if src == "carpark" else load_victoria_park
-        log = loader(data_dir(data, src, "data", "data=DIR"))
+        log = loader(data_dir(data, src, "data"))
         return log if steps is None else _head(log, steps)
     return simulate(src, seed, steps=steps, progress=progress, workers=workers)
 
