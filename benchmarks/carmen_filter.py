@@ -83,7 +83,8 @@ def redrawn_from_plan(log: MeasurementLog, walls: Any, seed: int) -> Measurement
         pose = out.true_poses[int(out.feat_step[j])]
         truth = express_line_in(pose, walls.params[int(out.feat_true_id[j])])[0]
         params[j], covs[j] = _redrawn_line(truth, out.feat_params[j], out.feat_cov[j], rng)
-    return dataclasses.replace(out, feat_params=params, feat_cov=covs)
+    # Each draw errs by its covariance alone, independently of the others.
+    return dataclasses.replace(out, feat_params=params, feat_cov=covs, feat_gate_cov=None)
 
 
 def track_nees(track: PoseTrack, truth: np.ndarray) -> tuple[float, float]:

@@ -133,7 +133,8 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
         while draw[2] <= 0.0:  # a radius must stay positive: redraw (truncated tail)
             draw = rng.multivariate_normal(truth, cov)
         params[j] = draw
-    return dataclasses.replace(log, feat_params=params, feat_cov=covs)
+    # Each draw errs by its covariance alone, independently of the others.
+    return dataclasses.replace(log, feat_params=params, feat_cov=covs, feat_gate_cov=None)
 
 
 #: Standard deviation (m and rad) the exact known map states: small, not zero, so that
@@ -173,6 +174,7 @@ def with_observations(log: MeasurementLog, keep: np.ndarray) -> MeasurementLog:
         feat_kind=log.feat_kind[keep],
         feat_params=log.feat_params[keep],
         feat_cov=log.feat_cov[keep],
+        feat_gate_cov=None if log.feat_gate_cov is None else log.feat_gate_cov[keep],
         feat_true_id=log.feat_true_id[keep],
         feat_n_points=log.feat_n_points[keep],
         feat_extent=log.feat_extent[keep],

@@ -81,6 +81,10 @@ class Query:
     """σ (m) of where a line's ends lie along it: a measured segment's
     (:func:`segment_end_sd`), a map element's :attr:`~ekf_reference.state.Element.extent_sd`;
     ``inf`` when unknown (no rule then relies on the ends)."""
+    gate_cov: FloatArray | None = None
+    """(3, 3) covariance of the measurement's error taken alone, for its compatibility
+    test (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`); ``None``:
+    :attr:`cov`.  The update weighs it with :attr:`cov`."""
 
 
 @dataclass(frozen=True)
@@ -96,9 +100,11 @@ class Candidate:
     H: FloatArray
     """∂residual/∂(those elements), (m, 3·len(indices))."""
     R: FloatArray
-    """Covariance of the residual due to the measurement (zeros for a map element)."""
+    """Covariance of the residual due to the measurement (zeros for a map element), as
+    the update weighs it."""
     d2: float
-    """Mahalanobis distance ``rᵀ S⁻¹ r``."""
+    """Mahalanobis distance ``rᵀ S⁻¹ r``, ``S`` with the measurement's error taken alone
+    (:attr:`Query.gate_cov`)."""
 
 
 def predict_targets(
@@ -161,8 +167,9 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
     the angle between them, for an estimated line and a known wall alike, so the
     target's reference point along its line never enters.  A measurement's noise is
     the model's (:func:`mapfuse_core.models.dispatch.pairing_cov`: its covariance with the
-    along-line pseudo-variance projected out, through ``∂r/∂q``); a map element's own
-    covariance is in the map, so its pairing has none.  docs/method.md says why the
+    along-line pseudo-variance projected out, through ``∂r/∂q``): ``R`` from
+    :attr:`Query.cov`, the distance from :attr:`Query.gate_cov` where given; a map
+    element's own covariance is in the map, so its pairing has none.  docs/method.md says why the
     segment form.  A map element's query can ask for the offset at the target's
     reference point instead (:attr:`Query.residual_at`: the paper's ties).
     """
@@ -180,8 +187,8 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
         blocks = [Jp @ J for J in tJ]
         R = pairing_cov(fk, pred, q.params, q.cov)
     H = np.hstack(blocks)
-    S = R + _project(state, indices, H)
-    d2 = _mahalanobis(r, S)
+    R_gate = R if q.gate_cov is None else pairing_cov(fk, pred, q.params, q.gate_cov)
+    d2 = _mahalanobis(r, R_gate + _project(state, indices, H))
     return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2)
 
 

@@ -197,6 +197,7 @@ class _Run:
                     kind=kind,
                     params=log.feat_params[j],
                     cov=log.feat_cov[j],
+                    gate_cov=None if log.feat_gate_cov is None else log.feat_gate_cov[j],
                     extent=ext,
                     end_sd=end_sd,
                 )

@@ -210,7 +210,7 @@ class OwnAssociation:
             mine = []
             for n in self._pregate(kind, zw, (float(ext[0]), float(ext[1])), idx, feats):
                 i = idx[n]
-                d2 = self._obs_d2(k, kind, z, x, Px, i, vals[n], log.feat_cov[j], est)
+                d2 = self._obs_d2(k, kind, z, x, Px, i, vals[n], log.gate_covs[j], est)
                 if d2 <= self._gate[2 if kind == FeatureKind.LINE else 3]:
                     mine.append(ScoredPair(i, d2))
             cands.append(mine)

@@ -130,6 +130,24 @@ def test_known_wall_noise_ignores_the_along_line_pseudo_variance(
     assert LINE_SIGMA[0] ** 2 * 0.99 < c.R[0, 0] < LINE_SIGMA[0] ** 2 * 1.01 + 1e-10
 
 
+@settings(max_examples=40, deadline=None)
+@given(known_wall_cases())
+def test_the_gate_takes_the_error_alone_and_the_update_its_weight(
+    case: tuple[GaussianMap, Query],
+) -> None:
+    # A measurement whose covariance is inflated for errors it shares with its
+    # neighbours in time (feat_gate_cov): its distance is tested against its error
+    # taken alone, while the update still weighs it by the inflated covariance.
+    m, q = case
+    inflated = Query(q.kind, q.params, 4.0 * q.cov, q.extent)
+    both = Query(q.kind, q.params, 4.0 * q.cov, q.extent, gate_cov=q.cov)
+    alone, wide, gated = evaluate(m, q, 1), evaluate(m, inflated, 1), evaluate(m, both, 1)
+    np.testing.assert_allclose(gated.R, wide.R, atol=1e-15)
+    np.testing.assert_allclose(gated.residual, alone.residual, atol=1e-15)
+    assert math.isclose(gated.d2, alone.d2, rel_tol=1e-12, abs_tol=1e-12)
+    assert wide.d2 <= alone.d2 + 1e-12
+
+
 def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:
     # A segment 40 m from the wall's reference point, 0.1 rad off its direction and on
     # it at its own midpoint: the reference point is 4 m from the segment's line,

@@ -217,6 +217,39 @@ def test_applied_terms_are_self_consistent() -> None:
         assert nees * tau == pytest.approx(1.0, abs=0.03)
 
 
+def test_gate_terms_are_those_that_whiten_each_observation() -> None:
+    # The gate's terms are step 1 of the correlated estimate: the independent estimate,
+    # smaller than the correlated terms where consecutive errors are correlated (τ ≈ 3.7).
+    log = _log((0.03, math.radians(0.6)), phi=0.6, n=800)
+    corr = estimate_line_model_error(log)
+    indep = estimate_line_model_error(log, correlated=False)
+    assert (corr.gate_sigma_m, corr.gate_sigma_rad) == (indep.sigma_m, indep.sigma_rad)
+    assert (indep.gate_sigma_m, indep.gate_sigma_rad) == (indep.sigma_m, indep.sigma_rad)
+    assert corr.gate_sigma_m < 0.7 * corr.sigma_m
+    assert corr.gate_sigma_rad < 0.7 * corr.sigma_rad
+    assert "gates" in corr.summary() and "gates" not in indep.summary()
+
+
+def test_gate_terms_make_the_gate_covariances() -> None:
+    log = _log((0.03, 0.01), phi=0.0, n=20)
+    assert log.feat_gate_cov is None
+    assert with_line_model_error(log, 0.02, 0.01).feat_gate_cov is None
+    out = with_line_model_error(log, 0.05, 0.02, gate=(0.02, 0.01))
+    assert out.feat_gate_cov is not None
+    for j in range(log.n_features):
+        z, base = log.feat_params[j], log.feat_cov[j]
+        np.testing.assert_allclose(out.feat_cov[j], base + line_model_cov(z, 0.05, 0.02))
+        np.testing.assert_allclose(out.feat_gate_cov[j], base + line_model_cov(z, 0.02, 0.01))
+    # Terms added later widen both.
+    again = with_line_model_error(out, 0.01, 0.0)
+    assert again.feat_gate_cov is not None
+    np.testing.assert_allclose(
+        again.feat_gate_cov[0], out.feat_gate_cov[0] + line_model_cov(log.feat_params[0], 0.01, 0.0)
+    )
+    with pytest.raises(ValueError, match="gate sigma_rad must be finite and >= 0"):
+        with_line_model_error(log, 0.02, 0.01, gate=(0.02, math.nan))
+
+
 def test_bad_input_is_named() -> None:
     log = _log((0.03, 0.01), phi=0.0, n=20)
     with pytest.raises(ValueError, match="reference trajectory"):
@@ -273,6 +306,15 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
         load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile"))
     )
     assert f"{first.sigma_m:.3f} m" in log.metadata["line_model_error"]
+    # Its gates take each observation's error alone: the independent terms.
+    assert log.feat_gate_cov is not None
+    assert f"gates {first.gate_sigma_m:.3f} m" in log.metadata["line_model_error"]
+    gate = with_line_model_error(
+        load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile")),
+        first.gate_sigma_m,
+        first.gate_sigma_rad,
+    )
+    np.testing.assert_allclose(log.feat_gate_cov, gate.feat_cov, rtol=1e-12, atol=1e-18)
     # The terms it carries whiten its residuals to 1/τ: estimating again adds under 5 %
     # of their variance (τ moves a little with the terms' own reweighting).
     again = estimate_line_model_error(log)

@@ -105,6 +105,35 @@ def test_head_keeps_the_first_steps_and_their_features() -> None:
             log.head(bad)  # type: ignore[arg-type]
 
 
+def test_gate_covariances_round_trip_fall_back_and_are_cut_by_head(tmp_path: Path) -> None:
+    log = small_log()
+    assert log.feat_gate_cov is None
+    assert log.gate_covs is log.feat_cov
+    gated = dataclasses.replace(log, feat_gate_cov=0.5 * log.feat_cov)
+    back = load_log(save_log(gated, tmp_path / "log.npz"))
+    assert back.feat_gate_cov is not None
+    np.testing.assert_array_equal(back.feat_gate_cov, gated.feat_gate_cov)
+    np.testing.assert_array_equal(back.gate_covs, 0.5 * log.feat_cov)
+    assert load_log(save_log(log, tmp_path / "plain.npz")).feat_gate_cov is None
+    head = gated.head(3)
+    assert head.feat_gate_cov is not None
+    np.testing.assert_array_equal(head.feat_gate_cov, gated.feat_gate_cov[:3])
+
+
+def test_bad_gate_covariances_are_named() -> None:
+    log = small_log()
+    with pytest.raises(MeasurementLogError, match="'feat_gate_cov' has shape"):
+        dataclasses.replace(log, feat_gate_cov=log.feat_cov[:2])
+    bad = log.feat_cov.copy()
+    bad[4] = np.diag([0.01, -0.02, 0.003])
+    with pytest.raises(MeasurementLogError, match=r"'feat_gate_cov'\[4\] has a negative variance"):
+        dataclasses.replace(log, feat_gate_cov=bad)
+    nan = log.feat_cov.copy()
+    nan[1, 0, 0] = np.nan
+    with pytest.raises(MeasurementLogError, match="'feat_gate_cov' has a non-finite value"):
+        dataclasses.replace(log, feat_gate_cov=nan)
+
+
 def test_nan_is_rejected_with_its_location() -> None:
     log = small_log()
     params = log.feat_params.copy()

@@ -99,6 +99,14 @@ class MeasurementLog:
     returned nothing; given with :attr:`scan_bearings`.  The features are extracted from
     these; change detection reads them for where the laser saw through a mapped feature
     (``docs/change-detection.md``)."""
+    feat_gate_cov: FloatArray | None = None
+    """(M, 3, 3) covariance of each feature's error taken alone, which the tests of
+    compatibility (association gates) use; ``None``: :attr:`feat_cov`.  It differs from
+    :attr:`feat_cov` where that is inflated so that consecutive observations sharing
+    one error count once (the line model error estimated with its autocorrelation,
+    :func:`~mapfuse_core.data.datasets.line_noise.estimate_line_model_error`): that
+    inflation is right for the information an observation carries, not for how far
+    one observation strays (:attr:`gate_covs`)."""
     _offsets: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -118,6 +126,12 @@ class MeasurementLog:
     def n_features(self) -> int:
         """Total number of extracted features ``M``."""
         return int(self.feat_step.shape[0])
+
+    @property
+    def gate_covs(self) -> FloatArray:
+        """(M, 3, 3) covariances the compatibility tests use: :attr:`feat_gate_cov`
+        where the log gives one, else :attr:`feat_cov`."""
+        return self.feat_cov if self.feat_gate_cov is None else self.feat_gate_cov
 
     @property
     def gps(self) -> tuple[FloatArray, FloatArray] | None:
@@ -145,6 +159,7 @@ class MeasurementLog:
             feat_kind=self.feat_kind[:m],
             feat_params=self.feat_params[:m],
             feat_cov=self.feat_cov[:m],
+            feat_gate_cov=None if self.feat_gate_cov is None else self.feat_gate_cov[:m],
             feat_true_id=self.feat_true_id[:m],
             feat_n_points=self.feat_n_points[:m],
             feat_extent=self.feat_extent[:m],
@@ -318,6 +333,9 @@ def _validate(log: MeasurementLog) -> None:
     _check_array("feat_extent", log.feat_extent, (m, 2), finite=False)
     _check_kinds("feat_kind", log.feat_kind)
     _check_covs("feat_cov", log.feat_cov)
+    if log.feat_gate_cov is not None:
+        _check_array("feat_gate_cov", log.feat_gate_cov, (m, 3, 3), limit=MAX_VARIANCE)
+        _check_covs("feat_gate_cov", log.feat_gate_cov)
     if m and (log.feat_step.min() < 0 or log.feat_step.max() >= n):
         raise MeasurementLogError(f"'feat_step' refers to a step outside 0..{n - 1}")
     if m and np.any(np.diff(log.feat_step) < 0):
@@ -386,6 +404,7 @@ _LOG_ARRAYS = tuple(
         "known_map",
         "world",
         "true_poses",
+        "feat_gate_cov",
         "rejected",
         "gps_times",
         "gps_xy",
@@ -431,6 +450,7 @@ def _arrays_of(log: MeasurementLog) -> dict[str, np.ndarray]:
             if m.extents is not None:
                 out[f"{prefix}_extents"] = np.asarray(m.extents)
     for name in (
+        "feat_gate_cov",
         "true_poses",
         "gps_times",
         "gps_xy",
@@ -555,6 +575,9 @@ def load_log(path: str | Path) -> MeasurementLog:
             known_map=map_of("known"),
             world=map_of("world") if "world_ids" in arrays else None,
             true_poses=_get(arrays, path, "true_poses") if "true_poses" in arrays else None,
+            feat_gate_cov=(
+                _get(arrays, path, "feat_gate_cov") if "feat_gate_cov" in arrays else None
+            ),
             gps_times=_get(arrays, path, "gps_times") if "gps_times" in arrays else None,
             gps_xy=_get(arrays, path, "gps_xy") if "gps_xy" in arrays else None,
             known_frame=_get(arrays, path, "known_frame") if "known_frame" in arrays else None,

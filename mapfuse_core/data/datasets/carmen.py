@@ -494,7 +494,8 @@ def _estimated_terms(
     except ValueError as exc:
         out = with_line_model_error(log, profile.line_model_sigma_m, profile.line_model_sigma_rad)
         return _noted(out, profile, str(exc))
-    out = with_line_model_error(log, err.sigma_m, err.sigma_rad)
+    gate = (err.gate_sigma_m, err.gate_sigma_rad) if correlated else None
+    out = with_line_model_error(log, err.sigma_m, err.sigma_rad, gate)
     return replace(out, metadata={**out.metadata, "line_model_error": err.summary()})
 
 

@@ -28,6 +28,14 @@ observation's own covariance plus the wall's.  Then, per degree of freedom:
    moves ``τ`` a little): the ``τ`` reported is that of the residuals whitened with
    the terms reported.
 
+Steps 1 and 3 answer two questions.  Step 1's terms say how far one observation
+strays from its wall, which is what an association gate tests
+(:attr:`LineModelError.gate_sigma_m`, the log's
+:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`); step 3's say how much it
+tells about the wall beside its neighbours in time, which is what an update weighs.
+Gating with step 3's would admit pairings up to ``√τ`` times farther than one
+observation strays.
+
 The angle's σ is solved first: the lateral offset depends on both terms (the angle's
 through the distance from the foot of the observed line's normal to its reference
 point).  The tail of the residuals is heavy (mixed-up walls, furniture); the mean
@@ -99,16 +107,27 @@ class LineModelError:
     """Line observations on a plan wall the estimate rests on."""
     nees_without: tuple[float, float]
     """Mean whitened squared residual (lateral, angle) without the terms."""
+    gate_sigma_m: float
+    """σ (m) on ``ρ`` that whitens each observation to 1 (step 1): the spread of one
+    observation's error taken alone, which compatibility tests use
+    (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`)."""
+    gate_sigma_rad: float
+    """σ (rad) on ``α`` of the same step."""
     correlated: bool = True
     """Whether the terms count the correlation of consecutive scans (whitened
-    residuals at ``1/τ``) or whiten each observation to 1."""
+    residuals at ``1/τ``) or whiten each observation to 1 (then equal to the gate's)."""
 
     def summary(self) -> str:
         """One line for a log's metadata."""
         how = "correlated" if self.correlated else "independent"
+        gate = (
+            f"; gates {self.gate_sigma_m:.3f} m, {math.degrees(self.gate_sigma_rad):.2f} deg"
+            if self.correlated
+            else ""
+        )
         return (
             f"estimated from the log ({how}): {self.sigma_m:.3f} m, "
-            f"{math.degrees(self.sigma_rad):.2f} deg (autocorrelation time "
+            f"{math.degrees(self.sigma_rad):.2f} deg{gate} (autocorrelation time "
             f"{self.iact[0]:.1f} / {self.iact[1]:.1f} scans, "
             f"{self.observations} observations on plan walls)"
         )
@@ -267,7 +286,7 @@ def estimate_line_model_error(
     z0 = res.whitened(0.0, 0.0)
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
     pairs = _lag_pairs(res)
-    var_m, var_rad = _variances(res, (1.0, 1.0))
+    var_m, var_rad = gate = _variances(res, (1.0, 1.0))
     tau = _iact(res, pairs, var_m, var_rad)
     for _ in range(_MAX_ROUNDS if correlated else 0):
         # τ moves with the terms (they reweight the observations): to a fixed point.
@@ -281,18 +300,49 @@ def estimate_line_model_error(
         iact=tau,
         observations=n,
         nees_without=without,
+        gate_sigma_m=math.sqrt(gate[0]),
+        gate_sigma_rad=math.sqrt(gate[1]),
         correlated=correlated,
     )
 
 
-def with_line_model_error(log: MeasurementLog, sigma_m: float, sigma_rad: float) -> MeasurementLog:
+def with_line_model_error(
+    log: MeasurementLog,
+    sigma_m: float,
+    sigma_rad: float,
+    gate: tuple[float, float] | None = None,
+) -> MeasurementLog:
     """``log`` with the model-error terms (σ on ``ρ``, σ on ``α``) added to every line's
     covariance, as the extractor adds ``ExtractionParams.line_model_sigma_m`` and
-    ``line_model_sigma_rad``."""
+    ``line_model_sigma_rad``.
+
+    ``gate`` (σ on ``ρ``, σ on ``α``), when given, makes the log's covariances for
+    compatibility tests (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`)
+    the same lines with those terms instead (:attr:`LineModelError.gate_sigma_m`);
+    otherwise the terms are added to the log's own gate covariances, if it has any.
+    """
     for name, v in (("sigma_m", sigma_m), ("sigma_rad", sigma_rad)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be finite and >= 0, got {v}")
-    cov = log.feat_cov.copy()
-    for i in np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist():
-        cov[i] = cov[i] + line_model_cov(log.feat_params[i], sigma_m, sigma_rad)
-    return replace(log, feat_cov=cov)
+        _check_sigma(name, v)
+    if gate is not None:
+        for name, v in zip(("gate sigma_m", "gate sigma_rad"), gate, strict=True):
+            _check_sigma(name, v)
+    lines = np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist()
+
+    def added(base: FloatArray, s_m: float, s_rad: float) -> FloatArray:
+        cov = base.copy()
+        for i in lines:
+            cov[i] = cov[i] + line_model_cov(log.feat_params[i], s_m, s_rad)
+        return cov
+
+    if gate is not None:
+        gate_cov: FloatArray | None = added(log.feat_cov, *gate)
+    elif log.feat_gate_cov is not None:
+        gate_cov = added(log.feat_gate_cov, sigma_m, sigma_rad)
+    else:
+        gate_cov = None
+    return replace(log, feat_cov=added(log.feat_cov, sigma_m, sigma_rad), feat_gate_cov=gate_cov)
+
+
+def _check_sigma(name: str, v: float) -> None:
+    if not (math.isfinite(v) and v >= 0.0):
+        raise ValueError(f"{name} must be finite and >= 0, got {v}")

@@ -1,0 +1,60 @@
+"""Every association gate reads a log's gate covariances (``feat_gate_cov``), every
+update its ``feat_cov``: the EKF's and the factor graph's own association alike."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ekf_reference import run_ekf
+from mapfuse_core.measlog import MeasurementLog
+from mapfuse_graph.solvers import run_graph
+from tests.synthetic import synthetic_log
+
+pytestmark = pytest.mark.usefixtures("jacobian_checks")
+
+
+@pytest.fixture(scope="module")
+def log() -> MeasurementLog:
+    return synthetic_log(steps=120, seed=1)
+
+
+def _ekf_landmarks(log: MeasurementLog) -> np.ndarray:
+    res = run_ekf(log, fusion=False)
+    assert res.decisions is not None
+    return np.asarray(res.decisions.obs_landmark)
+
+
+def test_ekf_gates_read_the_gate_covariances(log: MeasurementLog) -> None:
+    plain = _ekf_landmarks(log)
+    # The same covariances given as the gate's: the same decisions, to the pairing.
+    same = dataclasses.replace(log, feat_gate_cov=log.feat_cov.copy())
+    np.testing.assert_array_equal(_ekf_landmarks(same), plain)
+    # Gates a thousandth as wide refuse pairings the plain run makes: more landmarks.
+    narrow = _ekf_landmarks(dataclasses.replace(log, feat_gate_cov=1e-3 * log.feat_cov))
+    assert np.unique(narrow[narrow >= 0]).size > np.unique(plain[plain >= 0]).size
+
+
+def test_graph_gates_read_the_gate_covariances(
+    log: MeasurementLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The graph's own association tests each observation against the landmarks with
+    # the observation's gate covariance: every covariance its gate reads is one of them.
+    import mapfuse_graph.own_association as own
+
+    seen: list[np.ndarray] = []
+    real = own.residual_noise_cov
+
+    def spy(kind, z, zcov):  # type: ignore[no-untyped-def]
+        seen.append(np.array(zcov))
+        return real(kind, z, zcov)
+
+    monkeypatch.setattr(own, "residual_noise_cov", spy)
+    gate = 0.25 * log.feat_cov
+    run_graph(dataclasses.replace(log, feat_gate_cov=gate), "isam2", association="own")
+    assert len(seen) > 100
+    flat = gate.reshape(len(gate), -1)
+    for zcov in seen:
+        assert np.any(np.all(flat == zcov.reshape(-1), axis=1))
