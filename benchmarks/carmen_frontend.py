@@ -474,8 +474,17 @@ def main() -> None:
         choices=("correlated", "independent", "profile"),
         help="CarmenOptions.line_model_error: where the line model-error terms come from",
     )
+    ap.add_argument(
+        "--line-model-gate",
+        default="weight",
+        choices=("weight", "alone"),
+        help="CarmenOptions.line_model_gate: which line terms the gates take "
+        "(alone: each observation's error alone; needs --line-model-error correlated)",
+    )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
+    if args.line_model_gate == "alone" and args.line_model_error != "correlated":
+        ap.error("--line-model-gate alone needs --line-model-error correlated")
     estimators = [e for e in args.estimators.split(",") if e]
     if estimators[0] != "ekf":
         ap.error("--estimators must start with ekf (the graph backends take its decisions)")
@@ -483,7 +492,12 @@ def main() -> None:
     for path in resolve_logs(args.data, args.logs):
         fulls = {
             s: load_carmen(
-                path, options=CarmenOptions(seed=s, line_model_error=args.line_model_error)
+                path,
+                options=CarmenOptions(
+                    seed=s,
+                    line_model_error=args.line_model_error,
+                    line_model_gate=args.line_model_gate,
+                ),
             )
             for s in args.seeds
         }

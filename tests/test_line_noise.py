@@ -227,8 +227,8 @@ def test_gate_terms_are_those_that_whiten_each_observation() -> None:
     assert (indep.gate_sigma_m, indep.gate_sigma_rad) == (indep.sigma_m, indep.sigma_rad)
     assert corr.gate_sigma_m < 0.7 * corr.sigma_m
     assert corr.gate_sigma_rad < 0.7 * corr.sigma_rad
-    assert "gates" in corr.summary()
-    assert "gates" not in indep.summary()
+    assert "gates" in corr.summary(gated=True)
+    assert "gates" not in corr.summary()
 
 
 def test_gate_terms_make_the_gate_covariances() -> None:
@@ -299,7 +299,9 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
     path = data_dir / "carmen" / f"{name}-corrected.log.gz"
     if not path.is_file():
         pytest.skip(f"CARMEN log not found ({path})")
-    log = load_carmen(path, options=CarmenOptions(line_model_error="correlated"))
+    log = load_carmen(
+        path, options=CarmenOptions(line_model_error="correlated", line_model_gate="alone")
+    )
     assert log.metadata["line_model_error"].startswith("estimated from the log (correlated):")
     bare = ExtractionParams.indoor_sick()
     bare = dataclasses.replace(bare, line_model_sigma_m=0.0, line_model_sigma_rad=0.0)
@@ -346,11 +348,18 @@ def test_estimated_terms_change_covariances_only(data_dir: Path) -> None:
     )
     np.testing.assert_array_equal(profile.feat_params, log.feat_params)
     assert not np.array_equal(profile.feat_cov, log.feat_cov)
+    # The gates take the updates' terms unless asked otherwise (line_model_gate).
+    assert log.feat_gate_cov is None
+    assert "gates" not in log.metadata["line_model_error"]
 
 
 def test_options_name_a_bad_choice() -> None:
     with pytest.raises(ValueError, match="line_model_error must be 'correlated', 'independent' or"):
         CarmenOptions(line_model_error="guess")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="line_model_gate must be 'weight' or 'alone'"):
+        CarmenOptions(line_model_gate="guess")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="line_model_gate='alone' needs line_model_error"):
+        CarmenOptions(line_model_gate="alone")
 
 
 def test_residuals_are_those_the_estimators_form() -> None:

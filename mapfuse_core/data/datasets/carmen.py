@@ -66,6 +66,9 @@ LineModelErrorSource = Literal["correlated", "independent", "profile"]
 """Where a CARMEN log's line model-error terms come from
 (:attr:`CarmenOptions.line_model_error`)."""
 
+LineModelGate = Literal["weight", "alone"]
+"""Which line terms the association gates take (:attr:`CarmenOptions.line_model_gate`)."""
+
 _DEFAULT_MAX_RANGE_M = 80.0
 """Maximum range when the log states none (m): the SICK LMS 2xx's 80 m.  Its
 no-return codes are written just above it (81.83 m, 81.91 m)."""
@@ -147,6 +150,16 @@ class CarmenOptions:
     profile's terms), but FHW's larger angle term breaks its runs
     (``docs/results/carmen.md``).  The log's metadata
     (``line_model_error``) says which were used."""
+    line_model_gate: LineModelGate = "weight"
+    """Which terms the association gates take with ``line_model_error="correlated"``.
+    ``"weight"``: the terms the updates weigh each observation with (worth ``1/τ``).
+    ``"alone"``: the terms that whiten each observation to 1
+    (:attr:`~mapfuse_core.data.datasets.line_noise.LineModelError.gate_sigma_m`), how
+    far one observation strays from its wall, as the log's gate covariances
+    (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`).  Not the default:
+    with the match's joint test it mends FHW and worsens Seattle, where the narrower
+    gates start duplicate landmarks of walls already mapped and two runs of eight never
+    anchor (``docs/results/carmen.md``)."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""
@@ -178,6 +191,16 @@ class CarmenOptions:
             named = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
             raise ValueError(
                 f"CarmenOptions.line_model_error must be {named}, got {self.line_model_error!r}"
+            )
+        if self.line_model_gate not in get_args(LineModelGate):
+            raise ValueError(
+                "CarmenOptions.line_model_gate must be 'weight' or 'alone', "
+                f"got {self.line_model_gate!r}"
+            )
+        if self.line_model_gate == "alone" and self.line_model_error != "correlated":
+            raise ValueError(
+                "CarmenOptions.line_model_gate='alone' needs line_model_error='correlated' "
+                f"(with {self.line_model_error!r} the gates and the updates take the same terms)"
             )
 
 
@@ -466,7 +489,7 @@ def load_carmen(
     )
     if not estimate:
         return _profile_terms(log, opts)
-    return _estimated_terms(log, opts.extraction, opts.line_model_error == "correlated")
+    return _estimated_terms(log, opts)
 
 
 def _profile_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
@@ -484,19 +507,21 @@ def _noted(log: MeasurementLog, e: ExtractionParams, why: str) -> MeasurementLog
     return replace(log, metadata={**log.metadata, "line_model_error": text})
 
 
-def _estimated_terms(
-    log: MeasurementLog, profile: ExtractionParams, correlated: bool
-) -> MeasurementLog:
-    """``log`` (lines without model-error terms) with the terms estimated on it, or the
-    profile's where it has too few observations on its floor plan."""
+def _estimated_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog:
+    """``log`` (lines without model-error terms) with the terms estimated on it
+    (:attr:`CarmenOptions.line_model_error`, :attr:`CarmenOptions.line_model_gate`), or
+    the profile's where it has too few observations on its floor plan."""
+    profile = opts.extraction
     try:
-        err = estimate_line_model_error(log, correlated=correlated)
+        err = estimate_line_model_error(log, correlated=opts.line_model_error == "correlated")
     except ValueError as exc:
         out = with_line_model_error(log, profile.line_model_sigma_m, profile.line_model_sigma_rad)
         return _noted(out, profile, str(exc))
-    gate = (err.gate_sigma_m, err.gate_sigma_rad) if correlated else None
+    gate = (err.gate_sigma_m, err.gate_sigma_rad) if opts.line_model_gate == "alone" else None
     out = with_line_model_error(log, err.sigma_m, err.sigma_rad, gate)
-    return replace(out, metadata={**out.metadata, "line_model_error": err.summary()})
+    return replace(
+        out, metadata={**out.metadata, "line_model_error": err.summary(gate is not None)}
+    )
 
 
 def carmen_association() -> AssociationConfig:

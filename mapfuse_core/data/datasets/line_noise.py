@@ -117,12 +117,13 @@ class LineModelError:
     """Whether the terms count the correlation of consecutive scans (whitened
     residuals at ``1/τ``) or whiten each observation to 1 (then equal to the gate's)."""
 
-    def summary(self) -> str:
-        """One line for a log's metadata."""
+    def summary(self, gated: bool = False) -> str:
+        """One line for a log's metadata; ``gated``: the log's gates take
+        :attr:`gate_sigma_m` and :attr:`gate_sigma_rad`."""
         how = "correlated" if self.correlated else "independent"
         gate = (
             f"; gates {self.gate_sigma_m:.3f} m, {math.degrees(self.gate_sigma_rad):.2f} deg"
-            if self.correlated
+            if gated
             else ""
         )
         return (
