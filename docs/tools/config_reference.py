@@ -303,6 +303,8 @@ EVIDENCE: dict[str, str] = {
     "#the-indoor_sick-profiles-model-error-terms)",
     "CarmenOptions.line_model_error": f"[CARMEN]({_R}carmen.md"
     "#line-model-error-estimated-from-each-log)",
+    "CarmenOptions.line_model_gate": f"[CARMEN]({_R}carmen.md"
+    "#gates-on-each-observations-error-alone)",
     "IncrementNoise.trans_frac": f"[CARMEN]({_R}carmen.md#odometry-evidence-on-the-seven-logs)",
     "FloorPlanParams.min_parallel_separation_m": f"[CARMEN]({_R}carmen.md#measured-figures)",
 }
