@@ -483,8 +483,10 @@ def main() -> None:
     )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
-    if args.line_model_gate == "alone" and args.line_model_error != "correlated":
-        ap.error("--line-model-gate alone needs --line-model-error correlated")
+    try:
+        CarmenOptions(line_model_error=args.line_model_error, line_model_gate=args.line_model_gate)
+    except ValueError as exc:
+        ap.error(str(exc))
     estimators = [e for e in args.estimators.split(",") if e]
     if estimators[0] != "ekf":
         ap.error("--estimators must start with ekf (the graph backends take its decisions)")

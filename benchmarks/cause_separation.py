@@ -118,6 +118,7 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7, *[int(k) for k in kinds]]))
     params = np.array(log.feat_params, copy=True)
     covs = np.array(log.feat_cov, copy=True)
+    drawn = np.zeros(log.n_features, dtype=bool)
     for j in range(log.n_features):
         kind = FeatureKind(int(log.feat_kind[j]))
         if kind not in kinds:
@@ -125,6 +126,7 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
         truth = truth_in_sensor(log, j)
         if truth is None:
             continue
+        drawn[j] = True
         cov = log.feat_cov[j]
         if kind == FeatureKind.LINE:
             params[j], covs[j] = _redrawn_line(truth, log.feat_params[j], cov, rng)
@@ -133,8 +135,12 @@ def redrawn(log: MeasurementLog, seed: int, kinds: tuple[FeatureKind, ...]) -> M
         while draw[2] <= 0.0:  # a radius must stay positive: redraw (truncated tail)
             draw = rng.multivariate_normal(truth, cov)
         params[j] = draw
-    # Each draw errs by its covariance alone, independently of the others.
-    return dataclasses.replace(log, feat_params=params, feat_cov=covs, feat_gate_cov=None)
+    if log.feat_gate_cov is None:
+        return dataclasses.replace(log, feat_params=params, feat_cov=covs)
+    # A redrawn observation errs by its covariance alone, independently of the others.
+    gate = np.array(log.feat_gate_cov, copy=True)
+    gate[drawn] = covs[drawn]
+    return dataclasses.replace(log, feat_params=params, feat_cov=covs, feat_gate_cov=gate)
 
 
 #: Standard deviation (m and rad) the exact known map states: small, not zero, so that

@@ -141,7 +141,9 @@ class GateState:
 
 def joint_nis(state: GaussianMap, chosen: list[Candidate]) -> tuple[float, int] | None:
     """``(νᵀ S⁻¹ ν, dim ν)`` of ``chosen`` stacked, on ``state`` before their update;
-    ``None`` without pairings or when ``S`` is not positive definite."""
+    ``None`` without pairings or when ``S`` is not positive definite.  ``S`` holds the
+    covariances the update weighs with (:attr:`~ekf_reference.association.Candidate.R`):
+    the watch compares the run's updates with what they promise."""
     if not chosen:
         return None
     r, H, R, idx = stack(state, chosen)

@@ -105,6 +105,9 @@ class Candidate:
     d2: float
     """Mahalanobis distance ``rᵀ S⁻¹ r``, ``S`` with the measurement's error taken alone
     (:attr:`Query.gate_cov`)."""
+    R_gate: FloatArray | None = None
+    """The residual's covariance due to the measurement's error taken alone, which the
+    compatibility tests use (:attr:`Query.gate_cov`); ``None``: :attr:`R`."""
 
 
 def predict_targets(
@@ -187,9 +190,18 @@ def evaluate(state: GaussianMap, q: Query, t: int) -> Candidate:
         blocks = [Jp @ J for J in tJ]
         R = pairing_cov(fk, pred, q.params, q.cov)
     H = np.hstack(blocks)
-    R_gate = R if q.gate_cov is None else pairing_cov(fk, pred, q.params, q.gate_cov)
-    d2 = _mahalanobis(r, R_gate + _project(state, indices, H))
-    return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2)
+    R_gate = None if q.gate_cov is None else pairing_cov(fk, pred, q.params, q.gate_cov)
+    d2 = _mahalanobis(r, (R if R_gate is None else R_gate) + _project(state, indices, H))
+    return Candidate(target=t, residual=r, indices=indices, H=H, R=R, d2=d2, R_gate=R_gate)
+
+
+def weighed_d2(state: GaussianMap, c: Candidate) -> float:
+    """``rᵀ S⁻¹ r`` of pairing ``c`` with ``S`` from the covariance the update weighs it
+    with (:attr:`Candidate.R`): for tests that sum the pairings of consecutive scans,
+    whose shared errors :attr:`Candidate.R` counts once."""
+    if c.R_gate is None:
+        return c.d2
+    return _mahalanobis(c.residual, c.R + _project(state, c.indices, c.H))
 
 
 def element_pairings(
@@ -416,10 +428,11 @@ def nearest_neighbour(
 
 
 def joint_compatible(state: GaussianMap, chosen: list[Candidate], gate_prob: float) -> bool:
-    """Joint χ² test of a set of pairings (correlations through the map included)."""
+    """Joint χ² test of a set of pairings (correlations through the map included), with
+    each measurement's error taken alone (:attr:`Candidate.R_gate`), as its own gate."""
     if not chosen:
         return True
-    r, H, R, idx = stack(state, chosen)
+    r, H, R, idx = stack(state, chosen, gate=True)
     S = H @ state.cov[np.ix_(idx, idx)] @ H.T + R
     try:
         d2 = float(r @ np.linalg.solve(S, r))
@@ -442,9 +455,10 @@ def jcbb(
 
 
 def stack(
-    state: GaussianMap, chosen: list[Candidate]
+    state: GaussianMap, chosen: list[Candidate], gate: bool = False
 ) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
-    """Stack pairings into one residual, Jacobian over the union of elements, and R."""
+    """Stack pairings into one residual, Jacobian over the union of elements, and R (the
+    update's, or with ``gate`` the compatibility tests' :attr:`Candidate.R_gate`)."""
     elems = sorted({i for c in chosen for i in c.indices})
     pos = {e: k for k, e in enumerate(elems)}
     m = sum(c.residual.size for c in chosen)
@@ -455,7 +469,7 @@ def stack(
     for c in chosen:
         k = c.residual.size
         r[row : row + k] = c.residual
-        R[row : row + k, row : row + k] = c.R
+        R[row : row + k, row : row + k] = c.R if not gate or c.R_gate is None else c.R_gate
         for j, e in enumerate(c.indices):
             H[row : row + k, 3 * pos[e] : 3 * pos[e] + 3] = c.H[:, 3 * j : 3 * j + 3]
         row += k

@@ -66,7 +66,7 @@ def _chained(c: Candidate, mo: Motion, at: dict[int, int], ui: int) -> Candidate
         else:
             blocks.append(Hb)
     H = np.hstack([*blocks, HU])
-    return Candidate(c.target, c.residual, [*c.indices, ui], H, c.R, c.d2)
+    return Candidate(c.target, c.residual, [*c.indices, ui], H, c.R, c.d2, c.R_gate)
 
 
 def update_through_increment(

@@ -40,7 +40,7 @@ import numbers
 from collections import deque
 from dataclasses import dataclass
 
-from ekf_reference.association import Candidate, Query, evaluate, prefilter
+from ekf_reference.association import Candidate, Query, evaluate, prefilter, weighed_d2
 from ekf_reference.state import ElementKind, GaussianMap, Role
 from mapfuse_core.estimate.decisions import KnownMapGating
 from mapfuse_core.geometry.se2 import FloatArray
@@ -185,7 +185,8 @@ class KnownGate:
         for kid, c in out.accepted:
             self._dofs[kid] = c.residual.size
             self._touched.add(kid)
-            self._push(kid, c.d2)
+            # The running sum spans consecutive scans: their shared errors count once.
+            self._push(kid, weighed_d2(state, c))
             self.accepted[kid] = self.accepted.get(kid, 0) + 1
         for kid, source in out.refused:
             if kid in self._touched or kid in self._rejected_now:

@@ -107,19 +107,9 @@ def _validate_log(log: MeasurementLog, steps: int) -> _LogNoise:
     if small.size:
         j = int(small[0])
         raise ValueError(f"observation {j} is a circle with radius {log.feat_params[j, 2]}")
-    obs = [
-        residual_noise_cov(FeatureKind(int(kinds[j])), log.feat_params[j], log.feat_cov[j])
-        for j in range(m)
-    ]
-    for d in (2, 3):
-        idx = [j for j in range(m) if obs[j].shape[0] == d]
-        if idx:
-            ok_obs = _pd_rows(np.stack([obs[j] for j in idx]))
-            if not np.all(ok_obs):
-                raise ValueError(
-                    f"observation {idx[int(np.nonzero(~ok_obs)[0][0])]}: its covariance projected "
-                    "on the residual is not positive definite"
-                )
+    obs = _projected(log, kinds, log.feat_cov[:m], "covariance")
+    if log.feat_gate_cov is not None:
+        _projected(log, kinds, log.feat_gate_cov[:m], "gate covariance")
     km = log.known_map
     for r in range(len(km)):
         kind = int(km.kinds[r])
@@ -166,3 +156,24 @@ def _check_assoc_arrays(
             f"observation {int(orphan[0])} is merged with a known feature but has no landmark"
         )
     return lm, kn
+
+
+def _projected(
+    log: MeasurementLog, kinds: np.ndarray, covs: np.ndarray, what: str
+) -> list[FloatArray]:
+    """Each observation's ``what`` (its rows ``covs``) projected on its residual,
+    checked positive definite: a gate or a factor divides by it."""
+    obs = [
+        residual_noise_cov(FeatureKind(int(kinds[j])), log.feat_params[j], covs[j])
+        for j in range(len(covs))
+    ]
+    for d in (2, 3):
+        idx = [j for j in range(len(obs)) if obs[j].shape[0] == d]
+        if idx:
+            ok_obs = _pd_rows(np.stack([obs[j] for j in idx]))
+            if not np.all(ok_obs):
+                raise ValueError(
+                    f"observation {idx[int(np.nonzero(~ok_obs)[0][0])]}: its {what} projected "
+                    "on the residual is not positive definite"
+                )
+    return obs

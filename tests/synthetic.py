@@ -198,6 +198,7 @@ def with_clutter(log: MeasurementLog, per_step: int, seed: int = 0) -> Measureme
         feat_kind=cat(log.feat_kind, kinds, np.int8),
         feat_params=cat(log.feat_params, params, float),
         feat_cov=cat(log.feat_cov, covs, float),
+        feat_gate_cov=None if log.feat_gate_cov is None else cat(log.feat_gate_cov, covs, float),
         feat_true_id=cat(log.feat_true_id, np.full(n, -1), np.int64),
         feat_n_points=cat(log.feat_n_points, npts, np.int64),
         feat_extent=cat(log.feat_extent, exts, float),

@@ -3,6 +3,7 @@ CCDA accepts."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.stats import chi2
 
 from ekf_reference.association import (
     Candidate,
@@ -19,9 +21,12 @@ from ekf_reference.association import (
     apply_iterated,
     element_pairings,
     evaluate,
+    joint_compatible,
     predict_all_targets,
     prefilter,
     segment_end_sd,
+    stack,
+    weighed_d2,
     within_known_wall,
 )
 from ekf_reference.known_frame import known_element
@@ -139,13 +144,27 @@ def test_the_gate_takes_the_error_alone_and_the_update_its_weight(
     # neighbours in time (feat_gate_cov): its distance is tested against its error
     # taken alone, while the update still weighs it by the inflated covariance.
     m, q = case
-    inflated = Query(q.kind, q.params, 4.0 * q.cov, q.extent)
-    both = Query(q.kind, q.params, 4.0 * q.cov, q.extent, gate_cov=q.cov)
+    inflated = dataclasses.replace(q, cov=4.0 * q.cov)
+    both = dataclasses.replace(q, cov=4.0 * q.cov, gate_cov=q.cov)
     alone, wide, gated = evaluate(m, q, 1), evaluate(m, inflated, 1), evaluate(m, both, 1)
     np.testing.assert_allclose(gated.R, wide.R, atol=1e-15)
+    assert gated.R_gate is not None
+    np.testing.assert_allclose(gated.R_gate, alone.R, atol=1e-15)
     np.testing.assert_allclose(gated.residual, alone.residual, atol=1e-15)
     assert math.isclose(gated.d2, alone.d2, rel_tol=1e-12, abs_tol=1e-12)
     assert wide.d2 <= alone.d2 + 1e-12
+    # Tests summing consecutive scans take the update's weight; joint tests the gate's.
+    assert math.isclose(weighed_d2(m, gated), wide.d2, rel_tol=1e-12, abs_tol=1e-12)
+    assert weighed_d2(m, alone) == alone.d2
+    R = stack(m, [gated], gate=True)[2]
+    np.testing.assert_allclose(R, alone.R, atol=1e-15)
+    np.testing.assert_allclose(stack(m, [gated])[2], wide.R, atol=1e-15)
+    # A χ² gate between the two distances: the joint test refuses with the error alone.
+    if alone.d2 > 1.01 * wide.d2 + 1e-9:
+        gate_prob = float(chi2.cdf(0.5 * (alone.d2 + wide.d2), 2))
+        if 0.0 < gate_prob < 1.0:
+            assert not joint_compatible(m, [gated], gate_prob)
+            assert joint_compatible(m, [wide], gate_prob)
 
 
 def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:

@@ -100,3 +100,14 @@ def test_estimator_names_take_a_kernel_and_the_reference_association(
     assert bench.backend_and_kernel("isam2@own") == ("isam2", {"association": "own"})
     with pytest.raises(ValueError, match="@truth or @own"):
         bench.backend_and_kernel("batch@given")
+
+
+def test_gates_alone_without_correlated_terms_is_refused_before_any_log_is_read(
+    bench, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:  # type: ignore[no-untyped-def]
+    argv = ["carmen_frontend.py", "--data", "/nonexistent", "--line-model-gate", "alone"]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit) as exc:
+        bench.main()
+    assert exc.value.code == 2
+    assert "line_model_gate='alone' needs line_model_error='correlated'" in capsys.readouterr().err

@@ -58,3 +58,48 @@ def test_graph_gates_read_the_gate_covariances(
     flat = gate.reshape(len(gate), -1)
     for zcov in seen:
         assert np.any(np.all(flat == zcov.reshape(-1), axis=1))
+
+
+def test_updates_weigh_with_the_update_covariances(log: MeasurementLog) -> None:
+    # Gates twice as wide pair as before on this world; the estimates stay the plain
+    # run's to the digit, so the updates never read the gate covariances.
+    plain = run_ekf(log, fusion=True)
+    wide = run_ekf(dataclasses.replace(log, feat_gate_cov=4.0 * log.feat_cov), fusion=True)
+    assert plain.decisions is not None
+    assert wide.decisions is not None
+    np.testing.assert_array_equal(wide.decisions.obs_landmark, plain.decisions.obs_landmark)
+    assert plain.filtered is not None
+    assert wide.filtered is not None
+    np.testing.assert_array_equal(wide.filtered.poses, plain.filtered.poses)
+    np.testing.assert_array_equal(wide.filtered.covs, plain.filtered.covs)
+    # The graph's factors on a given association likewise.
+    g_plain = run_graph(log, "batch", association="truth")
+    g_wide = run_graph(
+        dataclasses.replace(log, feat_gate_cov=0.25 * log.feat_cov), "batch", association="truth"
+    )
+    assert g_plain.smoothed is not None
+    assert g_wide.smoothed is not None
+    np.testing.assert_array_equal(g_wide.smoothed.poses, g_plain.smoothed.poses)
+
+
+def test_known_gates_running_sum_weighs_as_the_update(
+    log: MeasurementLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The known-map gate sums the d² of a known feature's consecutive pairings, whose
+    # shared errors the update's covariance counts once: it takes weighed_d2, not the
+    # gate's distance.
+    import ekf_reference.known_gating as kg
+
+    pushed: list[tuple[float, float]] = []
+    real = kg.weighed_d2
+
+    def spy(state, c):  # type: ignore[no-untyped-def]
+        if c.R_gate is not None:  # a measurement's pairing (a map element's has none)
+            pushed.append((real(state, c), c.d2))
+        return real(state, c)
+
+    monkeypatch.setattr(kg, "weighed_d2", spy)
+    run_ekf(dataclasses.replace(log, feat_gate_cov=0.5 * log.feat_cov), fusion=True)
+    assert len(pushed) > 50
+    # Gates on half the covariance: every pushed distance is below the gate's.
+    assert all(w < d for w, d in pushed)

@@ -251,6 +251,29 @@ def test_gate_terms_make_the_gate_covariances() -> None:
         with_line_model_error(log, 0.02, 0.01, gate=(0.02, math.nan))
 
 
+def test_the_loader_gates_alone_only_when_asked_and_says_so() -> None:
+    from mapfuse_core.data.datasets.carmen import _estimated_terms
+
+    log = _log((0.03, math.radians(0.6)), phi=0.6, n=800)
+    est = estimate_line_model_error(log)
+    weight = _estimated_terms(log, CarmenOptions(line_model_error="correlated"))
+    assert weight.feat_gate_cov is None
+    alone = _estimated_terms(
+        log, CarmenOptions(line_model_error="correlated", line_model_gate="alone")
+    )
+    np.testing.assert_array_equal(alone.feat_cov, weight.feat_cov)
+    expected = with_line_model_error(log, est.gate_sigma_m, est.gate_sigma_rad).feat_cov
+    assert alone.feat_gate_cov is not None
+    np.testing.assert_allclose(alone.feat_gate_cov, expected, rtol=1e-12, atol=1e-18)
+    assert f"gates {est.gate_sigma_m:.3f} m" in alone.metadata["line_model_error"]
+    # Too few observations on the plan: the profile's terms, no gate covariances.
+    short = _estimated_terms(
+        log.head(5), CarmenOptions(line_model_error="correlated", line_model_gate="alone")
+    )
+    assert short.feat_gate_cov is None
+    assert short.metadata["line_model_error"].startswith("extraction profile's (")
+
+
 def test_bad_input_is_named() -> None:
     log = _log((0.03, 0.01), phi=0.0, n=20)
     with pytest.raises(ValueError, match="reference trajectory"):

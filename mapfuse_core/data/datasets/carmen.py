@@ -151,15 +151,17 @@ class CarmenOptions:
     (``docs/results/carmen.md``).  The log's metadata
     (``line_model_error``) says which were used."""
     line_model_gate: LineModelGate = "weight"
-    """Which terms the association gates take with ``line_model_error="correlated"``.
-    ``"weight"``: the terms the updates weigh each observation with (worth ``1/τ``).
+    """Which line terms the association gates take with ``line_model_error="correlated"``:
+    ``"weight"`` those the updates weigh each observation with, ``"alone"`` those of
+    each observation's error alone.  ``"weight"``: each observation worth ``1/τ``.
     ``"alone"``: the terms that whiten each observation to 1
     (:attr:`~mapfuse_core.data.datasets.line_noise.LineModelError.gate_sigma_m`), how
     far one observation strays from its wall, as the log's gate covariances
     (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`).  Not the default:
     with the match's joint test it mends FHW and worsens Seattle, where the narrower
     gates start duplicate landmarks of walls already mapped and two runs of eight never
-    anchor (``docs/results/carmen.md``)."""
+    anchor (``docs/results/carmen.md``).  A log that keeps the profile's terms (too few
+    observations on its plan) has no gate covariances of its own."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""
@@ -192,10 +194,11 @@ class CarmenOptions:
             raise ValueError(
                 f"CarmenOptions.line_model_error must be {named}, got {self.line_model_error!r}"
             )
-        if self.line_model_gate not in get_args(LineModelGate):
+        gates = get_args(LineModelGate)
+        if self.line_model_gate not in gates:
+            named = " or ".join(repr(g) for g in gates)
             raise ValueError(
-                "CarmenOptions.line_model_gate must be 'weight' or 'alone', "
-                f"got {self.line_model_gate!r}"
+                f"CarmenOptions.line_model_gate must be {named}, got {self.line_model_gate!r}"
             )
         if self.line_model_gate == "alone" and self.line_model_error != "correlated":
             raise ValueError(

@@ -319,8 +319,10 @@ def with_line_model_error(
 
     ``gate`` (σ on ``ρ``, σ on ``α``), when given, makes the log's covariances for
     compatibility tests (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`)
-    the same lines with those terms instead (:attr:`LineModelError.gate_sigma_m`);
-    otherwise the terms are added to the log's own gate covariances, if it has any.
+    the same lines with those terms instead (:attr:`LineModelError.gate_sigma_m`): it
+    is meant for a log whose lines hold no model-error term yet, as
+    :func:`estimate_line_model_error` takes them.  Without ``gate`` the terms are added
+    to the log's own gate covariances too, if it has any.
     """
     for name, v in (("sigma_m", sigma_m), ("sigma_rad", sigma_rad)):
         _check_sigma(name, v)
