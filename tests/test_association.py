@@ -159,12 +159,21 @@ def test_the_gate_takes_the_error_alone_and_the_update_its_weight(
     R = stack(m, [gated], gate=True)[2]
     np.testing.assert_allclose(R, alone.R, atol=1e-15)
     np.testing.assert_allclose(stack(m, [gated])[2], wide.R, atol=1e-15)
-    # A χ² gate between the two distances: the joint test refuses with the error alone.
-    if alone.d2 > 1.01 * wide.d2 + 1e-9:
-        gate_prob = float(chi2.cdf(0.5 * (alone.d2 + wide.d2), 2))
-        if 0.0 < gate_prob < 1.0:
-            assert not joint_compatible(m, [gated], gate_prob)
-            assert joint_compatible(m, [wide], gate_prob)
+
+
+def test_the_joint_test_takes_the_error_alone() -> None:
+    # A segment 3 cm off its wall: a χ² gate between its distance with the error alone
+    # and with the inflated covariance refuses it with the first only.
+    m = _map_with_known_wall(np.array([1.0, 2.0, 0.3]), np.array([5.0, -3.0, 1.2]))
+    q = _measurement(m, 1.0, 0.03, 0.002)
+    alone = evaluate(m, q, 1)
+    wide = evaluate(m, dataclasses.replace(q, cov=4.0 * q.cov), 1)
+    gated = evaluate(m, dataclasses.replace(q, cov=4.0 * q.cov, gate_cov=q.cov), 1)
+    assert alone.d2 > 1.2 * wide.d2
+    gate_prob = float(chi2.cdf(0.5 * (alone.d2 + wide.d2), 2))
+    assert 0.0 < gate_prob < 1.0
+    assert not joint_compatible(m, [gated], gate_prob)
+    assert joint_compatible(m, [wide], gate_prob)
 
 
 def test_prefilter_measures_a_known_wall_where_the_residual_does() -> None:

@@ -4,6 +4,7 @@ update its ``feat_cov``: the EKF's and the factor graph's own association alike.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -90,16 +91,33 @@ def test_known_gates_running_sum_weighs_as_the_update(
     # gate's distance.
     import ekf_reference.known_gating as kg
 
-    pushed: list[tuple[float, float]] = []
-    real = kg.weighed_d2
+    weighed: list[tuple[float, float]] = []
+    pushed: list[float] = []
+    real, real_push = kg.weighed_d2, kg.KnownGate._push
 
     def spy(state, c):  # type: ignore[no-untyped-def]
-        if c.R_gate is not None:  # a measurement's pairing (a map element's has none)
-            pushed.append((real(state, c), c.d2))
-        return real(state, c)
+        weighed.append((real(state, c), c.d2 if c.R_gate is not None else math.nan))
+        return weighed[-1][0]
+
+    def push(self, kid, value):  # type: ignore[no-untyped-def]
+        if not math.isnan(value):
+            pushed.append(value)
+        real_push(self, kid, value)
 
     monkeypatch.setattr(kg, "weighed_d2", spy)
+    monkeypatch.setattr(kg.KnownGate, "_push", push)
     run_ekf(dataclasses.replace(log, feat_gate_cov=0.5 * log.feat_cov), fusion=True)
-    assert len(pushed) > 50
-    # Gates on half the covariance: every pushed distance is below the gate's.
-    assert all(w < d for w, d in pushed)
+    # Every accepted pairing's entry in the sum is its weighed d².
+    assert pushed == [w for w, _ in weighed]
+    gated = [(w, d) for w, d in weighed if not math.isnan(d)]
+    assert len(gated) > 50
+    # Gates on half the covariance: every weighed distance is below the gate's.
+    assert all(w < d for w, d in gated)
+
+
+def test_the_graph_refuses_a_degenerate_gate_covariance(log: MeasurementLog) -> None:
+    gate = log.feat_cov.copy()
+    line = int(np.flatnonzero(log.feat_kind == 0)[0])
+    gate[line] = 0.0
+    with pytest.raises(ValueError, match=f"observation {line}: its gate covariance projected"):
+        run_graph(dataclasses.replace(log, feat_gate_cov=gate), "isam2", association="own")

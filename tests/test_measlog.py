@@ -122,6 +122,8 @@ def test_gate_covariances_round_trip_fall_back_and_are_cut_by_head(tmp_path: Pat
 
 def test_bad_gate_covariances_are_named() -> None:
     log = small_log()
+    with pytest.raises(MeasurementLogError, match="'feat_cov' must be a numpy array"):
+        dataclasses.replace(log, feat_cov=None)
     with pytest.raises(MeasurementLogError, match="'feat_gate_cov' has shape"):
         dataclasses.replace(log, feat_gate_cov=log.feat_cov[:2])
     bad = log.feat_cov.copy()

@@ -331,11 +331,12 @@ def _validate(log: MeasurementLog) -> None:
     _check_array("feat_n_points", log.feat_n_points, (m,), kinds="iu")
     _check_array("feat_extent", log.feat_extent, (m, 2), finite=False)
     _check_kinds("feat_kind", log.feat_kind)
-    for name in ("feat_cov", "feat_gate_cov"):
-        covs = getattr(log, name)
-        if covs is not None:
-            _check_array(name, covs, (m, 3, 3), limit=MAX_VARIANCE)
-            _check_covs(name, covs)
+    covs = {"feat_cov": log.feat_cov}
+    if log.feat_gate_cov is not None:
+        covs["feat_gate_cov"] = log.feat_gate_cov
+    for name, c in covs.items():
+        _check_array(name, c, (m, 3, 3), limit=MAX_VARIANCE)
+        _check_covs(name, c)
     if m and (log.feat_step.min() < 0 or log.feat_step.max() >= n):
         raise MeasurementLogError(f"'feat_step' refers to a step outside 0..{n - 1}")
     if m and np.any(np.diff(log.feat_step) < 0):
