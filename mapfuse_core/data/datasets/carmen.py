@@ -39,7 +39,12 @@ from mapfuse_core.data.datasets.carmen_kind import (
     judge_odometry,
     laser_poses_on_odometry,
 )
-from mapfuse_core.data.datasets.common import DatasetError, check_finite, empty_map
+from mapfuse_core.data.datasets.common import (
+    DatasetError,
+    check_choice,
+    check_finite,
+    empty_map,
+)
 from mapfuse_core.data.datasets.line_noise import estimate_line_model_error, with_line_model_error
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, relative, wrap_scalar
@@ -172,11 +177,7 @@ class CarmenOptions:
     not otherwise."""
 
     def __post_init__(self) -> None:
-        if self.odometry not in ("auto", "raw", "corrected"):
-            raise ValueError(
-                f"CarmenOptions.odometry must be 'auto', 'raw' or 'corrected', "
-                f"got {self.odometry!r}"
-            )
+        check_choice("CarmenOptions", "odometry", self.odometry, get_args(OdometryKind))
         _check_seed("CarmenOptions.seed", self.seed)
         for name in ("sigma_range_m", "sigma_bearing_rad", "extraction_max_range_m"):
             check_finite("CarmenOptions", name, getattr(self, name), positive=True)
@@ -188,18 +189,11 @@ class CarmenOptions:
             raise ValueError("CarmenOptions.extraction must be an ExtractionParams")
         if not isinstance(self.keep_scans, bool):
             raise ValueError(f"CarmenOptions.keep_scans must be a bool, got {self.keep_scans!r}")
-        choices = get_args(LineModelErrorSource)
-        if self.line_model_error not in choices:
-            named = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
-            raise ValueError(
-                f"CarmenOptions.line_model_error must be {named}, got {self.line_model_error!r}"
-            )
-        gates = get_args(LineModelGate)
-        if self.line_model_gate not in gates:
-            named = " or ".join(repr(g) for g in gates)
-            raise ValueError(
-                f"CarmenOptions.line_model_gate must be {named}, got {self.line_model_gate!r}"
-            )
+        for name, kind in (
+            ("line_model_error", LineModelErrorSource),
+            ("line_model_gate", LineModelGate),
+        ):
+            check_choice("CarmenOptions", name, getattr(self, name), get_args(kind))
         if self.line_model_gate == "alone" and self.line_model_error != "correlated":
             raise ValueError(
                 "CarmenOptions.line_model_gate='alone' needs line_model_error='correlated' "

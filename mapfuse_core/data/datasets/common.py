@@ -37,6 +37,14 @@ def check_finite(owner: str, name: str, value: object, *, positive: bool) -> Non
         raise ValueError(f"{owner}.{name} must be >= 0, got {value}")
 
 
+def check_choice(owner: str, name: str, value: object, choices: tuple[object, ...]) -> None:
+    """Raise ``ValueError`` naming ``owner.name`` and every choice unless ``value`` is one
+    of ``choices`` (a ``Literal``'s ``get_args``)."""
+    if value not in choices:
+        named = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
+        raise ValueError(f"{owner}.{name} must be {named}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class Features:
     """Features of a whole run as the parallel arrays of a measurement log."""
