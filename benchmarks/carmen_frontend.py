@@ -481,10 +481,22 @@ def main() -> None:
         help="CarmenOptions.line_model_gate: which line terms the gates take "
         "(alone: each observation's error alone; needs --line-model-error correlated)",
     )
+    ap.add_argument(
+        "--line-model-shape",
+        default="constant",
+        choices=("constant", "length"),
+        help="CarmenOptions.line_model_shape: one σ on every line's ρ, or a part falling "
+        "as 1/length beside it (needs --line-model-error correlated or independent)",
+    )
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args()
+    terms = {
+        "line_model_error": args.line_model_error,
+        "line_model_gate": args.line_model_gate,
+        "line_model_shape": args.line_model_shape,
+    }
     try:
-        CarmenOptions(line_model_error=args.line_model_error, line_model_gate=args.line_model_gate)
+        CarmenOptions(**terms)
     except ValueError as exc:
         ap.error(str(exc))
     estimators = [e for e in args.estimators.split(",") if e]
@@ -495,11 +507,7 @@ def main() -> None:
         fulls = {
             s: load_carmen(
                 path,
-                options=CarmenOptions(
-                    seed=s,
-                    line_model_error=args.line_model_error,
-                    line_model_gate=args.line_model_gate,
-                ),
+                options=CarmenOptions(seed=s, **terms),
             )
             for s in args.seeds
         }

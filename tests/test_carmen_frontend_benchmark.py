@@ -111,3 +111,36 @@ def test_gates_alone_without_correlated_terms_is_refused_before_any_log_is_read(
         bench.main()
     assert exc.value.code == 2
     assert "line_model_gate='alone' needs line_model_error='correlated'" in capsys.readouterr().err
+
+
+def test_length_shape_without_estimated_terms_is_refused_before_any_log_is_read(
+    bench, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:  # type: ignore[no-untyped-def]
+    argv = ["carmen_frontend.py", "--data", "/nonexistent", "--line-model-shape", "length"]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit) as exc:
+        bench.main()
+    assert exc.value.code == 2
+    assert "line_model_shape='length' needs line_model_error" in capsys.readouterr().err
+
+
+def test_the_length_shape_reaches_the_loader(bench, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
+    seen: list[object] = []
+
+    def loader(path, options=None):  # type: ignore[no-untyped-def]
+        seen.append(options)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(bench, "load_carmen", loader)
+    monkeypatch.setattr(bench, "resolve_logs", lambda data, logs: ["x.log"])
+    argv = [
+        "carmen_frontend.py",
+        "--line-model-error",
+        "correlated",
+        "--line-model-shape",
+        "length",
+    ]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit):
+        bench.main()
+    assert [o.line_model_shape for o in seen] == ["length"]  # type: ignore[attr-defined]

@@ -21,7 +21,10 @@ import pytest
 from mapfuse_core.data.datasets import CarmenOptions, load_carmen
 from mapfuse_core.data.datasets.common import empty_map
 from mapfuse_core.data.datasets.line_noise import (
+    MIN_LENGTH_M,
     MIN_OBSERVATIONS,
+    LineModelError,
+    LineTerms,
     estimate_line_model_error,
     with_line_model_error,
 )
@@ -71,9 +74,19 @@ def _observe(
     return rho, alpha, t_mid, float(np.linalg.norm(b - a))
 
 
-def _log(sigma: tuple[float, float], phi: float, n: int = 400, seed: int = 0) -> MeasurementLog:
+def _log(
+    sigma: tuple[float, float],
+    phi: float,
+    n: int = 400,
+    seed: int = 0,
+    sigma_m_metre: float = 0.0,
+    pieces: bool = False,
+) -> MeasurementLog:
     """A log of the walls seen from every pose: the fit's noise (as stated) plus a model
-    error of σ ``sigma`` (ρ m, α rad), AR(1) with coefficient ``phi`` per wall."""
+    error of σ ``sigma`` (ρ m, α rad), AR(1) with coefficient ``phi`` per wall.
+
+    ``pieces``: each observation is a piece of its wall ``L ~ U(0.4, min(4, wall))`` m
+    long, and its ``ρ`` takes a further independent error of σ ``sigma_m_metre / L``."""
     rng = np.random.default_rng(seed)
     poses = _poses(n)
     e = np.zeros((len(_WALLS), 2))
@@ -88,6 +101,9 @@ def _log(sigma: tuple[float, float], phi: float, n: int = 400, seed: int = 0) ->
         for w, (p1, p2) in enumerate(_WALLS):
             rho, alpha, t_mid, length = _observe(pose, p1, p2)
             noise = np.array(_FIT_SIGMA) * rng.standard_normal(2)
+            if pieces:
+                length = float(rng.uniform(0.4, min(4.0, length)))
+                noise[0] += sigma_m_metre / length * rng.standard_normal()
             line, J = line_from_normal(rho + noise[0] + e[w, 0], alpha + noise[1] + e[w, 1], t_mid)
             C = np.diag([_FIT_SIGMA[0] ** 2, _FIT_SIGMA[1] ** 2, length * length / 12.0])
             steps.append(k)
@@ -210,7 +226,7 @@ def test_independent_estimate_whitens_each_observation_and_reports_tau() -> None
 def test_applied_terms_are_self_consistent() -> None:
     log = _log((0.03, math.radians(0.6)), phi=0.6, n=800)
     est = estimate_line_model_error(log)
-    again = estimate_line_model_error(with_line_model_error(log, est.sigma_m, est.sigma_rad))
+    again = estimate_line_model_error(with_line_model_error(log, est.terms))
     assert again.sigma_m < 1e-3
     assert again.sigma_rad < math.radians(0.01)
     for nees, tau in zip(again.nees_without, again.iact, strict=True):
@@ -234,21 +250,19 @@ def test_gate_terms_are_those_that_whiten_each_observation() -> None:
 def test_gate_terms_make_the_gate_covariances() -> None:
     log = _log((0.03, 0.01), phi=0.0, n=20)
     assert log.feat_gate_cov is None
-    assert with_line_model_error(log, 0.02, 0.01).feat_gate_cov is None
-    out = with_line_model_error(log, 0.05, 0.02, gate=(0.02, 0.01))
+    assert with_line_model_error(log, LineTerms(0.02, 0.01)).feat_gate_cov is None
+    out = with_line_model_error(log, LineTerms(0.05, 0.02), gate=LineTerms(0.02, 0.01))
     assert out.feat_gate_cov is not None
     for j in range(log.n_features):
         z, base = log.feat_params[j], log.feat_cov[j]
         np.testing.assert_allclose(out.feat_cov[j], base + line_model_cov(z, 0.05, 0.02))
         np.testing.assert_allclose(out.feat_gate_cov[j], base + line_model_cov(z, 0.02, 0.01))
     # Terms added later widen both.
-    again = with_line_model_error(out, 0.01, 0.0)
+    again = with_line_model_error(out, LineTerms(0.01, 0.0))
     assert again.feat_gate_cov is not None
     np.testing.assert_allclose(
         again.feat_gate_cov[0], out.feat_gate_cov[0] + line_model_cov(log.feat_params[0], 0.01, 0.0)
     )
-    with pytest.raises(ValueError, match="gate sigma_rad must be finite and >= 0"):
-        with_line_model_error(log, 0.02, 0.01, gate=(0.02, math.nan))
 
 
 def test_the_loader_gates_alone_only_when_asked_and_says_so() -> None:
@@ -262,7 +276,7 @@ def test_the_loader_gates_alone_only_when_asked_and_says_so() -> None:
         log, CarmenOptions(line_model_error="correlated", line_model_gate="alone")
     )
     np.testing.assert_array_equal(alone.feat_cov, weight.feat_cov)
-    expected = with_line_model_error(log, est.gate_sigma_m, est.gate_sigma_rad).feat_cov
+    expected = with_line_model_error(log, est.gate_terms).feat_cov
     assert alone.feat_gate_cov is not None
     np.testing.assert_allclose(alone.feat_gate_cov, expected, rtol=1e-12, atol=1e-18)
     assert f"gates {est.gate_sigma_m:.3f} m" in alone.metadata["line_model_error"]
@@ -274,6 +288,94 @@ def test_the_loader_gates_alone_only_when_asked_and_says_so() -> None:
     assert short.metadata["line_model_error"].startswith("extraction profile's (")
 
 
+def _by_length(log: MeasurementLog, est: LineModelError) -> list[float]:
+    """Mean whitened squared lateral residual with ``est``'s terms, for segments under
+    1 m, 1–2 m and over 2 m."""
+    from mapfuse_core.data.datasets import build_floor_plan
+    from mapfuse_core.data.datasets.floorplan import FloorPlanParams
+    from mapfuse_core.data.datasets.line_noise import _residuals
+
+    # The plan as the estimate builds it: no survey σ.
+    params = dataclasses.replace(FloorPlanParams(), survey_sigma_m=1e-9, survey_sigma_rad=1e-9)
+    res = _residuals(log, build_floor_plan(log, params))
+    t = est.terms
+    share = t.sigma_m_metre**2 / (t.sigma_m**2 + t.sigma_m_metre**2)
+    z = res.whitened(t.sigma_m**2 + t.sigma_m_metre**2, t.sigma_rad**2, share)[:, 0]
+    length = 1.0 / np.sqrt(res.inv_length2)
+    bins = ((0.0, 1.0), (1.0, 2.0), (2.0, np.inf))
+    return [float(np.mean(z[(length >= a) & (length < b)] ** 2)) for a, b in bins]
+
+
+def test_a_lateral_error_falling_with_length_is_recovered() -> None:
+    # σ_ρ² = 1 cm² + (3 cm / L)²: 7.6 cm at 0.4 m, 1.3 cm at 4 m.
+    log = _log((0.01, math.radians(0.3)), phi=0.0, n=800, sigma_m_metre=0.03, pieces=True)
+    est = estimate_line_model_error(log, correlated=False, shape="length")
+    # 4,000 observations, a third of them under 1 m where the 1/L part dominates: the
+    # metre part within 10 % (about three standard errors of its variance); the
+    # constant part, against the fit's σ and the angle's lever arm, within 40 %.
+    assert est.sigma_m_metre == pytest.approx(0.03, rel=0.1)
+    assert est.sigma_m == pytest.approx(0.01, rel=0.4)
+    assert est.sigma_rad == pytest.approx(math.radians(0.3), rel=0.1)
+    assert (est.gate_sigma_m, est.gate_sigma_m_metre) == (est.sigma_m, est.sigma_m_metre)
+    # Whitened by length, every band within 0.15 of 1 (over 1,000 χ²₁ a band: about
+    # three standard errors); one σ for every line leaves short pieces far above 1 and
+    # long ones far below.
+    for m2 in _by_length(log, est):
+        assert m2 == pytest.approx(1.0, abs=0.15)
+    flat = _by_length(log, estimate_line_model_error(log, correlated=False))
+    assert flat[0] > 2.0
+    assert flat[2] < 0.6
+    assert "m / length" in est.summary()
+    # One σ for every line where the error does not fall with length: no metre part
+    # worth the name (under a fifth of the constant σ at one metre).
+    const = estimate_line_model_error(
+        _log((0.03, math.radians(0.3)), phi=0.0, n=800, pieces=True),
+        correlated=False,
+        shape="length",
+    )
+    assert const.sigma_m_metre < 0.2 * const.sigma_m
+    assert const.sigma_m == pytest.approx(0.03, rel=0.1)
+
+
+def test_length_terms_widen_each_line_by_its_own_length() -> None:
+    t = LineTerms(0.01, 0.02, sigma_m_metre=0.03)
+    assert t.sigma_rho(1.0) == pytest.approx(math.hypot(0.01, 0.03))
+    assert t.sigma_rho(3.0) == pytest.approx(math.hypot(0.01, 0.01))
+    # Shorter than MIN_LENGTH_M (a degenerate extent included): MIN_LENGTH_M's.
+    assert t.sigma_rho(0.0) == t.sigma_rho(MIN_LENGTH_M / 2) == t.sigma_rho(MIN_LENGTH_M)
+    log = _log((0.03, 0.01), phi=0.0, n=20, sigma_m_metre=0.03, pieces=True)
+    out = with_line_model_error(log, t, gate=LineTerms(0.005, 0.01, sigma_m_metre=0.01))
+    assert out.feat_gate_cov is not None
+    for j in range(log.n_features):
+        z, base = log.feat_params[j], log.feat_cov[j]
+        length = float(log.feat_extent[j, 1] - log.feat_extent[j, 0])
+        s_rho = math.sqrt(0.01**2 + (0.03 / length) ** 2)
+        np.testing.assert_allclose(out.feat_cov[j], base + line_model_cov(z, s_rho, 0.02))
+        s_gate = math.sqrt(0.005**2 + (0.01 / length) ** 2)
+        np.testing.assert_allclose(out.feat_gate_cov[j], base + line_model_cov(z, s_gate, 0.01))
+
+
+def test_the_loader_takes_the_length_shape_when_asked() -> None:
+    from mapfuse_core.data.datasets.carmen import _estimated_terms
+
+    log = _log((0.01, math.radians(0.3)), phi=0.6, n=400, sigma_m_metre=0.03, pieces=True)
+    opts = CarmenOptions(line_model_error="correlated", line_model_gate="alone")
+    est = estimate_line_model_error(log, shape="length")
+    out = _estimated_terms(log, dataclasses.replace(opts, line_model_shape="length"))
+    np.testing.assert_allclose(
+        out.feat_cov, with_line_model_error(log, est.terms).feat_cov, rtol=1e-12, atol=1e-18
+    )
+    assert out.feat_gate_cov is not None
+    np.testing.assert_allclose(
+        out.feat_gate_cov,
+        with_line_model_error(log, est.gate_terms).feat_cov,
+        rtol=1e-12,
+        atol=1e-18,
+    )
+    assert f"{est.sigma_m_metre:.3f} m / length" in out.metadata["line_model_error"]
+    assert "m / length" not in _estimated_terms(log, opts).metadata["line_model_error"]
+
+
 def test_bad_input_is_named() -> None:
     log = _log((0.03, 0.01), phi=0.0, n=20)
     with pytest.raises(ValueError, match="reference trajectory"):
@@ -281,8 +383,11 @@ def test_bad_input_is_named() -> None:
     with pytest.raises(ValueError, match=f"needs at least {MIN_OBSERVATIONS}"):
         estimate_line_model_error(log.head(5))
     for bad in (-0.01, math.nan, math.inf):
-        with pytest.raises(ValueError, match="sigma_m must be finite and >= 0"):
-            with_line_model_error(log, bad, 0.0)
+        for name in ("sigma_m", "sigma_rad", "sigma_m_metre"):
+            with pytest.raises(ValueError, match=f"^{name} must be finite and >= 0"):
+                LineTerms(**{"sigma_m": 0.0, "sigma_rad": 0.0, name: bad})
+    with pytest.raises(ValueError, match="shape must be 'constant' or 'length'"):
+        estimate_line_model_error(log, shape="guess")  # type: ignore[arg-type]
 
 
 def test_added_term_equals_the_extractors() -> None:
@@ -328,19 +433,18 @@ def test_carmen_logs_carry_their_own_estimate(data_dir: Path, name: str) -> None
     assert log.metadata["line_model_error"].startswith("estimated from the log (correlated):")
     bare = ExtractionParams.indoor_sick()
     bare = dataclasses.replace(bare, line_model_sigma_m=0.0, line_model_sigma_rad=0.0)
-    first = estimate_line_model_error(
-        load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile"))
-    )
+    bare_log = load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile"))
+    first = estimate_line_model_error(bare_log)
     assert f"{first.sigma_m:.3f} m" in log.metadata["line_model_error"]
     # Its gates take each observation's error alone: the independent terms.
     assert log.feat_gate_cov is not None
     assert f"gates {first.gate_sigma_m:.3f} m" in log.metadata["line_model_error"]
-    gate = with_line_model_error(
-        load_carmen(path, options=CarmenOptions(extraction=bare, line_model_error="profile")),
-        first.gate_sigma_m,
-        first.gate_sigma_rad,
-    )
+    gate = with_line_model_error(bare_log, first.gate_terms)
     np.testing.assert_allclose(log.feat_gate_cov, gate.feat_cov, rtol=1e-12, atol=1e-18)
+    # Short pieces of wall stray farther than long ones on every log: the
+    # maximum-likelihood split gives the part falling as 1/L a share of the variance.
+    by_length = estimate_line_model_error(bare_log, shape="length")
+    assert by_length.gate_sigma_m_metre > 0.1 * by_length.gate_sigma_m
     # The terms it carries whiten its residuals to 1/τ: estimating again adds under 5 %
     # of their variance (τ moves a little with the terms' own reweighting).
     again = estimate_line_model_error(log)
@@ -383,6 +487,10 @@ def test_options_name_a_bad_choice() -> None:
         CarmenOptions(line_model_gate="guess")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="line_model_gate='alone' needs line_model_error"):
         CarmenOptions(line_model_gate="alone")
+    with pytest.raises(ValueError, match="line_model_shape must be 'constant' or 'length'"):
+        CarmenOptions(line_model_shape="guess")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="line_model_shape='length' needs line_model_error"):
+        CarmenOptions(line_model_shape="length")
 
 
 def test_residuals_are_those_the_estimators_form() -> None:

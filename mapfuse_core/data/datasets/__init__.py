@@ -53,6 +53,8 @@ from mapfuse_core.data.datasets.floorplan import (
 from mapfuse_core.data.datasets.gps import gps_reference_labels
 from mapfuse_core.data.datasets.line_noise import (
     LineModelError,
+    LineModelShape,
+    LineTerms,
     estimate_line_model_error,
     with_line_model_error,
 )
@@ -84,6 +86,8 @@ __all__ = [
     "FloorPlanParams",
     "IncrementNoise",
     "LineModelError",
+    "LineModelShape",
+    "LineTerms",
     "OdometryNoise",
     "VictoriaParkOptions",
     "build_floor_plan",

@@ -45,7 +45,12 @@ from mapfuse_core.data.datasets.common import (
     check_finite,
     empty_map,
 )
-from mapfuse_core.data.datasets.line_noise import estimate_line_model_error, with_line_model_error
+from mapfuse_core.data.datasets.line_noise import (
+    LineModelShape,
+    LineTerms,
+    estimate_line_model_error,
+    with_line_model_error,
+)
 from mapfuse_core.geometry.features import FeatureKind
 from mapfuse_core.geometry.se2 import FloatArray, relative, wrap_scalar
 from mapfuse_core.matching import AssociationConfig
@@ -167,6 +172,14 @@ class CarmenOptions:
     gates start duplicate landmarks of walls already mapped and two runs of eight never
     anchor (``docs/results/carmen.md``).  A log that keeps the profile's terms (too few
     observations on its plan) has no gate covariances of its own."""
+    line_model_shape: LineModelShape = "constant"
+    """How the estimated σ on a line's ``ρ`` varies with ``line_model_error``
+    ``"correlated"`` or ``"independent"``: ``"constant"`` one σ for every line,
+    ``"length"`` a constant part plus one falling as ``1/L`` with the segment's length
+    (:class:`~mapfuse_core.data.datasets.line_noise.LineTerms`), split by maximum
+    likelihood on the log's residuals.  Short pieces of wall stray from the plan
+    several times farther than long ones on six logs of seven
+    (``docs/results/carmen.md``)."""
     extraction_max_range_m: float = 20.0
     """Returns farther than this (m) are not used for features: beyond it a 1° beam
     footprint is over 35 cm and indoor walls are seen through doors and glass."""
@@ -192,12 +205,18 @@ class CarmenOptions:
         for name, kind in (
             ("line_model_error", LineModelErrorSource),
             ("line_model_gate", LineModelGate),
+            ("line_model_shape", LineModelShape),
         ):
             check_choice("CarmenOptions", name, getattr(self, name), get_args(kind))
         if self.line_model_gate == "alone" and self.line_model_error != "correlated":
             raise ValueError(
                 "CarmenOptions.line_model_gate='alone' needs line_model_error='correlated' "
                 f"(with {self.line_model_error!r} the gates and the updates take the same terms)"
+            )
+        if self.line_model_shape == "length" and self.line_model_error == "profile":
+            raise ValueError(
+                "CarmenOptions.line_model_shape='length' needs line_model_error "
+                "'correlated' or 'independent' (the profile's terms are one σ for every line)"
             )
 
 
@@ -510,12 +529,16 @@ def _estimated_terms(log: MeasurementLog, opts: CarmenOptions) -> MeasurementLog
     the profile's where it has too few observations on its floor plan."""
     profile = opts.extraction
     try:
-        err = estimate_line_model_error(log, correlated=opts.line_model_error == "correlated")
+        err = estimate_line_model_error(
+            log,
+            correlated=opts.line_model_error == "correlated",
+            shape=opts.line_model_shape,
+        )
     except ValueError as exc:
-        out = with_line_model_error(log, profile.line_model_sigma_m, profile.line_model_sigma_rad)
-        return _noted(out, profile, str(exc))
-    gate = (err.gate_sigma_m, err.gate_sigma_rad) if opts.line_model_gate == "alone" else None
-    out = with_line_model_error(log, err.sigma_m, err.sigma_rad, gate)
+        terms = LineTerms(profile.line_model_sigma_m, profile.line_model_sigma_rad)
+        return _noted(with_line_model_error(log, terms), profile, str(exc))
+    gate = err.gate_terms if opts.line_model_gate == "alone" else None
+    out = with_line_model_error(log, err.terms, gate)
     return replace(
         out, metadata={**out.metadata, "line_model_error": err.summary(gate is not None)}
     )

@@ -41,6 +41,14 @@ through the distance from the foot of the observed line's normal to its referenc
 point).  The tail of the residuals is heavy (mixed-up walls, furniture); the mean
 counts it, as a run's NEES does.  Measured on the seven CARMEN logs in
 ``docs/results/carmen.md``.
+
+With ``shape="length"`` the σ on ``ρ`` depends on the segment's length ``L``:
+``σ_ρ² = σ_m² + (σ_1 / L)²``.  Pieces of wall a metre or less long (door frames,
+skirting, furniture beside a wall) stray from the wall's line several times farther
+than segments of several metres, which one σ for every line cannot describe
+(``docs/results/carmen.md``).  The split between the two parts is the Gaussian
+maximum-likelihood one for the lateral residuals (with step 1's angle term); steps 1–4
+then scale both parts together.
 """
 
 from __future__ import annotations
@@ -48,8 +56,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from mapfuse_core.data.datasets.floorplan import (
     FloorPlan,
@@ -65,8 +75,11 @@ from mapfuse_core.perception.extraction.noise import line_model_cov
 
 __all__ = [
     "MIN_CORRELATION",
+    "MIN_LENGTH_M",
     "MIN_OBSERVATIONS",
     "LineModelError",
+    "LineModelShape",
+    "LineTerms",
     "estimate_line_model_error",
     "with_line_model_error",
 ]
@@ -81,6 +94,21 @@ MIN_CORRELATION = 0.05
 _MAX_LAG = 10
 """Longest lag (scans) summed: the correlation of the seven logs is gone by lag 5."""
 
+MIN_LENGTH_M = 0.2
+"""Length (m) a shorter segment takes in the ``1/L²`` part of the σ on ``ρ``: keeps it
+finite for a segment of a few returns (the indoor profile's shortest line is 0.4 m)."""
+
+LineModelShape = Literal["constant", "length"]
+"""How the σ on ``ρ`` varies from line to line: ``"constant"`` the same for every
+line, ``"length"`` a constant part plus one falling as ``1/L`` (module docstring)."""
+
+_SHARE_GRID = 101
+"""Points on [0, 1] at which the ``1/L²`` part's share of the variance on ``ρ`` is
+tried (steps of 0.01)."""
+
+_LOG_VAR_MIN, _LOG_VAR_MAX = math.log(1e-10), math.log(1.0)
+"""Bounds of the log-variance (m²) searched at each share: 10 µm to 1 m on ``ρ``."""
+
 _MAX_ROUNDS = 10
 """Most rounds of the τ fixed point (three suffice on the seven logs)."""
 
@@ -90,6 +118,35 @@ _TAU_TOL = 0.01
 _NEGLIGIBLE_SURVEY = 1e-9
 """The plan's survey σ while estimating (m and rad): the residuals are compared with
 the merge's own standard error, not with a stated survey tolerance."""
+
+
+@dataclass(frozen=True)
+class LineTerms:
+    """Line model-error terms as a line's covariance takes them
+    (:func:`~mapfuse_core.perception.extraction.noise.line_model_cov`)."""
+
+    sigma_m: float
+    """σ (m) on every line's ``ρ``."""
+    sigma_rad: float
+    """σ (rad) on every line's ``α``."""
+    sigma_m_metre: float = 0.0
+    """σ (m) on ``ρ`` of a segment one metre long from the part that falls as
+    ``1/L``: a segment ``L`` long takes ``σ_ρ² = sigma_m² + (sigma_m_metre / L)²``
+    (``L`` at least :data:`MIN_LENGTH_M`)."""
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_m", "sigma_rad", "sigma_m_metre"):
+            _check_sigma(name, getattr(self, name))
+
+    def sigma_rho(self, length: float) -> float:
+        """σ (m) on ``ρ`` of a segment ``length`` long."""
+        if self.sigma_m_metre == 0.0:
+            return self.sigma_m
+        return math.hypot(self.sigma_m, self.sigma_m_metre / max(length, MIN_LENGTH_M))
+
+    def cov(self, line: FloatArray, length: float) -> FloatArray:
+        """(3, 3) covariance the terms add to ``line``, a segment ``length`` long."""
+        return line_model_cov(line, self.sigma_rho(length), self.sigma_rad)
 
 
 @dataclass(frozen=True)
@@ -116,19 +173,30 @@ class LineModelError:
     correlated: bool = True
     """Whether the terms count the correlation of consecutive scans (whitened
     residuals at ``1/τ``) or whiten each observation to 1 (then equal to the gate's)."""
+    sigma_m_metre: float = 0.0
+    """σ (m) on ``ρ`` of a segment one metre long from the part that falls as ``1/L``
+    (:attr:`LineTerms.sigma_m_metre`); 0 with ``shape="constant"``."""
+    gate_sigma_m_metre: float = 0.0
+    """The same part of step 1's σ on ``ρ``."""
+
+    @property
+    def terms(self) -> LineTerms:
+        """The terms the updates weigh each observation with."""
+        return LineTerms(self.sigma_m, self.sigma_rad, self.sigma_m_metre)
+
+    @property
+    def gate_terms(self) -> LineTerms:
+        """Step 1's terms: each observation's error alone."""
+        return LineTerms(self.gate_sigma_m, self.gate_sigma_rad, self.gate_sigma_m_metre)
 
     def summary(self, gated: bool = False) -> str:
         """One line for a log's metadata; ``gated``: the log's gates take
         :attr:`gate_sigma_m` and :attr:`gate_sigma_rad`."""
         how = "correlated" if self.correlated else "independent"
-        gate = (
-            f"; gates {self.gate_sigma_m:.3f} m, {math.degrees(self.gate_sigma_rad):.2f} deg"
-            if gated
-            else ""
-        )
+        gate = f"; gates {_terms_text(self.gate_terms)}" if gated else ""
         return (
-            f"estimated from the log ({how}): {self.sigma_m:.3f} m, "
-            f"{math.degrees(self.sigma_rad):.2f} deg{gate} (autocorrelation time "
+            f"estimated from the log ({how}): {_terms_text(self.terms)}{gate} "
+            f"(autocorrelation time "
             f"{self.iact[0]:.1f} / {self.iact[1]:.1f} scans, "
             f"{self.observations} observations on plan walls)"
         )
@@ -150,10 +218,20 @@ class _Residuals:
     gain: FloatArray
     """(N, 2, 2) ``[d, k]``: variance added to dof ``d`` by a unit variance of term
     ``k`` (``ρ``, ``α``)."""
+    inv_length2: FloatArray
+    """(N,) ``1/L²`` of each observed segment (``L`` at least :data:`MIN_LENGTH_M`)."""
 
-    def whitened(self, var_m: float, var_rad: float) -> FloatArray:
-        """(N, 2) residuals over their standard deviation with the terms."""
-        v = self.var + self.gain @ np.array([var_m, var_rad])
+    def rho_weight(self, share: float) -> FloatArray:
+        """(N,) each observation's variance on ``ρ`` per unit variance of a segment one
+        metre long, ``share`` of it in the ``1/L²`` part."""
+        out: FloatArray = (1.0 - share) + share * self.inv_length2
+        return out
+
+    def whitened(self, var_m: float, var_rad: float, share: float = 0.0) -> FloatArray:
+        """(N, 2) residuals over their standard deviation with the terms: ``var_m`` on
+        ``ρ`` at one metre (``share`` of it falling as ``1/L²``), ``var_rad`` on ``α``."""
+        v = self.var + self.gain[:, :, 0] * (var_m * self.rho_weight(share))[:, None]
+        v = v + self.gain[:, :, 1] * var_rad
         out: FloatArray = self.r / np.sqrt(v)
         return out
 
@@ -178,7 +256,8 @@ def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
         for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
             added = line_observation_cov(pose, wall, z, line_model_cov(z, *unit))
             gain[n, :, k] = np.diag(added)
-    return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain)
+    length = np.maximum(log.feat_extent[idx, 1] - log.feat_extent[idx, 0], MIN_LENGTH_M)
+    return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain, 1.0 / length**2)
 
 
 def _solve(f: Callable[[float], float], target: float) -> float:
@@ -202,16 +281,43 @@ def _solve(f: Callable[[float], float], target: float) -> float:
     return hi
 
 
-def _variances(res: _Residuals, target: tuple[float, float]) -> tuple[float, float]:
+def _variances(
+    res: _Residuals, target: tuple[float, float], share: float = 0.0
+) -> tuple[float, float]:
     """(σ_m², σ_rad²) bringing the mean whitened squared residuals to ``target``: the
-    angle's first, since it alone moves the angle residual."""
+    angle's first, since it alone moves the angle residual.  ``σ_m²`` is the variance
+    on ``ρ`` of a segment one metre long, ``share`` of it falling as ``1/L²``."""
 
     def mean_nees(d: int, var_m: float, var_rad: float) -> float:
-        return float(np.mean(res.whitened(var_m, var_rad)[:, d] ** 2))
+        return float(np.mean(res.whitened(var_m, var_rad, share)[:, d] ** 2))
 
     var_rad = _solve(lambda v: mean_nees(1, 0.0, v), target[1])
     var_m = _solve(lambda v: mean_nees(0, v, var_rad), target[0])
     return var_m, var_rad
+
+
+def _length_share(res: _Residuals, var_rad: float) -> float:
+    """The share of the ``1/L²`` part in the variance on ``ρ`` that maximises the
+    Gaussian likelihood of the lateral residuals (``var_rad`` on ``α``): for each share
+    on a grid over [0, 1] the best scale, then the best share.  Each residual weighs by
+    its own variance, so the lateral spread that the angle term already explains (its
+    lever arm along a long segment) does not push the constant part to 0."""
+    r2 = res.r[:, 0] ** 2
+    base = res.var[:, 0] + res.gain[:, 0, 1] * var_rad
+    gain = res.gain[:, 0, 0]
+
+    def nll(share: float, log_var: float) -> float:
+        v = base + gain * math.exp(log_var) * res.rho_weight(share)
+        return float(np.sum(np.log(v) + r2 / v))
+
+    def profile(share: float) -> float:
+        best = minimize_scalar(
+            lambda x: nll(share, x), bounds=(_LOG_VAR_MIN, _LOG_VAR_MAX), method="bounded"
+        )
+        return float(best.fun)
+
+    shares = np.linspace(0.0, 1.0, _SHARE_GRID)
+    return float(shares[int(np.argmin([profile(float(f)) for f in shares]))])
 
 
 def _lag_pairs(res: _Residuals) -> list[tuple[IntArray, IntArray]]:
@@ -236,11 +342,15 @@ def _lag_pairs(res: _Residuals) -> list[tuple[IntArray, IntArray]]:
 
 
 def _iact(
-    res: _Residuals, pairs: list[tuple[IntArray, IntArray]], var_m: float, var_rad: float
+    res: _Residuals,
+    pairs: list[tuple[IntArray, IntArray]],
+    var_m: float,
+    var_rad: float,
+    share: float = 0.0,
 ) -> tuple[float, float]:
     """τ per dof of the whitened residuals of one wall ``L`` scans apart (``pairs``:
     :func:`_lag_pairs`)."""
-    z = res.whitened(var_m, var_rad)
+    z = res.whitened(var_m, var_rad, share)
     taus = []
     for d in range(2):
         tau = 1.0
@@ -257,13 +367,18 @@ def _iact(
 
 
 def estimate_line_model_error(
-    log: MeasurementLog, params: FloorPlanParams | None = None, *, correlated: bool = True
+    log: MeasurementLog,
+    params: FloorPlanParams | None = None,
+    *,
+    correlated: bool = True,
+    shape: LineModelShape = "constant",
 ) -> LineModelError:
     """The line model-error terms of ``log`` (module docstring).
 
     ``correlated=False`` stops at step 1: each observation whitened to 1 as if
     consecutive scans erred independently (``iact`` is still measured, with those
-    terms, and reported).
+    terms, and reported).  ``shape="length"`` splits the σ on ``ρ`` into a constant
+    part and one falling as ``1/L`` (:class:`LineTerms`).
 
     ``log`` needs a reference trajectory, and its line covariances must hold no
     model-error term yet (extracted with ``line_model_sigma_m = line_model_sigma_rad
@@ -271,6 +386,8 @@ def estimate_line_model_error(
     :class:`ValueError` without a reference or with fewer than
     :data:`MIN_OBSERVATIONS` line observations on plan walls.
     """
+    if shape not in ("constant", "length"):
+        raise ValueError(f"shape must be 'constant' or 'length', got {shape!r}")
     if log.true_poses is None:
         raise ValueError(
             "the line model error is estimated against a reference trajectory; the log has none"
@@ -287,63 +404,67 @@ def estimate_line_model_error(
     z0 = res.whitened(0.0, 0.0)
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
     pairs = _lag_pairs(res)
-    var_m, var_rad = gate = _variances(res, (1.0, 1.0))
-    tau = _iact(res, pairs, var_m, var_rad)
+    share = 0.0
+    if shape == "length":
+        share = _length_share(res, _variances(res, (1.0, 1.0))[1])
+    var_m, var_rad = gate = _variances(res, (1.0, 1.0), share)
+    tau = _iact(res, pairs, var_m, var_rad, share)
     for _ in range(_MAX_ROUNDS if correlated else 0):
         # τ moves with the terms (they reweight the observations): to a fixed point.
-        var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]))
-        last, tau = tau, _iact(res, pairs, var_m, var_rad)
+        var_m, var_rad = _variances(res, (1.0 / tau[0], 1.0 / tau[1]), share)
+        last, tau = tau, _iact(res, pairs, var_m, var_rad, share)
         if max(abs(a - b) / b for a, b in zip(tau, last, strict=True)) < _TAU_TOL:
             break
     return LineModelError(
-        sigma_m=math.sqrt(var_m),
+        sigma_m=math.sqrt(var_m * (1.0 - share)),
         sigma_rad=math.sqrt(var_rad),
         iact=tau,
         observations=n,
         nees_without=without,
-        gate_sigma_m=math.sqrt(gate[0]),
+        gate_sigma_m=math.sqrt(gate[0] * (1.0 - share)),
         gate_sigma_rad=math.sqrt(gate[1]),
         correlated=correlated,
+        sigma_m_metre=math.sqrt(var_m * share),
+        gate_sigma_m_metre=math.sqrt(gate[0] * share),
     )
 
 
 def with_line_model_error(
-    log: MeasurementLog,
-    sigma_m: float,
-    sigma_rad: float,
-    gate: tuple[float, float] | None = None,
+    log: MeasurementLog, terms: LineTerms, gate: LineTerms | None = None
 ) -> MeasurementLog:
-    """``log`` with the model-error terms (σ on ``ρ``, σ on ``α``) added to every line's
-    covariance, as the extractor adds ``ExtractionParams.line_model_sigma_m`` and
-    ``line_model_sigma_rad``.
+    """``log`` with the model-error ``terms`` added to every line's covariance, as the
+    extractor adds ``ExtractionParams.line_model_sigma_m`` and ``line_model_sigma_rad``
+    (those two with ``sigma_m_metre = 0``).
 
-    ``gate`` (σ on ``ρ``, σ on ``α``), when given, makes the log's covariances for
-    compatibility tests (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`)
-    the same lines with those terms instead (:attr:`LineModelError.gate_sigma_m`): it
-    is meant for a log whose lines hold no model-error term yet, as
-    :func:`estimate_line_model_error` takes them.  Without ``gate`` the terms are added
-    to the log's own gate covariances too, if it has any.
+    ``gate``, when given, makes the log's covariances for compatibility tests
+    (:attr:`~mapfuse_core.measlog.MeasurementLog.feat_gate_cov`) the same lines with
+    those terms instead (:attr:`LineModelError.gate_terms`): it is meant for a log whose
+    lines hold no model-error term yet, as :func:`estimate_line_model_error` takes them.
+    Without ``gate`` the terms are added to the log's own gate covariances too, if it
+    has any.
     """
-    for name, v in (("sigma_m", sigma_m), ("sigma_rad", sigma_rad)):
-        _check_sigma(name, v)
-    if gate is not None:
-        for name, v in zip(("gate sigma_m", "gate sigma_rad"), gate, strict=True):
-            _check_sigma(name, v)
     lines = np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist()
+    lengths = (log.feat_extent[:, 1] - log.feat_extent[:, 0]).tolist()
 
-    def added(base: FloatArray, s_m: float, s_rad: float) -> FloatArray:
+    def added(base: FloatArray, t: LineTerms) -> FloatArray:
         cov = base.copy()
         for i in lines:
-            cov[i] = cov[i] + line_model_cov(log.feat_params[i], s_m, s_rad)
+            cov[i] = cov[i] + t.cov(log.feat_params[i], lengths[i])
         return cov
 
     if gate is not None:
-        gate_cov: FloatArray | None = added(log.feat_cov, *gate)
+        gate_cov: FloatArray | None = added(log.feat_cov, gate)
     elif log.feat_gate_cov is not None:
-        gate_cov = added(log.feat_gate_cov, sigma_m, sigma_rad)
+        gate_cov = added(log.feat_gate_cov, terms)
     else:
         gate_cov = None
-    return replace(log, feat_cov=added(log.feat_cov, sigma_m, sigma_rad), feat_gate_cov=gate_cov)
+    return replace(log, feat_cov=added(log.feat_cov, terms), feat_gate_cov=gate_cov)
+
+
+def _terms_text(t: LineTerms) -> str:
+    """``t`` as a log's metadata states it."""
+    part = f" + {t.sigma_m_metre:.3f} m / length" if t.sigma_m_metre > 0.0 else ""
+    return f"{t.sigma_m:.3f} m{part}, {math.degrees(t.sigma_rad):.2f} deg"
 
 
 def _check_sigma(name: str, v: float) -> None:
