@@ -39,7 +39,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 from scipy.stats import chi2
@@ -49,6 +49,7 @@ from mapfuse.runner import run
 from mapfuse_core.data.datasets import (
     CarmenOptions,
     FloorPlan,
+    LineModelShape,
     build_floor_plan,
     label_with_plan,
     line_nees,
@@ -484,7 +485,7 @@ def main() -> None:
     ap.add_argument(
         "--line-model-shape",
         default="constant",
-        choices=("constant", "length"),
+        choices=get_args(LineModelShape),
         help="CarmenOptions.line_model_shape: one σ on every line's ρ, or a part falling "
         "as 1/length beside it (needs --line-model-error correlated or independent)",
     )

@@ -47,8 +47,9 @@ With ``shape="length"`` the σ on ``ρ`` depends on the segment's length ``L``:
 skirting, furniture beside a wall) stray from the wall's line several times farther
 than segments of several metres, which one σ for every line cannot describe
 (``docs/results/carmen.md``).  The split between the two parts is the Gaussian
-maximum-likelihood one for the lateral residuals (with step 1's angle term); steps 1–4
-then scale both parts together.
+maximum-likelihood one for the lateral residuals (with step 1's angle term), the
+``1/L`` part kept only where the residuals give evidence for it
+(:data:`_SHAPE_EVIDENCE`); steps 1–4 then scale both parts together.
 """
 
 from __future__ import annotations
@@ -56,11 +57,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy.stats import chi2 as chi2_dist
 
+from mapfuse_core.data.datasets.common import check_choice
 from mapfuse_core.data.datasets.floorplan import (
     FloorPlan,
     FloorPlanParams,
@@ -106,8 +109,14 @@ _SHARE_GRID = 101
 """Points on [0, 1] at which the ``1/L²`` part's share of the variance on ``ρ`` is
 tried (steps of 0.01)."""
 
-_LOG_VAR_MIN, _LOG_VAR_MAX = math.log(1e-10), math.log(1.0)
-"""Bounds of the log-variance (m²) searched at each share: 10 µm to 1 m on ``ρ``."""
+_LOG_VAR_MIN, _LOG_VAR_MAX = math.log(1e-14), math.log(1e2)
+"""Bounds of the log-variance (m²) on ``ρ`` of a segment one metre long searched at each
+share: σ from 0.1 µm to 10 m, far beyond any wall."""
+
+_SHAPE_EVIDENCE = float(chi2_dist.ppf(0.95, 1))
+"""χ²₁ 95 % quantile: the ``1/L`` part is kept only if it lowers ``−2 log L`` of the
+lateral residuals by more than this, times their autocorrelation time (``τ``
+consecutive residuals carry about one residual's evidence)."""
 
 _MAX_ROUNDS = 10
 """Most rounds of the τ fixed point (three suffice on the seven logs)."""
@@ -138,11 +147,17 @@ class LineTerms:
         for name in ("sigma_m", "sigma_rad", "sigma_m_metre"):
             _check_sigma(name, getattr(self, name))
 
+    @classmethod
+    def from_split(cls, var_m: float, var_rad: float, share: float) -> LineTerms:
+        """The terms of a variance ``var_m`` on ``ρ`` of a segment one metre long,
+        ``share`` of it in the part falling as ``1/L``, and ``var_rad`` on ``α``."""
+        return cls(math.sqrt(var_m * (1.0 - share)), math.sqrt(var_rad), math.sqrt(var_m * share))
+
     def sigma_rho(self, length: float) -> float:
         """σ (m) on ``ρ`` of a segment ``length`` long."""
         if self.sigma_m_metre == 0.0:
             return self.sigma_m
-        return math.hypot(self.sigma_m, self.sigma_m_metre / max(length, MIN_LENGTH_M))
+        return math.hypot(self.sigma_m, self.sigma_m_metre / float(_floored(length)))
 
     def cov(self, line: FloatArray, length: float) -> FloatArray:
         """(3, 3) covariance the terms add to ``line``, a segment ``length`` long."""
@@ -178,6 +193,9 @@ class LineModelError:
     (:attr:`LineTerms.sigma_m_metre`); 0 with ``shape="constant"``."""
     gate_sigma_m_metre: float = 0.0
     """The same part of step 1's σ on ``ρ``."""
+    shape: LineModelShape = "constant"
+    """The shape asked for (:func:`estimate_line_model_error`); with ``"length"`` the
+    ``1/L`` part is 0 where the residuals give too little evidence for it."""
 
     @property
     def terms(self) -> LineTerms:
@@ -191,8 +209,9 @@ class LineModelError:
 
     def summary(self, gated: bool = False) -> str:
         """One line for a log's metadata; ``gated``: the log's gates take
-        :attr:`gate_sigma_m` and :attr:`gate_sigma_rad`."""
+        :attr:`gate_terms`."""
         how = "correlated" if self.correlated else "independent"
+        how += ", length shape" if self.shape == "length" else ""
         gate = f"; gates {_terms_text(self.gate_terms)}" if gated else ""
         return (
             f"estimated from the log ({how}): {_terms_text(self.terms)}{gate} "
@@ -221,6 +240,14 @@ class _Residuals:
     inv_length2: FloatArray
     """(N,) ``1/L²`` of each observed segment (``L`` at least :data:`MIN_LENGTH_M`)."""
 
+    def variance(self, var_m: float, var_rad: float, share: float = 0.0) -> FloatArray:
+        """(N, 2) variance of each residual with the terms: ``var_m`` on ``ρ`` of a
+        segment one metre long (``share`` of it falling as ``1/L²``), ``var_rad`` on
+        ``α``."""
+        v = self.var + self.gain[:, :, 0] * (var_m * self.rho_weight(share))[:, None]
+        out: FloatArray = v + self.gain[:, :, 1] * var_rad
+        return out
+
     def rho_weight(self, share: float) -> FloatArray:
         """(N,) each observation's variance on ``ρ`` per unit variance of a segment one
         metre long, ``share`` of it in the ``1/L²`` part."""
@@ -228,11 +255,9 @@ class _Residuals:
         return out
 
     def whitened(self, var_m: float, var_rad: float, share: float = 0.0) -> FloatArray:
-        """(N, 2) residuals over their standard deviation with the terms: ``var_m`` on
-        ``ρ`` at one metre (``share`` of it falling as ``1/L²``), ``var_rad`` on ``α``."""
-        v = self.var + self.gain[:, :, 0] * (var_m * self.rho_weight(share))[:, None]
-        v = v + self.gain[:, :, 1] * var_rad
-        out: FloatArray = self.r / np.sqrt(v)
+        """(N, 2) residuals over their standard deviation with the terms
+        (:meth:`variance`)."""
+        out: FloatArray = self.r / np.sqrt(self.variance(var_m, var_rad, share))
         return out
 
 
@@ -256,8 +281,14 @@ def _residuals(log: MeasurementLog, plan: FloorPlan) -> _Residuals:
         for k, unit in enumerate(((1.0, 0.0), (0.0, 1.0))):
             added = line_observation_cov(pose, wall, z, line_model_cov(z, *unit))
             gain[n, :, k] = np.diag(added)
-    length = np.maximum(log.feat_extent[idx, 1] - log.feat_extent[idx, 0], MIN_LENGTH_M)
+    length = _floored(log.feat_extent[idx, 1] - log.feat_extent[idx, 0])
     return _Residuals(plan.obs_wall[idx], log.feat_step[idx], r, var, gain, 1.0 / length**2)
+
+
+def _floored(length: FloatArray | float) -> FloatArray:
+    """Segment lengths as the ``1/L`` part takes them: at least :data:`MIN_LENGTH_M`."""
+    out: FloatArray = np.maximum(length, MIN_LENGTH_M)
+    return out
 
 
 def _solve(f: Callable[[float], float], target: float) -> float:
@@ -296,28 +327,28 @@ def _variances(
     return var_m, var_rad
 
 
-def _length_share(res: _Residuals, var_rad: float) -> float:
+def _length_share(res: _Residuals, var_rad: float, tau: float) -> float:
     """The share of the ``1/L²`` part in the variance on ``ρ`` that maximises the
     Gaussian likelihood of the lateral residuals (``var_rad`` on ``α``): for each share
-    on a grid over [0, 1] the best scale, then the best share.  Each residual weighs by
-    its own variance, so the lateral spread that the angle term already explains (its
-    lever arm along a long segment) does not push the constant part to 0."""
+    on a grid over [0, 1] the best scale, then the best share; 0 unless it lowers
+    ``−2 log L`` by more than :data:`_SHAPE_EVIDENCE` × ``tau`` (the lateral residuals'
+    autocorrelation time).  Each residual weighs by its own variance, so the lateral
+    spread that the angle term already explains (its lever arm along a long segment)
+    does not push the constant part to 0."""
     r2 = res.r[:, 0] ** 2
-    base = res.var[:, 0] + res.gain[:, 0, 1] * var_rad
-    gain = res.gain[:, 0, 0]
-
-    def nll(share: float, log_var: float) -> float:
-        v = base + gain * math.exp(log_var) * res.rho_weight(share)
-        return float(np.sum(np.log(v) + r2 / v))
 
     def profile(share: float) -> float:
-        best = minimize_scalar(
-            lambda x: nll(share, x), bounds=(_LOG_VAR_MIN, _LOG_VAR_MAX), method="bounded"
-        )
+        def nll(log_var: float) -> float:
+            v = res.variance(math.exp(log_var), var_rad, share)[:, 0]
+            return float(np.sum(np.log(v) + r2 / v))
+
+        best = minimize_scalar(nll, bounds=(_LOG_VAR_MIN, _LOG_VAR_MAX), method="bounded")
         return float(best.fun)
 
     shares = np.linspace(0.0, 1.0, _SHARE_GRID)
-    return float(shares[int(np.argmin([profile(float(f)) for f in shares]))])
+    m2ll = np.array([profile(float(f)) for f in shares])
+    best = int(np.argmin(m2ll))
+    return float(shares[best]) if m2ll[0] - m2ll[best] > _SHAPE_EVIDENCE * tau else 0.0
 
 
 def _lag_pairs(res: _Residuals) -> list[tuple[IntArray, IntArray]]:
@@ -386,8 +417,7 @@ def estimate_line_model_error(
     :class:`ValueError` without a reference or with fewer than
     :data:`MIN_OBSERVATIONS` line observations on plan walls.
     """
-    if shape not in ("constant", "length"):
-        raise ValueError(f"shape must be 'constant' or 'length', got {shape!r}")
+    check_choice("estimate_line_model_error", "shape", shape, get_args(LineModelShape))
     if log.true_poses is None:
         raise ValueError(
             "the line model error is estimated against a reference trajectory; the log has none"
@@ -406,7 +436,8 @@ def estimate_line_model_error(
     pairs = _lag_pairs(res)
     share = 0.0
     if shape == "length":
-        share = _length_share(res, _variances(res, (1.0, 1.0))[1])
+        alone = _variances(res, (1.0, 1.0))
+        share = _length_share(res, alone[1], _iact(res, pairs, *alone)[0])
     var_m, var_rad = gate = _variances(res, (1.0, 1.0), share)
     tau = _iact(res, pairs, var_m, var_rad, share)
     for _ in range(_MAX_ROUNDS if correlated else 0):
@@ -415,17 +446,20 @@ def estimate_line_model_error(
         last, tau = tau, _iact(res, pairs, var_m, var_rad, share)
         if max(abs(a - b) / b for a, b in zip(tau, last, strict=True)) < _TAU_TOL:
             break
+    terms = LineTerms.from_split(var_m, var_rad, share)
+    gate_terms = LineTerms.from_split(*gate, share)
     return LineModelError(
-        sigma_m=math.sqrt(var_m * (1.0 - share)),
-        sigma_rad=math.sqrt(var_rad),
+        sigma_m=terms.sigma_m,
+        sigma_rad=terms.sigma_rad,
         iact=tau,
         observations=n,
         nees_without=without,
-        gate_sigma_m=math.sqrt(gate[0] * (1.0 - share)),
-        gate_sigma_rad=math.sqrt(gate[1]),
+        gate_sigma_m=gate_terms.sigma_m,
+        gate_sigma_rad=gate_terms.sigma_rad,
         correlated=correlated,
-        sigma_m_metre=math.sqrt(var_m * share),
-        gate_sigma_m_metre=math.sqrt(gate[0] * share),
+        sigma_m_metre=terms.sigma_m_metre,
+        gate_sigma_m_metre=gate_terms.sigma_m_metre,
+        shape=shape,
     )
 
 
@@ -443,8 +477,17 @@ def with_line_model_error(
     Without ``gate`` the terms are added to the log's own gate covariances too, if it
     has any.
     """
+    for name, t in (("terms", terms), ("gate", gate)):
+        if not (isinstance(t, LineTerms) or (name == "gate" and t is None)):
+            raise TypeError(f"with_line_model_error: {name} must be LineTerms, got {t!r}")
     lines = np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist()
     lengths = (log.feat_extent[:, 1] - log.feat_extent[:, 0]).tolist()
+    for i in lines:
+        if not (math.isfinite(lengths[i]) and lengths[i] >= 0.0):
+            raise ValueError(
+                f"line feature {i} has extent {log.feat_extent[i].tolist()}: its length "
+                "must be finite and >= 0 for the line model-error terms"
+            )
 
     def added(base: FloatArray, t: LineTerms) -> FloatArray:
         cov = base.copy()
@@ -462,8 +505,8 @@ def with_line_model_error(
 
 
 def _terms_text(t: LineTerms) -> str:
-    """``t`` as a log's metadata states it."""
-    part = f" + {t.sigma_m_metre:.3f} m / length" if t.sigma_m_metre > 0.0 else ""
+    """``t`` as a log's metadata states it (the two parts on ``ρ`` add as variances)."""
+    part = f" and {t.sigma_m_metre:.3f} m / length in quadrature" if t.sigma_m_metre else ""
     return f"{t.sigma_m:.3f} m{part}, {math.degrees(t.sigma_rad):.2f} deg"
 
 
