@@ -305,6 +305,8 @@ EVIDENCE: dict[str, str] = {
     "#line-model-error-estimated-from-each-log)",
     "CarmenOptions.line_model_gate": f"[CARMEN]({_R}carmen.md"
     "#gates-on-each-observations-error-alone)",
+    "CarmenOptions.line_model_shape": f"[CARMEN]({_R}carmen.md"
+    "#a-lateral-term-falling-with-the-segments-length)",
     "IncrementNoise.trans_frac": f"[CARMEN]({_R}carmen.md#odometry-evidence-on-the-seven-logs)",
     "FloorPlanParams.min_parallel_separation_m": f"[CARMEN]({_R}carmen.md#measured-figures)",
 }
