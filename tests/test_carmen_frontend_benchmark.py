@@ -102,26 +102,25 @@ def test_estimator_names_take_a_kernel_and_the_reference_association(
         bench.backend_and_kernel("batch@given")
 
 
-def test_gates_alone_without_correlated_terms_is_refused_before_any_log_is_read(
-    bench, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (("--line-model-gate", "alone"), "line_model_gate='alone' needs line_model_error="),
+        (("--line-model-shape", "length"), "line_model_shape='length' needs line_model_error"),
+    ],
+)
+def test_line_terms_without_estimated_terms_are_refused_before_any_log_is_read(
+    bench,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    option: tuple[str, str],
+    message: str,
 ) -> None:  # type: ignore[no-untyped-def]
-    argv = ["carmen_frontend.py", "--data", "/nonexistent", "--line-model-gate", "alone"]
-    monkeypatch.setattr("sys.argv", argv)
+    monkeypatch.setattr("sys.argv", ["carmen_frontend.py", "--data", "/nonexistent", *option])
     with pytest.raises(SystemExit) as exc:
         bench.main()
     assert exc.value.code == 2
-    assert "line_model_gate='alone' needs line_model_error='correlated'" in capsys.readouterr().err
-
-
-def test_length_shape_without_estimated_terms_is_refused_before_any_log_is_read(
-    bench, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:  # type: ignore[no-untyped-def]
-    argv = ["carmen_frontend.py", "--data", "/nonexistent", "--line-model-shape", "length"]
-    monkeypatch.setattr("sys.argv", argv)
-    with pytest.raises(SystemExit) as exc:
-        bench.main()
-    assert exc.value.code == 2
-    assert "line_model_shape='length' needs line_model_error" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
 
 
 def test_the_length_shape_reaches_the_loader(bench, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
