@@ -243,7 +243,11 @@ class _Residuals:
     def variance(self, var_m: float, var_rad: float, share: float = 0.0) -> FloatArray:
         """(N, 2) variance of each residual with the terms: ``var_m`` on ``ρ`` of a
         segment one metre long (``share`` of it falling as ``1/L²``), ``var_rad`` on
-        ``α``."""
+        ``α``.  With ``share`` 0 one matrix product, so that the one-σ terms do not
+        depend on the length part's arithmetic to the last bit."""
+        if share == 0.0:
+            flat: FloatArray = self.var + self.gain @ np.array([var_m, var_rad])
+            return flat
         v = self.var + self.gain[:, :, 0] * (var_m * self.rho_weight(share))[:, None]
         out: FloatArray = v + self.gain[:, :, 1] * var_rad
         return out
