@@ -243,13 +243,11 @@ class _Residuals:
     def variance(self, var_m: float, var_rad: float, share: float = 0.0) -> FloatArray:
         """(N, 2) variance of each residual with the terms: ``var_m`` on ``ρ`` of a
         segment one metre long (``share`` of it falling as ``1/L²``), ``var_rad`` on
-        ``α``.  With ``share`` 0 one matrix product, so that the one-σ terms do not
-        depend on the length part's arithmetic to the last bit."""
-        if share == 0.0:
-            flat: FloatArray = self.var + self.gain @ np.array([var_m, var_rad])
-            return flat
-        v = self.var + self.gain[:, :, 0] * (var_m * self.rho_weight(share))[:, None]
-        out: FloatArray = v + self.gain[:, :, 1] * var_rad
+        ``α``."""
+        terms = np.empty((self.r.shape[0], 2, 1))
+        terms[:, 0, 0] = var_m * self.rho_weight(share)
+        terms[:, 1, 0] = var_rad
+        out: FloatArray = self.var + (self.gain @ terms)[:, :, 0]
         return out
 
     def rho_weight(self, share: float) -> FloatArray:
@@ -439,10 +437,12 @@ def estimate_line_model_error(
     without = (float(np.mean(z0[:, 0] ** 2)), float(np.mean(z0[:, 1] ** 2)))
     pairs = _lag_pairs(res)
     share = 0.0
+    gate = _variances(res, (1.0, 1.0))
     if shape == "length":
-        alone = _variances(res, (1.0, 1.0))
-        share = _length_share(res, alone[1], _iact(res, pairs, *alone)[0])
-    var_m, var_rad = gate = _variances(res, (1.0, 1.0), share)
+        share = _length_share(res, gate[1], _iact(res, pairs, *gate)[0])
+        if share > 0.0:
+            gate = _variances(res, (1.0, 1.0), share)
+    var_m, var_rad = gate
     tau = _iact(res, pairs, var_m, var_rad, share)
     for _ in range(_MAX_ROUNDS if correlated else 0):
         # τ moves with the terms (they reweight the observations): to a fixed point.
@@ -481,9 +481,10 @@ def with_line_model_error(
     Without ``gate`` the terms are added to the log's own gate covariances too, if it
     has any.
     """
-    for name, t in (("terms", terms), ("gate", gate)):
-        if not (isinstance(t, LineTerms) or (name == "gate" and t is None)):
-            raise TypeError(f"with_line_model_error: {name} must be LineTerms, got {t!r}")
+    if not isinstance(terms, LineTerms):
+        raise TypeError(f"with_line_model_error: terms must be LineTerms, got {terms!r}")
+    if gate is not None and not isinstance(gate, LineTerms):
+        raise TypeError(f"with_line_model_error: gate must be LineTerms or None, got {gate!r}")
     lines = np.flatnonzero(log.feat_kind == int(FeatureKind.LINE)).tolist()
     lengths = (log.feat_extent[:, 1] - log.feat_extent[:, 0]).tolist()
     for i in lines:
